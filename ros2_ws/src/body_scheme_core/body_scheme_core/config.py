@@ -1,0 +1,173 @@
+"""Configuration of the body-scheme learner: one validated dataclass, the single source of defaults.
+
+The ROS nodes declare one parameter per field (same name) and build this object from them; the YAML files in
+``body_scheme_nodes/config`` mirror these defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+from .errors import InvalidInputError
+
+__all__ = ["BodySchemeConfig"]
+
+
+@dataclass(frozen=True)
+class BodySchemeConfig:
+    """Hyperparameters of learning, structure search, change detection and control.
+
+    Attributes
+    ----------
+    sigma_trans : float
+        Observation noise of one marker's position as the RMS of its 3D error, in m (the paper's "44 mm in 3D
+        space"); the per-axis standard deviation is ``sigma_trans / sqrt(3)``.
+    sigma_rot : float
+        Observation noise of one marker's orientation as the RMS of its rotation-vector error, in rad; per axis
+        ``sigma_rot / sqrt(3)``.
+    theta_trans, theta_rot : float or None
+        Validity thresholds on the mean translational (m) and rotational (rad) prediction error over the test
+        window (paper Eq. 5-6). ``None`` means ``validity_sigmas * sigma``: 3 sigma as in the paper.
+    validity_sigmas : float
+        Multiple of sigma used when a threshold is ``None``.
+    test_window : int
+        |D_test|: number of latest samples a local model's prediction error is averaged over.
+    train_window : int
+        |D_train|: number of samples a local model is trained on after it is instantiated; then it is frozen.
+    refine_window : int
+        Models of the body scheme (the selected tree) keep learning, prequentially tested, until they hold this
+        many samples; candidates are frozen at ``train_window`` as in the paper. The structure decision needs no
+        more than ``train_window`` samples, the accuracy of long chains does. Values up to ``train_window`` turn
+        refinement off.
+    max_complexity : int
+        Largest number of actions a local model may depend on (number of complexity layers searched - 1).
+    min_test_samples : int
+        A model needs at least this many test samples before its validity is judged.
+    root : int or None
+        Part id of the root of the body scheme (the robot's trunk). ``None``: the lowest known part id.
+    gp_length_scale : float
+        Length scale of the squared-exponential kernel over actions, in rad.
+    gp_signal_std_trans, gp_signal_std_rot : float
+        Prior standard deviation of the translational (m) and rotation-matrix components around the training mean.
+    stale_fraction : float
+        While a model is still learning (n training samples), errors of its predictions made with fewer than
+        ``floor(stale_fraction * n)`` samples are ignored when judging its validity (0 disables the rule).
+    bootstrap_patience : int
+        Bootstrapping also ends when the valid spanning tree's models are frozen and the tree has not changed for
+        this many steps, even if candidates of pairs rarely seen together are still learning.
+    cusum_drift, cusum_threshold, cusum_clip : float
+        One-sided CUSUM on a body-scheme model's per-sample error in threshold units (``e / theta``): reference
+        value k, alarm level h, and the clip applied to each sample first (outlier robustness).
+    dominance_margin : float
+        A candidate is not eligible for the spanning tree while a candidate of the same pair whose actions include
+        its own predicts the same test samples better by more than this many thresholds (mean of ``e / theta``, in
+        either channel): the extra actions clearly matter, so the simpler model is biased even if it is valid.
+    challenge_margin : float
+        While a body-scheme model's CUSUM is above zero, a remembered model of the same pair takes over at once
+        when, over the samples since the CUSUM left zero, it is valid and beats the current model in both channels
+        by more than this many thresholds on average (paired comparison).
+    reinstate_min_samples : int
+        A remembered model is put back when its mean errors over at least this many samples since the estimated
+        change point are below the validity thresholds.
+    memory_size : int
+        Retired models remembered per pair of parts (least recently used dropped first); 0 disables memory.
+    history_length : int
+        Raw steps (actions and observations) kept to replay to replacement models from the change point on.
+    replacement_max_relative : int
+        Replacements are sampled for every action set whose relative complexity (size of the symmetric
+        difference with the failed model's actions, paper Eq. 11) is at most this.
+    replacement_patience : int
+        If no replacement of a mismatching model is valid this many steps after sampling, new ones are sampled
+        from the most recent ``test_window`` steps of the history.
+    root_window : int
+        Number of recent root observations whose robust mean (coordinate-wise median) gives the root pose in the
+        world for :meth:`BodySchemeLearner.predict`.
+    """
+
+    sigma_trans: float = 0.05
+    sigma_rot: float = math.radians(15.0)
+    theta_trans: float | None = None
+    theta_rot: float | None = None
+    validity_sigmas: float = 3.0
+    test_window: int = 15
+    train_window: int = 30
+    refine_window: int = 120
+    max_complexity: int = 2
+    min_test_samples: int = 3
+    root: int | None = None
+    gp_length_scale: float = 1.0
+    gp_signal_std_trans: float = 0.3
+    gp_signal_std_rot: float = 0.7
+    stale_fraction: float = 0.5
+    bootstrap_patience: int = 30
+    cusum_drift: float = 0.75
+    cusum_threshold: float = 2.5
+    cusum_clip: float = 2.0
+    dominance_margin: float = 0.15
+    challenge_margin: float = 0.25
+    reinstate_min_samples: int = 2
+    memory_size: int = 4
+    history_length: int = 60
+    replacement_max_relative: int = 2
+    replacement_patience: int = 60
+    root_window: int = 50
+    extra: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self):
+        positive = ["sigma_trans", "sigma_rot", "validity_sigmas", "gp_length_scale", "gp_signal_std_trans",
+                    "gp_signal_std_rot"]
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
+        for name in ["test_window", "train_window", "min_test_samples"]:
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ["refine_window", "bootstrap_patience", "reinstate_min_samples", "history_length",
+                     "replacement_patience", "root_window"]:
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ["memory_size", "replacement_max_relative"]:
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+                raise InvalidInputError(f"{name} must be an integer >= 0, got {value!r}")
+        for name in ["dominance_margin", "challenge_margin"]:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
+        if not (isinstance(self.stale_fraction, (int, float)) and 0.0 <= self.stale_fraction < 1.0):
+            raise InvalidInputError(f"stale_fraction must be in [0, 1), got {self.stale_fraction!r}")
+        cusum = (self.cusum_drift, self.cusum_threshold, self.cusum_clip)
+        if not (all(isinstance(v, (int, float)) and math.isfinite(v) for v in cusum)
+                and self.cusum_clip > self.cusum_drift > 0 and self.cusum_threshold > 0):
+            raise InvalidInputError(
+                f"need finite cusum_clip > cusum_drift > 0 and cusum_threshold > 0, got clip {self.cusum_clip!r}, "
+                f"drift {self.cusum_drift!r}, threshold {self.cusum_threshold!r}")
+        if not (isinstance(self.max_complexity, int) and self.max_complexity >= 0):
+            raise InvalidInputError(f"max_complexity must be an integer >= 0, got {self.max_complexity!r}")
+        if self.min_test_samples > self.test_window:
+            raise InvalidInputError(
+                f"min_test_samples ({self.min_test_samples}) must not exceed test_window ({self.test_window})")
+        for name, sigma in [("theta_trans", self.sigma_trans), ("theta_rot", self.sigma_rot)]:
+            value = getattr(self, name)
+            if value is None:
+                object.__setattr__(self, name, self.validity_sigmas * sigma)
+            elif not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be a finite number > 0 or None, got {value!r}")
+
+    def to_dict(self):
+        """Plain dict of all fields (JSON-serialisable)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data):
+        """Build from a dict, rejecting unknown keys with the list of known ones."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise InvalidInputError(f"unknown configuration key(s) {unknown}; known: {sorted(known)}")
+        return cls(**data)

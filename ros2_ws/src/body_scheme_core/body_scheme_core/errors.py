@@ -1,0 +1,25 @@
+"""Named exceptions of body_scheme_core.
+
+Every error the library raises on purpose derives from :class:`BodySchemeError`, so callers (the ROS nodes) can
+catch ours without swallowing programming errors. Input validation errors also derive from ``ValueError``.
+"""
+
+from __future__ import annotations
+
+__all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError"]
+
+
+class BodySchemeError(Exception):
+    """Base class of every error raised on purpose by body_scheme_core."""
+
+
+class InvalidInputError(BodySchemeError, ValueError):
+    """An argument has the wrong shape, is not finite, or is not a valid pose, id or configuration."""
+
+
+class ModelFileError(BodySchemeError):
+    """A saved state file is corrupt, truncated, of another format, or of an unsupported version."""
+
+
+class NotFittedError(BodySchemeError):
+    """A local model was asked to predict before it was fitted."""

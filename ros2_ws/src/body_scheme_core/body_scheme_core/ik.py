@@ -1,0 +1,308 @@
+"""Gradient-based control on a body scheme: inverse kinematics for the position of one part (paper Sec. III-D).
+
+The forward model of a :class:`~body_scheme_core.scheme.BodyScheme` is continuous, so its Jacobian (Eq. 10) drives a
+damped least-squares (Levenberg-Marquardt) search for actions that bring a part to a target position. The solver is
+honest: it reports ``success=False`` with a reason rather than returning a wrong answer labelled as success.
+
+The residual is a separate small class so that a pose target (position and orientation) can be added later by
+writing another residual with the same ``evaluate``/``jacobian`` pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InvalidInputError
+from .transforms import check_transform, invert_transform
+
+__all__ = ["IKResult", "solve_ik"]
+
+#: Stop an attempt when the residual improved by less than this fraction over ``_STALL_WINDOW`` iterations.
+_STALL_FRACTION = 1e-3
+_STALL_WINDOW = 8
+#: Relative step size below which an attempt counts as stuck.
+_XTOL = 1e-10
+#: Damping above which the local linear model is useless: the attempt is stuck.
+_MAX_DAMPING = 1e12
+#: Step of the forward differences (rad or m) when ``derivatives="forward"``: truncation error ~1e-7, round-off
+#: ~1e-16 / 1e-7 = 1e-9, both far below what the damped step needs.
+_FORWARD_STEP = 1e-7
+
+
+@dataclass(frozen=True, eq=False)
+class IKResult:
+    """Outcome of :func:`solve_ik`.
+
+    Attributes
+    ----------
+    actions : ndarray, shape (m,)
+        Best full action vector found, always within the joint limits (also when ``success`` is False).
+    success : bool
+        True only if the position residual at ``actions`` is at most ``tol``.
+    iterations : int
+        Total Levenberg-Marquardt iterations over all attempts.
+    residual : float
+        Distance in m between the predicted part position at ``actions`` and the target (NaN if not evaluated).
+    reason : str
+        Human-readable explanation, e.g. ``"converged"`` or ``"target unreachable: best residual 0.231 m after 3
+        restarts"``.
+    restarts : int
+        Number of random restarts used.
+    position : ndarray, shape (3,)
+        Predicted position of the part in the root frame at ``actions`` (NaN if not evaluated).
+    """
+
+    actions: np.ndarray
+    success: bool
+    iterations: int
+    residual: float
+    reason: str
+    restarts: int = 0
+    position: np.ndarray | None = None
+
+
+class _PositionResidual:
+    """Residual ``target - position(part)`` in the root frame as a function of the varied actions ``x``.
+
+    ``evaluate`` returns the residual together with the chain state it computed, which ``jacobian`` then reuses,
+    so the forward chain is evaluated once per iteration.
+    """
+
+    def __init__(self, scheme, part, target, a_full, active, derivative_step):
+        self.scheme = scheme
+        self.part = part
+        self.target = target
+        self.a = a_full.copy()
+        self.active = active
+        self.derivative_step = derivative_step
+
+    def evaluate(self, x):
+        """Residual (3,) and the chain state ``(T, dT)`` at ``x``."""
+        self.a[self.active] = x
+        if self.derivative_step is None:
+            T, dT = self.scheme.chain_transforms(self.a, self.part), None
+        else:
+            T, dT = self.scheme.chain_transforms(self.a, self.part, derivative_step=self.derivative_step)
+        root2part = np.eye(4)
+        for Ti in T:
+            root2part = root2part @ Ti
+        return self.target - root2part[:3, 3], (T, dT)
+
+    def jacobian(self, x, state):
+        """d residual / d x, shape (3, k): minus the position Jacobian restricted to the varied actions."""
+        self.a[self.active] = x
+        T, dT = state
+        J = self.scheme.position_jacobian(self.a, self.part, local_transforms=T, local_derivatives=dT)
+        return -J[:, self.active]
+
+
+def _as_vector(value, m, name):
+    v = np.asarray(value, dtype=float)
+    try:
+        v = np.broadcast_to(v, (m,)).copy()
+    except ValueError as exc:
+        raise InvalidInputError(f"{name} must be a scalar or have shape ({m},), got {v.shape}") from exc
+    if np.any(np.isnan(v)):
+        raise InvalidInputError(f"{name} contains NaN")
+    return v
+
+
+def _attempt(residual, x0, lo, hi, tol, max_iterations, damping):
+    """One Levenberg-Marquardt run with bound projection.
+
+    Returns
+    -------
+    x : ndarray, shape (k,)
+        Best point of the run.
+    e : ndarray, shape (3,)
+        Residual at ``x``.
+    iterations : int
+    status : str
+        ``"converged"``, ``"stuck"`` or ``"max_iterations"``.
+    """
+    x = x0.copy()
+    e, state = residual.evaluate(x)
+    F = 0.5 * float(e @ e)
+    if np.sqrt(2.0 * F) <= tol:
+        return x, e, 0, "converged"
+    J = residual.jacobian(x, state)
+    g = J.T @ e  # gradient of F = |e|^2 / 2 (J is de/dx); descent goes along -g
+    JtJ = J.T @ J
+    mu = damping * max(float(np.max(np.diag(JtJ))), 1e-12)
+    nu = 2.0
+    history = [np.sqrt(2.0 * F)]
+    width = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+    for it in range(1, max_iterations + 1):
+        # Variables pinned at a bound whose descent direction points outside are held fixed (projected LM); the
+        # others take a damped Gauss-Newton step that is then clipped into the box.
+        at_lo = (x <= lo + 1e-12 * width) & (g > 0.0)
+        at_hi = (x >= hi - 1e-12 * width) & (g < 0.0)
+        free = ~(at_lo | at_hi)
+        if not np.any(free) or np.max(np.abs(g[free])) <= 1e-14:
+            return x, e, it - 1, "stuck"
+        H = JtJ[np.ix_(free, free)] + mu * np.eye(int(free.sum()))
+        try:
+            step = np.linalg.solve(H, -g[free])
+        except np.linalg.LinAlgError:
+            return x, e, it, "stuck"
+        x_new = x.copy()
+        x_new[free] += step
+        np.clip(x_new, lo, hi, out=x_new)
+        h = x_new - x
+        if np.linalg.norm(h) <= _XTOL * (np.linalg.norm(x) + _XTOL):
+            return x, e, it, "stuck"
+        e_new, state_new = residual.evaluate(x_new)
+        F_new = 0.5 * float(e_new @ e_new)
+        # Gain ratio of actual to linearly predicted decrease (the step was clipped, so predict with the clipped h).
+        e_lin = e + J @ h
+        predicted = F - 0.5 * float(e_lin @ e_lin)
+        rho = (F - F_new) / predicted if predicted > 0.0 else -1.0
+        if F_new < F and rho > 0.0:
+            x, e, state, F = x_new, e_new, state_new, F_new
+            if np.sqrt(2.0 * F) <= tol:
+                return x, e, it, "converged"
+            J = residual.jacobian(x, state)
+            g = J.T @ e
+            JtJ = J.T @ J
+            mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+        else:
+            mu *= nu
+            nu *= 2.0
+            if mu > _MAX_DAMPING * max(float(np.max(np.diag(JtJ))), 1.0):
+                return x, e, it, "stuck"
+        history.append(np.sqrt(2.0 * F))
+        if len(history) > _STALL_WINDOW and history[-1 - _STALL_WINDOW] - history[-1] < (
+                _STALL_FRACTION * history[-1 - _STALL_WINDOW]):
+            return x, e, it, "stuck"
+    return x, e, max_iterations, "max_iterations"
+
+
+def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iterations=100, damping=0.1,
+             n_restarts=3, rng=None, world2root=None, derivatives="forward"):
+    """Actions that bring ``part`` to a target position, by damped least squares on the body scheme.
+
+    Levenberg-Marquardt with adaptive damping (Nielsen's update) on ``|target - position(part)|^2``, using
+    :meth:`BodyScheme.position_jacobian`. Joint limits are enforced by projection: variables at a bound that the
+    gradient pushes outward are held, every step is clipped into the box. Only the actions on the part's path in the
+    tree (and with ``lower < upper``) are varied; all others keep their value from ``a0``. When an attempt stalls
+    away from the target, it restarts from a random point within the limits, up to ``n_restarts`` times.
+
+    Parameters
+    ----------
+    scheme : BodyScheme
+    part : int
+        Part whose origin should reach the target.
+    target_position : array-like, shape (3,)
+        Target in the root frame, or in the world frame if ``world2root`` is given.
+    a0 : array-like, shape (m,)
+        Start action vector (clipped into the limits first).
+    lower, upper : float or array-like, shape (m,)
+        Joint limits; may be infinite (restarts then sample within pi of ``a0``).
+    tol : float
+        Position tolerance in m for success.
+    max_iterations : int
+        Iteration budget per attempt (the first and each restart).
+    damping : float
+        Initial damping relative to the largest diagonal entry of ``J^T J``. 0.1 took a third fewer iterations than
+        1e-3 from random starts on a 6-DOF GP scheme (fewer rejected over-long first steps).
+    n_restarts : int
+        Random restarts allowed after the first attempt.
+    rng : numpy.random.Generator, int or None
+        Source of restart points; ``None`` uses a fixed seed so results are reproducible.
+    world2root : array-like, shape (4, 4), optional
+        Pose of the root in the world frame; if given, ``target_position`` is in world coordinates.
+    derivatives : {"forward", "analytic"}
+        How the local models are differentiated inside :meth:`BodyScheme.position_jacobian`. ``"forward"``:
+        forward differences computed in the same batched ``predict`` call as the forward chain (one model call per
+        edge and iteration; about 1.5x faster on GP schemes). ``"analytic"``: each model's ``jacobian``. Both give
+        the same iterates up to ~1e-7.
+
+    Returns
+    -------
+    result : IKResult
+        ``success`` is True only if the residual is at most ``tol``; otherwise ``reason`` says why (``"part not in
+        body scheme"``, ``"no action influences part"``, ``"target unreachable: ..."``, ``"max iterations reached:
+        ..."``) and ``actions`` is the best vector found, within the limits.
+
+    Raises
+    ------
+    InvalidInputError
+        On malformed arguments (shapes, NaN, ``lower > upper``, non-positive ``tol``).
+    """
+    a0 = np.asarray(a0, dtype=float)
+    if a0.ndim != 1 or not np.all(np.isfinite(a0)):
+        raise InvalidInputError(f"a0 must be a finite vector of shape (m,), got shape {a0.shape}")
+    m = a0.shape[0]
+    lower = _as_vector(lower, m, "lower")
+    upper = _as_vector(upper, m, "upper")
+    if np.any(lower > upper):
+        raise InvalidInputError(f"lower must not exceed upper, got lower={lower.tolist()} upper={upper.tolist()}")
+    target = np.asarray(target_position, dtype=float)
+    if target.shape != (3,) or not np.all(np.isfinite(target)):
+        raise InvalidInputError(f"target_position must be a finite vector of shape (3,), got {target.shape}")
+    if not (np.isfinite(tol) and tol > 0.0):
+        raise InvalidInputError(f"tol must be a finite number > 0, got {tol!r}")
+    if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
+        raise InvalidInputError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+    if not (isinstance(n_restarts, (int, np.integer)) and n_restarts >= 0):
+        raise InvalidInputError(f"n_restarts must be an integer >= 0, got {n_restarts!r}")
+    if not (np.isfinite(damping) and damping > 0.0):
+        raise InvalidInputError(f"damping must be a finite number > 0, got {damping!r}")
+    if derivatives not in ("forward", "analytic"):
+        raise InvalidInputError(f"derivatives must be 'forward' or 'analytic', got {derivatives!r}")
+    if world2root is not None:
+        root2world = invert_transform(check_transform(world2root, name="world2root"))
+        target = root2world[:3, :3] @ target + root2world[:3, 3]
+    if not isinstance(rng, np.random.Generator):
+        rng = np.random.default_rng(0 if rng is None else rng)
+
+    a = np.clip(a0, lower, upper)
+    nan3 = np.full(3, np.nan)
+    if part not in scheme:
+        return IKResult(a, False, 0, float("nan"), f"part not in body scheme: {part!r} is not one of {scheme.parts}",
+                        position=nan3)
+    part = int(part)
+    active = np.array([k for k in scheme.path_actions(part) if k < m and upper[k] > lower[k]], dtype=int)
+    residual = _PositionResidual(scheme, part, target, a, active,
+                                 _FORWARD_STEP if derivatives == "forward" else None)
+    if active.size == 0:
+        e, _ = residual.evaluate(np.zeros(0))
+        r = float(np.linalg.norm(e))
+        reason = "converged: target already reached" if r <= tol else (
+            f"no action influences part {part}: residual {r:.3g} m cannot be reduced")
+        return IKResult(a, r <= tol, 0, r, reason, position=target - e)
+
+    lo, hi = lower[active], upper[active]
+    # Restart box: the limits, or pi around the start where a limit is infinite.
+    start = a[active]
+    box_lo = np.where(np.isfinite(lo), lo, np.maximum(lo, start - np.pi))
+    box_hi = np.where(np.isfinite(hi), hi, np.minimum(hi, start + np.pi))
+
+    best_x, best_e, best_status = None, None, None
+    iterations = 0
+    restarts = 0
+    x0 = start
+    while True:
+        x, e, it, status = _attempt(residual, x0, lo, hi, tol, max_iterations, damping)
+        iterations += it
+        if best_e is None or e @ e < best_e @ best_e:
+            best_x, best_e, best_status = x, e, status
+        if status == "converged" or restarts >= n_restarts:
+            break
+        restarts += 1
+        x0 = rng.uniform(box_lo, box_hi)
+
+    a_best = a.copy()
+    a_best[active] = np.clip(best_x, lo, hi)
+    r = float(np.linalg.norm(best_e))
+    plural = "restart" if restarts == 1 else "restarts"
+    if r <= tol:
+        success, reason = True, f"converged: residual {r:.3g} m after {iterations} iterations and {restarts} {plural}"
+    elif best_status == "max_iterations":
+        success, reason = False, f"max iterations reached: best residual {r:.3g} m after {restarts} {plural}"
+    else:
+        success, reason = False, f"target unreachable: best residual {r:.3g} m after {restarts} {plural}"
+    return IKResult(a_best, success, iterations, r, reason, restarts=restarts, position=target - best_e)

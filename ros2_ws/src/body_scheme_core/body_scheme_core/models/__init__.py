@@ -1,0 +1,43 @@
+"""Local model classes p(Z_ij | A_ij), one module each, and the registry used by persistence."""
+
+from __future__ import annotations
+
+from ..errors import ModelFileError
+from .base import LocalModel, check_actions, check_observations
+from .engineered import EngineeredModel
+from .gp import GPBatch, GPModel
+from .static import StaticModel
+
+__all__ = [
+    "LocalModel",
+    "check_actions",
+    "check_observations",
+    "StaticModel",
+    "EngineeredModel",
+    "GPModel",
+    "GPBatch",
+    "MODEL_CLASSES",
+    "model_from_dict",
+]
+
+#: Local model classes by their ``kind``, the key written into saved files.
+MODEL_CLASSES: dict[str, type[LocalModel]] = {cls.kind: cls for cls in (StaticModel, EngineeredModel, GPModel)}
+
+
+def model_from_dict(data):
+    """Rebuild a local model from its :meth:`LocalModel.to_dict` output, dispatching on ``data["kind"]``.
+
+    Raises
+    ------
+    ModelFileError
+        If ``data`` is not a dict, has no ``kind``, or names an unknown kind.
+    """
+    if not isinstance(data, dict):
+        raise ModelFileError(f"a local model must be stored as a dict, got {type(data).__name__}")
+    if "kind" not in data:
+        raise ModelFileError(f"local model dict has no 'kind'; keys: {sorted(data)}")
+    kind = data["kind"]
+    cls = MODEL_CLASSES.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise ModelFileError(f"unknown local model kind {kind!r}; known: {sorted(MODEL_CLASSES)}")
+    return cls.from_dict(data)

@@ -1,0 +1,148 @@
+"""Saving and loading a learner's complete state as one JSON document, atomically and without executing code.
+
+File layout (see ``docs/core/state-file-format.md``)::
+
+    {"format": "body_scheme_state", "version": 1, "core_version": "0.1.0",
+     "saved_at": "2025-01-01T12:00:00+00:00", "state": {...BodySchemeLearner.to_state()...}}
+
+Writing goes to a temporary file in the destination directory, which is flushed and fsync'ed and then renamed over
+the destination with :func:`os.replace`, so a crash leaves either the old or the new file, never a torn one.
+Reading uses :mod:`json` only (never pickle) and turns every problem into a
+:class:`~body_scheme_core.errors.ModelFileError` that says what is wrong.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import tempfile
+
+from . import __version__
+from .errors import ModelFileError
+from .learner import BodySchemeLearner
+
+__all__ = ["save_state", "load_state", "STATE_FORMAT", "STATE_FILE_VERSION"]
+
+#: Value of the ``format`` tag of a state file.
+STATE_FORMAT = "body_scheme_state"
+#: Version of the file layout written by :func:`save_state`; files of a newer version are refused.
+STATE_FILE_VERSION = 1
+
+
+def save_state(learner, path):
+    """Write ``learner``'s complete state to ``path`` atomically.
+
+    Parameters
+    ----------
+    learner : BodySchemeLearner
+    path : str or os.PathLike
+        Destination file; its directory must exist. An existing file is replaced.
+
+    Returns
+    -------
+    path : str
+        The absolute path written.
+    """
+    if not isinstance(learner, BodySchemeLearner):
+        raise TypeError(f"learner must be a BodySchemeLearner, got {type(learner).__name__}")
+    path = os.path.abspath(os.fspath(path))
+    document = {
+        "format": STATE_FORMAT,
+        "version": STATE_FILE_VERSION,
+        "core_version": __version__,
+        "saved_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "state": learner.to_state(),
+    }
+    # allow_nan=False: NaN/inf are not JSON; a state containing them is a bug to surface now, not at load time.
+    text = json.dumps(document, allow_nan=False, separators=(",", ":"))
+    directory = os.path.dirname(path)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_directory(directory)
+    return path
+
+
+def _fsync_directory(directory):
+    """Make the rename durable where the platform allows it (POSIX); silently skipped elsewhere."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _reject_constant(name):
+    raise ModelFileError(f"state file contains {name}, which is not valid JSON (NaN or infinite values)")
+
+
+def load_state(path):
+    """Read a state file written by :func:`save_state` and rebuild the learner.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    learner : BodySchemeLearner
+
+    Raises
+    ------
+    ModelFileError
+        If the file is missing or unreadable, is not (complete) JSON, has another format tag, was written by a
+        newer file version, misses keys, or holds arrays of the wrong shape or with NaN/inf values.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except FileNotFoundError:
+        raise ModelFileError(f"state file {path!r} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ModelFileError(f"cannot read state file {path!r}: {exc}") from exc
+    if not text.strip():
+        raise ModelFileError(f"state file {path!r} is empty")
+    try:
+        document = json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise ModelFileError(
+            f"state file {path!r} is not valid JSON (truncated or corrupt?): {exc.msg} at line {exc.lineno} "
+            f"column {exc.colno} of {len(text)} characters") from exc
+    except RecursionError as exc:
+        raise ModelFileError(f"state file {path!r} is nested too deeply to be a state file") from exc
+    if not isinstance(document, dict):
+        raise ModelFileError(f"state file {path!r} must hold a JSON object, got {type(document).__name__}")
+    if document.get("format") != STATE_FORMAT:
+        raise ModelFileError(
+            f"{path!r} is not a body scheme state file: format tag {document.get('format')!r}, expected "
+            f"{STATE_FORMAT!r}")
+    version = document.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise ModelFileError(f"state file {path!r} has an invalid version {version!r}")
+    if version > STATE_FILE_VERSION:
+        raise ModelFileError(
+            f"state file {path!r} has version {version}, written by a newer body_scheme_core "
+            f"({document.get('core_version')!r}); this one ({__version__}) reads up to version {STATE_FILE_VERSION}")
+    if "state" not in document:
+        raise ModelFileError(f"state file {path!r} has no 'state'; keys: {sorted(document)}")
+    try:
+        return BodySchemeLearner.from_state(document["state"])
+    except ModelFileError as exc:
+        raise ModelFileError(f"state file {path!r}: {exc}") from exc

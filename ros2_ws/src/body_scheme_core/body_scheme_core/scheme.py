@@ -1,0 +1,508 @@
+"""The body scheme: a spanning tree of local models over all body parts (paper Sec. III-C/D, Eq. 8).
+
+A set of ``n - 1`` local models that connect all ``n`` parts without a cycle defines the whole kinematic structure,
+because every local model is a rigid transform and can be inverted. The maximum-likelihood posture for an action
+vector is obtained by concatenating the models' predictions from the root outwards (Eq. 8): every part, observed or
+not, is predicted from the actions alone. The Jacobian of that forward model (Eq. 10) drives gradient-based control
+(:mod:`body_scheme_core.ik`).
+
+Frame convention (see :mod:`body_scheme_core.transforms`): ``root2part`` is the pose of ``part`` in the root frame.
+A model predicts ``model.parent2model.child``; when the tree traverses it from ``model.child`` to ``model.parent`` the
+scheme uses the inverse transform and marks the edge ``inverted``.
+"""
+
+from __future__ import annotations
+
+import networkx as nx
+import numpy as np
+
+from .errors import InvalidInputError, ModelFileError, NotFittedError
+from .models.base import LocalModel, check_actions
+from .transforms import invert_transform
+
+__all__ = ["BodyScheme"]
+
+#: Version of the dict layout written by :meth:`BodyScheme.to_dict`.
+SCHEME_FORMAT_VERSION = 1
+
+
+def _invert_single(A2B):
+    """Inverse of one rigid transform (4, 4); cheaper than the stacked :func:`invert_transform` in hot loops."""
+    B2A = np.empty((4, 4))
+    Rt = A2B[:3, :3].T
+    B2A[:3, :3] = Rt
+    B2A[:3, 3] = -Rt @ A2B[:3, 3]
+    B2A[3] = (0.0, 0.0, 0.0, 1.0)
+    return B2A
+
+
+class BodyScheme:
+    """A spanning tree of fitted local models over all body parts, used for prediction and control.
+
+    Parameters
+    ----------
+    parts : iterable of int
+        Part (marker) ids, any numbering; each id once.
+    root : int
+        The part serving as coordinate origin (the robot's trunk), one of ``parts``.
+    models : list of LocalModel
+        Exactly ``len(parts) - 1`` fitted models whose ``(parent, child)`` pairs connect all parts without a cycle.
+        A model may be traversed in either direction.
+
+    Raises
+    ------
+    InvalidInputError
+        If ids are duplicated or unknown, the root is not a part, or the models do not form a spanning tree.
+    NotFittedError
+        If a model is not fitted.
+
+    Attributes
+    ----------
+    parts : tuple of int
+        Part ids in the order given; :meth:`predict_batch` uses this order.
+    root : int
+    models : tuple of LocalModel
+    edges : list of tuple (parent, child, model, inverted)
+        Tree edges in breadth-first order from the root; ``parent`` is the part nearer the root and ``inverted`` says
+        the model predicts ``child2parent`` and is used inverted.
+    """
+
+    def __init__(self, parts, root, models):
+        try:
+            parts = tuple(int(p) for p in parts)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"parts must be an iterable of integer ids, got {parts!r}") from exc
+        if len(parts) == 0:
+            raise InvalidInputError("a body scheme needs at least one part, got parts=()")
+        if len(set(parts)) != len(parts):
+            raise InvalidInputError(f"part ids must be unique, got {parts}")
+        try:
+            root = int(root)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"root must be an integer part id, got {root!r}") from exc
+        if root not in parts:
+            raise InvalidInputError(f"root {root} is not one of the parts {parts}")
+        models = tuple(models)
+        if len(models) != len(parts) - 1:
+            raise InvalidInputError(
+                f"a spanning tree over {len(parts)} parts needs exactly {len(parts) - 1} models, got {len(models)}")
+
+        graph = nx.Graph()
+        graph.add_nodes_from(parts)
+        for model in models:
+            if not isinstance(model, LocalModel):
+                raise InvalidInputError(f"models must be LocalModel instances, got {type(model).__name__}")
+            if model.parent not in graph or model.child not in graph:
+                raise InvalidInputError(f"{model.describe()} refers to a part that is not in {parts}")
+            if model.parent == model.child:
+                raise InvalidInputError(f"{model.describe()} connects a part to itself")
+            if graph.has_edge(model.parent, model.child):
+                raise InvalidInputError(
+                    f"parts {model.parent} and {model.child} are connected by more than one model (a cycle)")
+            if not model.is_fitted:
+                raise NotFittedError(f"{model.describe()} is not fitted; a body scheme needs fitted models")
+            graph.add_edge(model.parent, model.child, model=model)
+        # n - 1 distinct edges that connect n nodes form a tree; connectivity alone therefore rules out cycles.
+        if not nx.is_connected(graph):
+            components = [sorted(c) for c in nx.connected_components(graph)]
+            raise InvalidInputError(f"the models do not connect all parts; components: {components}")
+
+        self.parts = parts
+        self.root = root
+        self.models = models
+        self.edges = []
+        self._tree_parent = {root: None}
+        self._edge_into = {}
+        for parent, child in nx.bfs_edges(graph, root):
+            model = graph.edges[parent, child]["model"]
+            edge = (parent, child, model, model.parent != parent)
+            self.edges.append(edge)
+            self._tree_parent[child] = parent
+            self._edge_into[child] = edge
+        self._paths = {}
+        self._path_actions = {}
+        self._chains = {}
+        for part in parts:
+            path = [part]
+            while self._tree_parent[path[-1]] is not None:
+                path.append(self._tree_parent[path[-1]])
+            path.reverse()
+            self._paths[part] = tuple(path)
+            acts = set()
+            for p in path[1:]:
+                acts.update(self._edge_into[p][2].actions)
+            self._path_actions[part] = tuple(sorted(acts))
+            # Per part, what the hot loops of prediction and IK need: (model, inverted, action index list).
+            self._chains[part] = tuple((model, inverted, list(model.actions))
+                                       for _, _, model, inverted in (self._edge_into[p] for p in path[1:]))
+        self._index = {p: i for i, p in enumerate(parts)}
+        self.actions_used = tuple(sorted({a for model in models for a in model.actions}))
+        # Smallest admissible action-vector length, so a too-short vector gets one clear message from the scheme.
+        self.min_n_actions = self.actions_used[-1] + 1 if self.actions_used else 0
+
+    # ------------------------------------------------------------------ structure
+    def __contains__(self, part):
+        try:
+            return int(part) in self._index
+        except (TypeError, ValueError):
+            return False
+
+    def __repr__(self):
+        return f"<BodyScheme parts={self.parts} root={self.root} actions={self.actions_used}>"
+
+    def _check_part(self, part):
+        try:
+            part = int(part)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"part must be an integer id, got {part!r}") from exc
+        if part not in self._index:
+            raise InvalidInputError(f"part {part} is not in the body scheme (parts {self.parts})")
+        return part
+
+    def path(self, part):
+        """Part ids from the root to ``part``, both included.
+
+        Returns
+        -------
+        path : tuple of int
+        """
+        return self._paths[self._check_part(part)]
+
+    def path_actions(self, part):
+        """Sorted indices of the actions that influence the pose of ``part`` (the union over its path's models)."""
+        return self._path_actions[self._check_part(part)]
+
+    def path_edges(self, part):
+        """Tree edges ``(parent, child, model, inverted)`` from the root to ``part``, in order."""
+        return [self._edge_into[p] for p in self.path(part)[1:]]
+
+    def describe(self):
+        """Multi-line human-readable description of the tree, children indented under their parents."""
+        acts = ",".join(f"a{a}" for a in self.actions_used) or "none"
+        lines = [f"BodyScheme: {len(self.parts)} parts, root {self.root}, actions {acts}", f"{self.root} (root)"]
+        children = {p: [] for p in self.parts}
+        for parent, child, model, inverted in self.edges:
+            children[parent].append((child, model, inverted))
+
+        def walk(part, prefix):
+            for k, (child, model, inverted) in enumerate(children[part]):
+                last = k == len(children[part]) - 1
+                note = ", inverted" if inverted else ""
+                lines.append(f"{prefix}{'`-- ' if last else '|-- '}{child}  via {model.describe()}{note}")
+                walk(child, prefix + ("    " if last else "|   "))
+
+        walk(self.root, "")
+        return "\n".join(lines)
+
+    # ------------------------------------------------------------------ prediction
+    def _check_action_vector(self, a):
+        a = np.asarray(a, dtype=float)
+        if a.ndim == 2 and a.shape[0] == 1:
+            a = a[0]
+        if a.ndim != 1:
+            raise InvalidInputError(f"a must be one action vector of shape (m,), got {a.shape}")
+        if a.shape[0] < self.min_n_actions:
+            raise InvalidInputError(
+                f"the body scheme uses action index {self.min_n_actions - 1}; a must have at least "
+                f"{self.min_n_actions} entries, got {a.shape[0]}")
+        if not np.all(np.isfinite(a)):
+            raise InvalidInputError("a contains NaN or inf")
+        return a
+
+    @staticmethod
+    def _local(model, inverted, A, return_std=False):
+        """Transform(s) parent2child of one tree edge for action vectors ``A`` (k, m) [and std (k, 2)]."""
+        if return_std:
+            Z, std = model.predict(A, return_std=True)
+        else:
+            Z = model.predict(A)
+        if inverted:
+            Z = invert_transform(Z)
+        return (Z, np.asarray(std, dtype=float)) if return_std else Z
+
+    def predict(self, a, return_std=False):
+        """Maximum-likelihood pose of every part for one action vector (Eq. 8).
+
+        Concatenates the models' predictions from the root outwards, so parts that are never observed are predicted
+        as well.
+
+        Parameters
+        ----------
+        a : array-like, shape (m,)
+            Full action vector.
+        return_std : bool
+            Also return a first-order isotropic standard deviation per part (see Notes).
+
+        Returns
+        -------
+        root2part : dict of int to ndarray, shape (4, 4)
+        std : dict of int to ndarray, shape (2,)
+            ``[trans (m), rot (rad)]``; only if ``return_std``. Zero for the root.
+
+        Notes
+        -----
+        Uncertainty is propagated along the chain to first order with isotropic errors and independent models. For
+        an edge with local translation ``t`` and local std ``(s_t, s_r)``::
+
+            var_trans(child) = var_trans(parent) + |t|^2 var_rot(parent) + s_t^2
+            var_rot(child)   = var_rot(parent) + s_r^2
+
+        The middle term moves the child by the lever arm ``|t|`` times the parent's rotation error; it bounds the
+        true displacement ``|dtheta x t|`` from above and so errs on the safe side. For an inverted edge the local
+        translation is ``-R^T t`` and its std additionally picks up the model's rotation error at lever arm ``|t|``:
+        ``s_t^2 + |t|^2 s_r^2``.
+        """
+        a = self._check_action_vector(a)
+        A = a[None, :]
+        root2part = {self.root: np.eye(4)}
+        var = {self.root: np.zeros(2)}
+        for parent, child, model, inverted in self.edges:
+            if return_std:
+                T, std = self._local(model, inverted, A, return_std=True)
+                T = T[0]
+                s_t2, s_r2 = np.asarray(std, dtype=float).reshape(-1)[:2] ** 2
+                lever2 = float(T[:3, 3] @ T[:3, 3])
+                if inverted:
+                    s_t2 = s_t2 + lever2 * s_r2
+                v_t, v_r = var[parent]
+                var[child] = np.array([v_t + lever2 * v_r + s_t2, v_r + s_r2])
+            else:
+                T = self._local(model, inverted, A)[0]
+            root2part[child] = root2part[parent] @ T
+        if return_std:
+            return root2part, {p: np.sqrt(np.maximum(v, 0.0)) for p, v in var.items()}
+        return root2part
+
+    def predict_batch(self, A, return_std=False):
+        """Poses of all parts for many action vectors, in ``parts`` order.
+
+        Parameters
+        ----------
+        A : array-like, shape (n, m)
+        return_std : bool
+            Also return the propagated std (see :meth:`predict`).
+
+        Returns
+        -------
+        root2part : ndarray, shape (n, n_parts, 4, 4)
+        std : ndarray, shape (n, n_parts, 2)
+            ``[trans (m), rot (rad)]``; only if ``return_std``.
+        """
+        A = check_actions(A)
+        if A.shape[1] < self.min_n_actions:
+            raise InvalidInputError(
+                f"A must have at least {self.min_n_actions} action columns, got {A.shape[1]}")
+        n = A.shape[0]
+        out = np.zeros((n, len(self.parts), 4, 4))
+        var = np.zeros((n, len(self.parts), 2))
+        out[:, self._index[self.root]] = np.eye(4)
+        for parent, child, model, inverted in self.edges:
+            i, j = self._index[parent], self._index[child]
+            if return_std:
+                T, std = self._local(model, inverted, A, return_std=True)
+                s2 = np.asarray(std, dtype=float).reshape(n, 2) ** 2
+                lever2 = np.einsum("ni,ni->n", T[:, :3, 3], T[:, :3, 3])
+                s_t2 = s2[:, 0] + (lever2 * s2[:, 1] if inverted else 0.0)
+                var[:, j, 0] = var[:, i, 0] + lever2 * var[:, i, 1] + s_t2
+                var[:, j, 1] = var[:, i, 1] + s2[:, 1]
+            else:
+                T = self._local(model, inverted, A)
+            out[:, j] = out[:, i] @ T
+        if return_std:
+            return out, np.sqrt(np.maximum(var, 0.0))
+        return out
+
+    def chain_transforms(self, a, part, derivative_step=None):
+        """Local transforms along the path from the root to ``part``, each already in root-to-part direction.
+
+        Their product is ``root2part``. Pass the result to :meth:`jacobian` or :meth:`position_jacobian` at the same
+        ``a`` to avoid evaluating the forward chain twice (the IK solver does).
+
+        Parameters
+        ----------
+        a : array-like, shape (m,)
+        part : int
+        derivative_step : float, optional
+            If given, also return forward-difference derivatives of every local transform with this step, computed
+            in the same model call (one batched ``predict`` on ``[a, a + h e_k, ...]`` per edge). This costs far less
+            than the models' analytic ``jacobian`` (for a GP: one extra row of a kernel product instead of a
+            second pass with an SVD derivative), at a relative error of about ``h``.
+
+        Returns
+        -------
+        T : ndarray, shape (k, 4, 4)
+            ``k = len(path(part)) - 1`` transforms (``k = 0`` for the root).
+        dT : list of ndarray or None, length k
+            Only if ``derivative_step`` is given: per edge ``dT/da`` for the edge model's actions, shape
+            ``(len(model.actions), 4, 4)`` in ``model.actions`` order, or ``None`` for a model without actions.
+        """
+        a = self._check_action_vector(a)
+        chain = self._chains[self._check_part(part)]
+        T = np.empty((len(chain), 4, 4))
+        if derivative_step is None:
+            A = a[None, :]
+            for i, (model, inverted, _) in enumerate(chain):
+                Z = model.predict(A)[0]
+                T[i] = _invert_single(Z) if inverted else Z
+            return T
+        h = float(derivative_step)
+        if not (np.isfinite(h) and h > 0.0):
+            raise InvalidInputError(f"derivative_step must be a finite number > 0, got {derivative_step!r}")
+        dT = []
+        for i, (model, inverted, acts) in enumerate(chain):
+            A = np.tile(a, (1 + len(acts), 1))
+            for j, k in enumerate(acts):
+                A[1 + j, k] += h
+            Z = model.predict(A)
+            if inverted:
+                Z = invert_transform(Z)
+            T[i] = Z[0]
+            dT.append((Z[1:] - Z[0]) / h if acts else None)
+        return T, dT
+
+    def predict_part(self, a, part):
+        """``root2part`` (4, 4) of one part, evaluating only the models on its path."""
+        T = self.chain_transforms(a, part)
+        root2part = np.eye(4)
+        for Ti in T:
+            root2part = root2part @ Ti
+        return root2part
+
+    def _check_chain(self, a, part, local_transforms, local_derivatives):
+        """Validated ``a``, ``part``, local transforms (k, 4, 4) and per-edge ``(actions, dT)`` pairs."""
+        a = self._check_action_vector(a)
+        part = self._check_part(part)
+        chain = self._chains[part]
+        if local_transforms is None:
+            if local_derivatives is not None:
+                raise InvalidInputError("local_derivatives needs the matching local_transforms")
+            T = self.chain_transforms(a, part)
+        else:
+            T = np.asarray(local_transforms, dtype=float)
+            if T.shape != (len(chain), 4, 4):
+                raise InvalidInputError(
+                    f"local_transforms for part {part} must have shape ({len(chain)}, 4, 4), got {T.shape}")
+        if local_derivatives is not None:
+            if len(local_derivatives) != len(chain):
+                raise InvalidInputError(f"local_derivatives for part {part} must have {len(chain)} entries, got "
+                                        f"{len(local_derivatives)}")
+            return a, part, T, [(acts, dT) for (_, _, acts), dT in zip(chain, local_derivatives, strict=True)]
+        derivatives = []
+        for Ti, (model, inverted, acts) in zip(T, chain, strict=True):
+            if not acts:
+                derivatives.append((acts, None))
+                continue
+            dZ = np.asarray(model.jacobian(a))[acts]
+            if inverted:
+                # d(Z^-1) = -Z^-1 dZ Z^-1, and Ti already is Z^-1.
+                dZ = -(Ti @ dZ @ Ti)
+            derivatives.append((acts, dZ))
+        return a, part, T, derivatives
+
+    def jacobian(self, a, part, local_transforms=None, local_derivatives=None):
+        """Derivative of ``root2part`` with respect to every action (Eq. 10), by the product rule along the path.
+
+        Parameters
+        ----------
+        a : array-like, shape (m,)
+        part : int
+        local_transforms : ndarray, shape (k, 4, 4), optional
+            Output of :meth:`chain_transforms` at the same ``a``, to skip recomputing it.
+        local_derivatives : list, optional
+            Per-edge derivatives from ``chain_transforms(..., derivative_step=h)`` to use instead of the models'
+            analytic ``jacobian``; requires ``local_transforms``.
+
+        Returns
+        -------
+        J : ndarray, shape (m, 4, 4)
+            ``J[k] = d root2part / d a_k``; zero for actions that do not influence ``part``.
+        """
+        a, part, T, derivatives = self._check_chain(a, part, local_transforms, local_derivatives)
+        k = T.shape[0]
+        prefix = np.empty((k + 1, 4, 4))
+        suffix = np.empty((k + 1, 4, 4))
+        prefix[0] = suffix[k] = np.eye(4)
+        for i in range(k):
+            prefix[i + 1] = prefix[i] @ T[i]
+            suffix[k - 1 - i] = T[k - 1 - i] @ suffix[k - i]
+        J = np.zeros((a.shape[0], 4, 4))
+        for i, (acts, dT) in enumerate(derivatives):
+            if acts:
+                J[acts] += prefix[i] @ dT @ suffix[i + 1]
+        return J
+
+    def position_jacobian(self, a, part, local_transforms=None, local_derivatives=None):
+        """Derivative of the position of ``part`` in the root frame with respect to every action.
+
+        Parameters
+        ----------
+        a : array-like, shape (m,)
+        part : int
+        local_transforms : ndarray, shape (k, 4, 4), optional
+            Output of :meth:`chain_transforms` at the same ``a``, to skip recomputing it.
+        local_derivatives : list, optional
+            Per-edge derivatives from ``chain_transforms(..., derivative_step=h)`` to use instead of the models'
+            analytic ``jacobian``; requires ``local_transforms``.
+
+        Returns
+        -------
+        J : ndarray, shape (3, m)
+        """
+        a, part, T, derivatives = self._check_chain(a, part, local_transforms, local_derivatives)
+        k = T.shape[0]
+        # Only the last column of the suffix products matters: the part origin expressed after each edge.
+        origin = np.empty((k + 1, 4))
+        origin[k] = (0.0, 0.0, 0.0, 1.0)
+        for i in range(k - 1, -1, -1):
+            origin[i] = T[i] @ origin[i + 1]
+        Jt = np.zeros((a.shape[0], 3))
+        prefix = np.eye(4)
+        for i, (acts, dT) in enumerate(derivatives):
+            if acts:
+                Jt[acts] += (dT @ origin[i + 1]) @ prefix[:3].T
+            prefix = prefix @ T[i]
+        return Jt.T
+
+    # ------------------------------------------------------------------ persistence
+    def to_dict(self):
+        """JSON-serialisable dict: parts, root and every model's own ``to_dict()``."""
+        return {
+            "kind": "body_scheme",
+            "version": SCHEME_FORMAT_VERSION,
+            "parts": list(self.parts),
+            "root": self.root,
+            "models": [model.to_dict() for model in self.models],
+        }
+
+    @classmethod
+    def from_dict(cls, data, model_from_dict=None):
+        """Rebuild a body scheme from :meth:`to_dict` output.
+
+        Parameters
+        ----------
+        data : dict
+        model_from_dict : callable, optional
+            Turns one model dict into a LocalModel. Default: ``body_scheme_core.models.model_from_dict`` (imported
+            lazily to avoid an import cycle).
+
+        Raises
+        ------
+        ModelFileError
+            If the dict is not a body scheme of a supported version or is missing keys.
+        """
+        if model_from_dict is None:
+            from .models import model_from_dict
+        if not isinstance(data, dict) or data.get("kind") != "body_scheme":
+            raise ModelFileError("not a body scheme dict (expected kind 'body_scheme')")
+        if data.get("version") != SCHEME_FORMAT_VERSION:
+            raise ModelFileError(
+                f"unsupported body scheme version {data.get('version')!r}; this reads {SCHEME_FORMAT_VERSION}")
+        try:
+            parts, root, model_dicts = data["parts"], data["root"], data["models"]
+        except KeyError as exc:
+            raise ModelFileError(f"body scheme dict is missing key {exc}") from exc
+        models = [model_from_dict(d) for d in model_dicts]
+        try:
+            return cls(parts, root, models)
+        except InvalidInputError as exc:
+            raise ModelFileError(f"body scheme dict does not describe a valid spanning tree: {exc}") from exc

@@ -1,0 +1,263 @@
+"""Rigid transforms and poses: validation, conversion, composition, inversion and error metrics.
+
+Convention (the ROS/TF one, not pytransform3d's): ``A2B`` is the pose of frame ``B`` expressed in frame ``A``, a
+(4, 4) homogeneous matrix that maps points in ``B`` coordinates to ``A`` coordinates. Composition therefore reads
+left to right: ``A2C = concat(A2B, B2C) = A2B @ B2C``. In the paper's notation the observed pose of part ``i`` is
+``Y_i = world2part_i`` and the relative observation is ``Z_ij = Y_i^-1 Y_j = part_i2part_j``.
+
+Quaternions are ``(x, y, z, w)`` like ``geometry_msgs/Quaternion`` and ``scipy.spatial.transform.Rotation``.
+Every function accepts a single transform ``(4, 4)`` or a stack ``(..., 4, 4)`` unless it says otherwise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .errors import InvalidInputError
+
+__all__ = [
+    "check_transform",
+    "check_quaternion",
+    "transform_from_pose",
+    "pose_from_transform",
+    "transform_from_rotvec",
+    "invert_transform",
+    "concat",
+    "relative_transform",
+    "translational_error",
+    "rotational_error",
+    "vector12_from_transform",
+    "transform_from_vector12",
+    "project_to_rotation",
+]
+
+#: Tolerance on ``|R^T R - I|`` and ``det R`` for a matrix to count as a rotation.
+ROTATION_TOLERANCE = 1e-5
+#: Quaternions whose norm differs from 1 by more than this are rejected instead of normalised.
+QUATERNION_NORM_TOLERANCE = 1e-3
+
+
+def check_transform(A2B, name="transform", tolerance=ROTATION_TOLERANCE):
+    """Validate one or a stack of homogeneous transforms.
+
+    Parameters
+    ----------
+    A2B : array-like, shape (..., 4, 4)
+        Transform(s) to check.
+    name : str
+        Name used in error messages.
+    tolerance : float
+        Allowed deviation of the rotation block from orthonormality and of the last row from ``[0, 0, 0, 1]``.
+
+    Returns
+    -------
+    A2B : ndarray, shape (..., 4, 4)
+        The input as a float64 array.
+
+    Raises
+    ------
+    InvalidInputError
+        If the shape is wrong, a value is not finite, or the matrix is not a rigid transform.
+    """
+    A2B = np.asarray(A2B, dtype=float)
+    if A2B.ndim < 2 or A2B.shape[-2:] != (4, 4):
+        raise InvalidInputError(f"{name} must have shape (..., 4, 4), got {A2B.shape}")
+    if not np.all(np.isfinite(A2B)):
+        raise InvalidInputError(f"{name} contains NaN or inf")
+    R = A2B[..., :3, :3]
+    RtR = np.swapaxes(R, -1, -2) @ R
+    if np.any(np.abs(RtR - np.eye(3)) > tolerance) or np.any(np.linalg.det(R) < 0.0):
+        raise InvalidInputError(f"{name} has a rotation block that is not orthonormal with det +1")
+    if np.any(np.abs(A2B[..., 3, :] - [0.0, 0.0, 0.0, 1.0]) > tolerance):
+        raise InvalidInputError(f"{name} must have last row [0, 0, 0, 1], got {A2B[..., 3, :].tolist()}")
+    return A2B
+
+
+def check_quaternion(q, name="quaternion", tolerance=QUATERNION_NORM_TOLERANCE):
+    """Validate quaternion(s) ``(x, y, z, w)`` and return them normalised.
+
+    Parameters
+    ----------
+    q : array-like, shape (..., 4)
+    name : str
+    tolerance : float
+        Largest accepted deviation of the norm from 1. A zero or far-from-unit quaternion is a sender's bug,
+        not noise, so it is rejected rather than silently normalised.
+
+    Returns
+    -------
+    q : ndarray, shape (..., 4)
+    """
+    q = np.asarray(q, dtype=float)
+    if q.shape[-1:] != (4,):
+        raise InvalidInputError(f"{name} must have shape (..., 4), got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise InvalidInputError(f"{name} contains NaN or inf")
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(np.abs(norm - 1.0) > tolerance):
+        raise InvalidInputError(f"{name} must be a unit quaternion, got norm(s) {np.ravel(norm).tolist()}")
+    return q / norm
+
+
+def transform_from_pose(position, quaternion):
+    """Build transform(s) from position(s) and unit quaternion(s) ``(x, y, z, w)``.
+
+    Parameters
+    ----------
+    position : array-like, shape (..., 3)
+    quaternion : array-like, shape (..., 4)
+
+    Returns
+    -------
+    A2B : ndarray, shape (..., 4, 4)
+    """
+    position = np.asarray(position, dtype=float)
+    if position.shape[-1:] != (3,):
+        raise InvalidInputError(f"position must have shape (..., 3), got {position.shape}")
+    if not np.all(np.isfinite(position)):
+        raise InvalidInputError("position contains NaN or inf")
+    q = check_quaternion(quaternion)
+    batch = np.broadcast_shapes(position.shape[:-1], q.shape[:-1])
+    A2B = np.zeros(batch + (4, 4))
+    A2B[..., :3, :3] = Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    A2B[..., :3, 3] = position
+    A2B[..., 3, 3] = 1.0
+    return A2B
+
+
+def pose_from_transform(A2B):
+    """Split transform(s) into position(s) and unit quaternion(s) ``(x, y, z, w)`` with ``w >= 0``.
+
+    Parameters
+    ----------
+    A2B : array-like, shape (..., 4, 4)
+
+    Returns
+    -------
+    position : ndarray, shape (..., 3)
+    quaternion : ndarray, shape (..., 4)
+    """
+    A2B = np.asarray(A2B, dtype=float)
+    R = A2B[..., :3, :3].reshape(-1, 3, 3)
+    q = Rotation.from_matrix(R).as_quat(canonical=True).reshape(A2B.shape[:-2] + (4,))
+    return A2B[..., :3, 3].copy(), q
+
+
+def transform_from_rotvec(rotvec, translation):
+    """Build transform(s) from rotation vector(s) (axis times angle, rad) and translation(s).
+
+    Parameters
+    ----------
+    rotvec : array-like, shape (..., 3)
+    translation : array-like, shape (..., 3)
+
+    Returns
+    -------
+    A2B : ndarray, shape (..., 4, 4)
+    """
+    rotvec = np.asarray(rotvec, dtype=float)
+    translation = np.asarray(translation, dtype=float)
+    batch = np.broadcast_shapes(rotvec.shape[:-1], translation.shape[:-1])
+    A2B = np.zeros(batch + (4, 4))
+    # copy: scipy rejects the read-only view that broadcast_to returns
+    R = Rotation.from_rotvec(np.broadcast_to(rotvec, batch + (3,)).reshape(-1, 3).copy()).as_matrix()
+    A2B[..., :3, :3] = R.reshape(batch + (3, 3))
+    A2B[..., :3, 3] = translation
+    A2B[..., 3, 3] = 1.0
+    return A2B
+
+
+def invert_transform(A2B):
+    """Invert rigid transform(s) exactly (``R^T``, ``-R^T t``), without a general matrix inverse.
+
+    Parameters
+    ----------
+    A2B : array-like, shape (..., 4, 4)
+
+    Returns
+    -------
+    B2A : ndarray, shape (..., 4, 4)
+    """
+    A2B = np.asarray(A2B, dtype=float)
+    B2A = np.zeros_like(A2B)
+    Rt = np.swapaxes(A2B[..., :3, :3], -1, -2)
+    B2A[..., :3, :3] = Rt
+    B2A[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, A2B[..., :3, 3])
+    B2A[..., 3, 3] = 1.0
+    return B2A
+
+
+def concat(A2B, B2C):
+    """Compose transforms: ``A2C = A2B @ B2C`` (broadcasts over leading dimensions)."""
+    return np.asarray(A2B, dtype=float) @ np.asarray(B2C, dtype=float)
+
+
+def relative_transform(world2A, world2B):
+    """Relative transform ``A2B = world2A^-1 world2B`` (the paper's ``Z_AB = Y_A^-1 Y_B``)."""
+    return concat(invert_transform(world2A), world2B)
+
+
+def translational_error(A2B, A2C):
+    """Euclidean distance between the origins of two (stacks of) frames, shape ``(...)``."""
+    A2B = np.asarray(A2B, dtype=float)
+    A2C = np.asarray(A2C, dtype=float)
+    return np.linalg.norm(A2B[..., :3, 3] - A2C[..., :3, 3], axis=-1)
+
+
+def rotational_error(A2B, A2C):
+    """Angle in rad, in [0, pi], of the rotation between two (stacks of) frames, shape ``(...)``."""
+    A2B = np.asarray(A2B, dtype=float)
+    A2C = np.asarray(A2C, dtype=float)
+    # trace(R_B^T R_C) = sum of elementwise products; avoids a matmul per pair.
+    trace = np.sum(A2B[..., :3, :3] * A2C[..., :3, :3], axis=(-2, -1))
+    return np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+
+
+def vector12_from_transform(A2B):
+    """Flatten transform(s) into the 12 free components ``[R (row-major, 9), t (3)]``, shape ``(..., 12)``."""
+    A2B = np.asarray(A2B, dtype=float)
+    batch = A2B.shape[:-2]
+    return np.concatenate([A2B[..., :3, :3].reshape(batch + (9,)), A2B[..., :3, 3]], axis=-1)
+
+
+def project_to_rotation(M):
+    """Nearest rotation matrix (Frobenius norm) to each 3x3 matrix, by SVD with the determinant fixed to +1.
+
+    Parameters
+    ----------
+    M : array-like, shape (..., 3, 3)
+
+    Returns
+    -------
+    R : ndarray, shape (..., 3, 3)
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0.0, 1.0, d)
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt
+
+
+def transform_from_vector12(v):
+    """Map 12 regressed components back onto valid rigid transforms (the paper's normalisation step).
+
+    Parameters
+    ----------
+    v : array-like, shape (..., 12)
+        ``[R (row-major, 9), t (3)]``; the rotation block need not be orthonormal.
+
+    Returns
+    -------
+    A2B : ndarray, shape (..., 4, 4)
+    """
+    v = np.asarray(v, dtype=float)
+    if v.shape[-1:] != (12,):
+        raise InvalidInputError(f"vector must have shape (..., 12), got {v.shape}")
+    batch = v.shape[:-1]
+    A2B = np.zeros(batch + (4, 4))
+    A2B[..., :3, :3] = project_to_rotation(v[..., :9].reshape(batch + (3, 3)))
+    A2B[..., :3, 3] = v[..., 9:]
+    A2B[..., 3, 3] = 1.0
+    return A2B

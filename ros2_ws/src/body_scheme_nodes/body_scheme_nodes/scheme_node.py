@@ -1,0 +1,298 @@
+"""scheme_node: maintains the body scheme from joint commands and marker observations.
+
+Subscriptions
+-------------
+joint_commands : sensor_msgs/JointState
+    The action signals (commanded joint angles), in ``joint_names`` order.
+observations : body_scheme_msgs/MarkerPoses
+    Marker poses from the tracker, in the camera frame.
+
+Publishers
+----------
+predicted_poses : body_scheme_msgs/MarkerPoses
+    Predicted pose of every part (also unobserved ones) for each paired command, with covariance.
+body_scheme/structure : body_scheme_msgs/BodySchemeStructure  (transient local)
+body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
+body_scheme/events : body_scheme_msgs/SchemeEvent
+/diagnostics : diagnostic_msgs/DiagnosticArray
+
+Services
+--------
+~/save, ~/load : body_scheme_msgs/StatePath   (empty path: ``checkpoint_path``)
+~/reset : std_srvs/Trigger
+
+Parameters
+----------
+part_ids : int[]  (required)          marker ids of the body parts
+joint_names : string[]  (required)    joint names in action-vector order
+action_lower, action_upper : double[] joint limits (default +-pi)
+frame_id : string "camera"            frame of observations and predictions
+update_period : double 0.02 s         period of the learning timer
+settle_time : 0.0, max_delay : 2.0, pairing_grace : 0.2 (s)   pairing rule, see body_scheme_core.pairing
+checkpoint_path : string ""           state file; restored on start if it exists; "" disables checkpoints
+checkpoint_period : double 30.0 s
+urdf_path, markers_path : string ""   start from the engineered body scheme of this robot description
+learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
+                  learner.root -1 = lowest part id
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+import threading
+import time
+from collections import Counter, deque
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.pairing import CommandObservationPairer
+from body_scheme_core.persistence import load_state, save_state
+from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
+from body_scheme_msgs.srv import StatePath
+
+from . import conversions
+
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Optional config fields that ROS parameters cannot hold as None: this value stands for None.
+_NONE_SENTINELS = {"theta_trans": 0.0, "theta_rot": 0.0, "root": -1}
+
+
+def config_from_parameters(node, prefix="learner."):
+    """Declare one parameter per BodySchemeConfig field and build the config from their values."""
+    defaults = BodySchemeConfig()
+    values = {}
+    for field in dataclasses.fields(BodySchemeConfig):
+        if field.name == "extra":
+            continue
+        default = getattr(defaults, field.name) if field.name not in _NONE_SENTINELS else _NONE_SENTINELS[field.name]
+        value = node.declare_parameter(prefix + field.name, default).value
+        if field.name in _NONE_SENTINELS and value == _NONE_SENTINELS[field.name]:
+            value = None
+        values[field.name] = value
+    return BodySchemeConfig(**values)
+
+
+class SchemeNode(Node):
+    """ROS wrapper of :class:`body_scheme_core.learner.BodySchemeLearner` (see the module docstring)."""
+
+    def __init__(self):
+        super().__init__("scheme_node")
+        self.part_ids = [int(p) for p in self.declare_parameter("part_ids", [0]).value]
+        self.joint_names = list(self.declare_parameter("joint_names", ["joint_0"]).value)
+        m = len(self.joint_names)
+        self.lower = list(self.declare_parameter("action_lower", [-math.pi] * m).value)
+        self.upper = list(self.declare_parameter("action_upper", [math.pi] * m).value)
+        self.frame_id = self.declare_parameter("frame_id", "camera").value
+        update_period = self.declare_parameter("update_period", 0.02).value
+        self.pairer = CommandObservationPairer(
+            settle_time=self.declare_parameter("settle_time", 0.0).value,
+            max_delay=self.declare_parameter("max_delay", 2.0).value,
+            grace=self.declare_parameter("pairing_grace", 0.2).value)
+        self.checkpoint_path = self.declare_parameter("checkpoint_path", "").value
+        checkpoint_period = self.declare_parameter("checkpoint_period", 30.0).value
+        self.config = config_from_parameters(self)
+        if len(self.lower) != m or len(self.upper) != m:
+            raise InvalidInputError(f"action_lower/action_upper need {m} values (one per joint name)")
+
+        self.learner = self._restore_or_create()
+        self.rejected = Counter()
+        self.latency = deque(maxlen=200)
+        self._inbox = deque()  # (kind, payload) from callbacks; drained by the timer
+        self._lock = threading.Lock()
+
+        work = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(JointState, "joint_commands", self._on_command, 100)
+        self.create_subscription(MarkerPoses, "observations", self._on_observations, 100)
+        self.pub_predicted = self.create_publisher(MarkerPoses, "predicted_poses", 10)
+        self.pub_structure = self.create_publisher(BodySchemeStructure, "body_scheme/structure", LATCHED)
+        self.pub_snapshot = self.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
+        self.pub_events = self.create_publisher(SchemeEvent, "body_scheme/events", 100)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_service(StatePath, "~/save", self._on_save, callback_group=work)
+        self.create_service(StatePath, "~/load", self._on_load, callback_group=work)
+        self.create_service(Trigger, "~/reset", self._on_reset, callback_group=work)
+        self.create_timer(update_period, self._on_timer, callback_group=work)
+        self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
+        if self.checkpoint_path and checkpoint_period > 0:
+            self.create_timer(checkpoint_period, self._checkpoint, callback_group=work)
+        self._last_structure_key = None
+        self._publish_structure(force=True)
+        self.get_logger().info(
+            f"scheme_node ready: parts {self.part_ids}, joints {self.joint_names}, phase {self.learner.phase}")
+
+    # -- set-up -------------------------------------------------------------------------------------------------
+    def _new_learner(self):
+        return BodySchemeLearner(self.part_ids, len(self.joint_names), self.config,
+                                 action_lower=self.lower, action_upper=self.upper)
+
+    def _restore_or_create(self):
+        if self.checkpoint_path and pathlib.Path(self.checkpoint_path).exists():
+            try:
+                learner = load_state(self.checkpoint_path)
+                self.get_logger().info(f"restored checkpoint {self.checkpoint_path} at step {learner.step}")
+                return learner
+            except BodySchemeError as error:
+                self.get_logger().error(f"ignoring unreadable checkpoint {self.checkpoint_path}: {error}")
+        return self._new_learner()
+
+    # -- callbacks only buffer -----------------------------------------------------------------------------------
+    def _on_command(self, msg):
+        with self._lock:
+            self._inbox.append(("command", msg))
+
+    def _on_observations(self, msg):
+        with self._lock:
+            self._inbox.append(("observations", msg))
+
+    # -- the work ------------------------------------------------------------------------------------------------
+    def _on_timer(self):
+        with self._lock:
+            inbox, self._inbox = self._inbox, deque()
+        samples = []
+        for kind, msg in inbox:
+            try:
+                if kind == "command":
+                    stamp, actions = conversions.actions_from_joint_state(msg, self.joint_names)
+                    samples += self.pairer.add_command(stamp, actions)
+                else:
+                    stamp, observations, rejected = conversions.observations_from_msg(msg)
+                    for _, reason in rejected:
+                        self.rejected[_short_reason(reason)] += 1
+                    self.pairer.add_observation(stamp, observations)
+            except InvalidInputError as error:
+                self.rejected[_short_reason(str(error))] += 1
+                self.get_logger().warn(f"rejected {kind} message: {error}", throttle_duration_sec=5.0)
+        samples += self.pairer.flush(self.get_clock().now().nanoseconds * 1e-9)
+        for stamp, actions, observations in samples:
+            self._learn(stamp, actions, observations)
+
+    def _learn(self, stamp, actions, observations):
+        start = time.perf_counter()
+        try:
+            events = self.learner.update(actions, observations, stamp=stamp)
+        except InvalidInputError as error:
+            self.rejected[_short_reason(str(error))] += 1
+            return
+        self.latency.append(time.perf_counter() - start)
+        for event in events:
+            self.pub_events.publish(conversions.event_msg(stamp, event))
+            if event.kind != "input_rejected":
+                self.get_logger().info(f"[step {event.step}] {event.kind}: {event.reason}")
+        if self.learner.body_scheme is not None:
+            poses, std = self.learner.predict(actions, return_std=True)
+            self.pub_predicted.publish(conversions.marker_poses_msg(stamp, self.frame_id, poses, std))
+        self._publish_structure()
+
+    def _publish_structure(self, force=False):
+        learner = self.learner
+        edges = learner.edge_status()
+        key = tuple((e["parent"], e["child"], e["model"], e["valid"]) for e in edges) + (learner.phase,)
+        if not force and key == self._last_structure_key:
+            return
+        self._last_structure_key = key
+        stamp = self.get_clock().now().nanoseconds * 1e-9
+        self.pub_structure.publish(conversions.structure_msg(
+            stamp, learner.step, learner.phase, learner.root, learner.part_ids, edges))
+        self.pub_snapshot.publish(conversions.snapshot_msg(
+            stamp, self.frame_id, learner.step, learner.body_scheme, self.joint_names, self.lower, self.upper,
+            learner.root_pose))
+
+    def _publish_diagnostics(self):
+        learner = self.learner
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        edges = learner.edge_status()
+        n_invalid = sum(not e["valid"] for e in edges)
+        if learner.body_scheme is None:
+            level, message = DiagnosticStatus.WARN, f"no body scheme yet ({learner.phase}, step {learner.step})"
+        elif n_invalid:
+            level, message = DiagnosticStatus.ERROR, f"{n_invalid} local model(s) invalid ({learner.phase})"
+        else:
+            level, message = DiagnosticStatus.OK, f"body scheme valid ({learner.phase})"
+        latency = sorted(self.latency)
+        rejected = Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected)
+        values = {"phase": learner.phase, "step": learner.step, "edges": len(edges), "invalid_edges": n_invalid,
+                  "update_latency_median_ms": 1e3 * latency[len(latency) // 2] if latency else float("nan"),
+                  "update_latency_max_ms": 1e3 * latency[-1] if latency else float("nan"),
+                  "rejected_total": sum(rejected.values())}
+        values.update({f"rejected.{reason}": count for reason, count in sorted(rejected.items())})
+        array.status.append(conversions.diagnostic_status("body_scheme: scheme", level, message, values))
+        for e in edges:
+            level = (DiagnosticStatus.ERROR if e["in_mismatch"] or not e["valid"] else DiagnosticStatus.OK)
+            message = "valid" if level == DiagnosticStatus.OK else ("mismatch" if e["in_mismatch"] else "invalid")
+            array.status.append(conversions.diagnostic_status(
+                f"body_scheme: local model {e['parent']}->{e['child']}", level, message,
+                {k: e[k] for k in ("model", "kind", "n_test", "trans_error", "rot_error", "theta_trans", "theta_rot")}))
+        self.pub_diagnostics.publish(array)
+
+    # -- services ------------------------------------------------------------------------------------------------
+    def _on_save(self, request, response):
+        path = request.path or self.checkpoint_path
+        if not path:
+            response.success, response.message = False, "no path given and checkpoint_path is empty"
+            return response
+        try:
+            save_state(self.learner, path)
+            response.success, response.message = True, f"saved step {self.learner.step} to {path}"
+        except (OSError, BodySchemeError) as error:
+            response.success, response.message = False, f"save failed: {error}"
+        return response
+
+    def _on_load(self, request, response):
+        path = request.path or self.checkpoint_path
+        try:
+            self.learner = load_state(path)
+            response.success, response.message = True, f"loaded step {self.learner.step} from {path}"
+            self._publish_structure(force=True)
+        except (OSError, BodySchemeError) as error:
+            response.success, response.message = False, f"load failed: {error}"
+        return response
+
+    def _on_reset(self, request, response):
+        self.learner = self._new_learner()
+        self._publish_structure(force=True)
+        response.success, response.message = True, "learner reset: bootstrapping from scratch"
+        return response
+
+    def _checkpoint(self):
+        try:
+            save_state(self.learner, self.checkpoint_path)
+        except (OSError, BodySchemeError) as error:
+            self.get_logger().error(f"checkpoint to {self.checkpoint_path} failed: {error}")
+
+
+def _short_reason(text):
+    """Counter key for a rejection message: its first words, so similar rejections add up."""
+    return " ".join(str(text).split()[:4])
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SchemeNode()
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""Fixtures for system tests: real node processes from the colcon install space, real rclpy, real DDS.
+
+Every test gets its own ROS domain id and localhost-only discovery, so concurrent runs on one machine never see each
+other's topics. Node processes are the files ``ros2 run`` would execute: ``install/<pkg>/lib/<pkg>/<executable>``.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import random
+import signal
+import subprocess
+import time
+
+import pytest
+import rclpy
+import yaml
+from rclpy.executors import SingleThreadedExecutor
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+INSTALL = REPO / "ros2_ws" / "install"
+
+
+def executable(package, name):
+    """Path of an installed node executable, as ``ros2 run <package> <name>`` would find it."""
+    path = INSTALL / package / "lib" / package / name
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist: build the workspace first (make build)")
+    return path
+
+
+class NodeProcess:
+    """A node started as its own OS process, with its output captured to a log file."""
+
+    def __init__(self, package, name, parameters, env, log_dir):
+        self.name = name
+        self.log_path = log_dir / f"{name}.log"
+        params_path = log_dir / f"{name}.params.yaml"
+        params_path.write_text(yaml.safe_dump({"/**": {"ros__parameters": parameters}}))
+        self._log = open(self.log_path, "w")
+        self.process = subprocess.Popen(
+            [str(executable(package, name)), "--ros-args", "--params-file", str(params_path)],
+            stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+    def output(self):
+        """Everything the process printed so far."""
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text()
+
+    def kill(self, sig=signal.SIGKILL):
+        """Send a signal to the node's whole process group (``kill -9`` by default)."""
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, sig)
+        self.process.wait(timeout=10)
+
+    def stop(self):
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGINT)
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        self._log.close()
+        return self.process.returncode
+
+
+@pytest.fixture
+def domain_id():
+    """A ROS domain id of this test alone (localhost-only discovery)."""
+    return random.Random(os.getpid() + time.monotonic_ns()).randint(1, 100)
+
+
+@pytest.fixture
+def ros_env(domain_id):
+    """Environment for node processes: the current one plus this test's domain."""
+    env = dict(os.environ)
+    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    return env
+
+
+@pytest.fixture
+def start_node(ros_env, tmp_path):
+    """Start installed node executables; all are stopped (and their logs shown on failure) at teardown."""
+    started = []
+
+    def start(package, name, parameters, env_overrides=None):
+        env = dict(ros_env, **(env_overrides or {}))
+        process = NodeProcess(package, name, parameters, env, tmp_path)
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        process.stop()
+        print(f"----- {process.name} output -----\n{process.output()}")
+
+
+@pytest.fixture
+def ros_node(domain_id, monkeypatch):
+    """An rclpy node of the test process in this test's domain; rclpy is initialised and shut down around it."""
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    node = rclpy.create_node("system_test", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    node.executor_for_test = executor
+    try:
+        yield node
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
+def spin_until(ros_node):
+    """``spin_until(predicate, timeout, during=None)``: spin the test node until ``predicate()`` holds.
+
+    ``during()`` is called between spins (e.g. to publish the next sample). Returns the predicate's last value.
+    """
+
+    def spin(predicate, timeout, during=None, step=0.01):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if during is not None:
+                during()
+            ros_node.executor_for_test.spin_once(timeout_sec=step)
+            if predicate():
+                return True
+        return bool(predicate())
+
+    return spin

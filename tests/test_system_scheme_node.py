@@ -1,0 +1,109 @@
+"""System tests of scheme_node: the installed executable as its own process, our messages over real DDS."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from body_scheme_core.synthetic import make_session, planar_2dof
+from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot
+from body_scheme_nodes import conversions
+
+pytestmark = pytest.mark.system
+
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def scheme_parameters(tree):
+    return {"part_ids": [int(i) for i in tree.marker_ids], "joint_names": list(tree.action_joint_names),
+            "action_lower": [float(v) for v in tree.action_lower],
+            "action_upper": [float(v) for v in tree.action_upper],
+            "pairing_grace": 0.05, "learner.train_window": 20}
+
+
+class Collector:
+    """Keeps the latest message of each subscribed topic and all diagnostics statuses by name."""
+
+    def __init__(self, node):
+        self.structure = None
+        self.snapshot = None
+        self.diagnostics = {}
+        node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, LATCHED)
+        node.create_subscription(ModelSnapshot, "body_scheme/snapshot", self._snapshot, LATCHED)
+        node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
+
+    def _structure(self, msg):
+        self.structure = msg
+
+    def _snapshot(self, msg):
+        self.snapshot = msg
+
+    def _diagnostics(self, msg):
+        for status in msg.status:
+            self.diagnostics[status.name] = status
+
+
+class Babbler:
+    """Publishes a synthetic babbling session: each command, then the marker poses observed after it."""
+
+    def __init__(self, node, session, period=0.02):
+        self.node, self.session, self.period = node, session, period
+        self.commands = node.create_publisher(JointState, "joint_commands", 100)
+        self.observations = node.create_publisher(MarkerPoses, "observations", 100)
+        self.k = 0
+        self._next = time.monotonic()
+
+    def __call__(self):
+        """Publish the next sample if its time has come (called between spins)."""
+        if self.k >= self.session.n_steps or time.monotonic() < self._next:
+            return
+        now = self.node.get_clock().now().nanoseconds * 1e-9
+        command = JointState(name=list(self.session.tree.action_joint_names),
+                             position=[float(v) for v in self.session.actions[self.k]])
+        command.header.stamp = conversions.stamp_from_seconds(now)
+        self.commands.publish(command)
+        observed = self.session.observations[self.k]
+        self.observations.publish(conversions.marker_poses_msg(now + 0.005, "camera", observed))
+        self.k += 1
+        self._next += self.period
+
+
+def test_scheme_node_learns_structure_over_dds(start_node, ros_node, spin_until):
+    """scheme_node, fed a babbling session over DDS, publishes the true body scheme and an OK diagnostic."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=120, seed=0, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
+    process = start_node("body_scheme_nodes", "scheme_node", scheme_parameters(tree))
+    collector = Collector(ros_node)
+
+    # The latched structure arrives as soon as discovery completes, before any data: the node is up.
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    assert collector.structure.phase == "bootstrapping" and list(collector.structure.edges) == []
+
+    babbler = Babbler(ros_node, session)
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+
+    def learned_true_structure():
+        s = collector.structure
+        return s is not None and {frozenset((e.parent_id, e.child_id)) for e in s.edges} == true_edges \
+            and all(e.valid for e in s.edges)
+
+    assert spin_until(learned_true_structure, timeout=60, during=babbler), (
+        f"published {babbler.k} samples; last structure {collector.structure}\n{process.output()}")
+    assert sorted(collector.structure.part_ids) == sorted(tree.marker_ids)
+    # The snapshot for the control node follows the structure on its own latched topic.
+    assert spin_until(lambda: collector.snapshot is not None and collector.snapshot.scheme_json, timeout=10)
+    scheme, _, lower, _ = conversions.scheme_from_snapshot(collector.snapshot)
+    assert {frozenset((p, c)) for p, c, _, _ in scheme.edges} == true_edges
+    np.testing.assert_allclose(lower, tree.action_lower)
+
+    def scheme_ok():
+        status = collector.diagnostics.get("body_scheme: scheme")
+        return status is not None and status.level == DiagnosticStatus.OK
+    assert spin_until(scheme_ok, timeout=10, during=babbler), collector.diagnostics
+    edge_statuses = [name for name in collector.diagnostics if name.startswith("body_scheme: local model")]
+    assert len(edge_statuses) == len(true_edges)
