@@ -18,6 +18,11 @@ evaluated in every step):
 ``ik_ms_median``, ``ik_success_rate``
     :func:`~body_scheme_core.ik.solve_ik` on the learned scheme for random reachable end-effector targets (the
     scheme's own prediction at random actions), from random starts.
+``parametrisation``
+    Accuracy of the paper's GP parametrisation (12 independent components of ``[R | t]``, then the SVD projection
+    onto SE(3): :class:`~body_scheme_core.models.gp.GPModel`) against a 6-output tangent-space GP (rotation vector
+    relative to the training mean rotation, plus translation) with the same kernel and noise ratio, on random
+    one-joint relations observed with the default noise, 30 training samples, for joint ranges of +-1 rad and +-pi.
 
 BLAS threads are pinned to 1 (environment variables set before numpy is imported, and threadpoolctl when
 available), so the numbers are single-core numbers.
@@ -46,10 +51,18 @@ from . import __version__  # noqa: E402
 from .config import BodySchemeConfig  # noqa: E402
 from .ik import solve_ik  # noqa: E402
 from .learner import BodySchemeLearner  # noqa: E402
-from .models.gp import GPHyperparameters  # noqa: E402
+from .models.gp import GPHyperparameters, GPModel, squared_exponential  # noqa: E402
 from .structure import enumerate_candidates  # noqa: E402
 from .synthetic import make_session, powercube_6dof  # noqa: E402
-from .transforms import relative_transform, vector12_from_transform  # noqa: E402
+from .transforms import (  # noqa: E402
+    concat,
+    project_to_rotation,
+    relative_transform,
+    rotational_error,
+    transform_from_rotvec,
+    translational_error,
+    vector12_from_transform,
+)
 
 __all__ = ["main", "run_benchmarks"]
 
@@ -141,6 +154,63 @@ def _ik(learner, session, n_targets, seed):
     return np.asarray(times), np.asarray(success)
 
 
+def _tangent_gp_predict(A_train, Z_train, A_test, hyper):
+    """The alternative parametrisation: GP on [rotvec(R_ref^T R), t] around the chordal-mean rotation R_ref."""
+    from scipy.spatial.transform import Rotation
+
+    R_ref = project_to_rotation(Z_train[:, :3, :3].mean(axis=0))
+    Y = np.concatenate([Rotation.from_matrix(R_ref.T @ Z_train[:, :3, :3]).as_rotvec(), Z_train[:, :3, 3]], axis=1)
+    mean = Y.mean(axis=0)
+    ratio = float(hyper.ratios.max())
+    K = squared_exponential(A_train, A_train, hyper.length_scale) + ratio**2 * np.eye(len(A_train))
+    k_star = squared_exponential(A_test, A_train, hyper.length_scale)
+    pred = mean + k_star @ np.linalg.solve(K, Y - mean)
+    Z = transform_from_rotvec(pred[:, :3], pred[:, 3:])
+    Z[:, :3, :3] = R_ref @ Z[:, :3, :3]
+    return Z
+
+
+def _parametrisation_comparison(seed, n_trials, n_train=30, n_test=200):
+    """Mean prediction error (mm, deg) against ground truth of both parametrisations, per joint range."""
+    config = BodySchemeConfig()
+    hyper = GPHyperparameters.from_config(config)
+    rng = np.random.default_rng(seed)
+    s_t, s_r = config.sigma_trans / np.sqrt(3.0), config.sigma_rot / np.sqrt(3.0)
+    out = {}
+    for label, limit in (("range_1rad", 1.0), ("range_pi", np.pi)):
+        errors = {"matrix12": [], "tangent6": []}
+        for _ in range(n_trials):
+            # Z(a) = A @ Rot(axis, a) @ B: one revolute joint between two markers about 0.3 m apart.
+            A = transform_from_rotvec(rng.normal(size=3), rng.normal(scale=0.2, size=3))
+            B = transform_from_rotvec(rng.normal(size=3), rng.normal(scale=0.2, size=3))
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+
+            def relation(a, A=A, B=B, axis=axis):
+                return concat(concat(A, transform_from_rotvec(np.outer(a, axis), np.zeros(3))), B)
+
+            a_train = rng.uniform(-limit, limit, n_train)
+            noise_i = transform_from_rotvec(rng.normal(scale=s_r, size=(n_train, 3)),
+                                            rng.normal(scale=s_t, size=(n_train, 3)))
+            noise_j = transform_from_rotvec(rng.normal(scale=s_r, size=(n_train, 3)),
+                                            rng.normal(scale=s_t, size=(n_train, 3)))
+            Z_train = concat(concat(relative_transform(noise_i, np.eye(4)), relation(a_train)), noise_j)
+            a_test = rng.uniform(-limit, limit, n_test)
+            Z_true = relation(a_test)
+            gp = GPModel.from_config(0, 1, (0,), config).fit(a_train[:, None], Z_train)
+            for name, Z_pred in (("matrix12", gp.predict(a_test[:, None])),
+                                 ("tangent6", _tangent_gp_predict(a_train[:, None], Z_train, a_test[:, None], hyper))):
+                errors[name].append((translational_error(Z_pred, Z_true).mean() * 1e3,
+                                     np.degrees(rotational_error(Z_pred, Z_true)).mean()))
+        for name, values in errors.items():
+            values = np.asarray(values)
+            out[f"{name}_{label}_trans_mm"] = float(values[:, 0].mean())
+            out[f"{name}_{label}_rot_deg"] = float(values[:, 1].mean())
+    out["trials"] = int(n_trials)
+    out["n_train"] = int(n_train)
+    return out
+
+
 def run_benchmarks(quick=False, seed=0, repeats=3):
     """Run every workload; returns the result dict (also what ``main`` writes as JSON)."""
     config = BodySchemeConfig()
@@ -161,6 +231,7 @@ def run_benchmarks(quick=False, seed=0, repeats=3):
         sk_seconds = [_sklearn_step_seconds(session, config, int(n)) for n in sizes]
         sk_rate = 1.0 / float(np.mean(sk_seconds))
         ik_ms, ik_ok = _ik(learner, session, 30 if quick else 100, seed)
+    parametrisation = _parametrisation_comparison(seed, 20 if quick else 100)
     bootstrap = float(np.median(rates))
     import scipy
     import sklearn
@@ -178,6 +249,7 @@ def run_benchmarks(quick=False, seed=0, repeats=3):
         "ik_success_rate": float(np.mean(ik_ok)),
         "ik_targets": int(ik_ok.size),
         "n_candidates": int(n_candidates),
+        "parametrisation": parametrisation,
         "robot": "powercube_6dof (7 markers, 6 actions)",
         "max_complexity": config.max_complexity,
         "train_window": config.train_window,
@@ -211,6 +283,13 @@ def _table(result):
     for label, key, target in rows:
         value = result[key]
         lines.append(f"{label:40s} {value:12.3f}  {target}" if value < 100 else f"{label:40s} {value:12.1f}  {target}")
+    p = result["parametrisation"]
+    lines.append(f"GP parametrisation, mean error vs ground truth ({p['trials']} one-joint relations, "
+                 f"{p['n_train']} noisy samples):")
+    for label, text in (("range_1rad", "joint range +-1 rad"), ("range_pi", "joint range +-pi")):
+        lines.append(f"  {text:18s} 12 components + SVD: {p[f'matrix12_{label}_trans_mm']:6.1f} mm "
+                     f"{p[f'matrix12_{label}_rot_deg']:5.2f} deg   tangent space (6): "
+                     f"{p[f'tangent6_{label}_trans_mm']:6.1f} mm {p[f'tangent6_{label}_rot_deg']:5.2f} deg")
     lines.append(f"(python {result['python']}, numpy {result['numpy']}, BLAS threads pinned to 1 via "
                  f"{result['blas_pinning']}; structure recovered exactly: {result['scheme_exact']})")
     return "\n".join(lines)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from .errors import InvalidInputError
 
@@ -113,7 +113,6 @@ class BodySchemeConfig:
     replacement_max_relative: int = 2
     replacement_patience: int = 60
     root_window: int = 50
-    extra: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):
         positive = ["sigma_trans", "sigma_rot", "validity_sigmas", "gp_length_scale", "gp_signal_std_trans",

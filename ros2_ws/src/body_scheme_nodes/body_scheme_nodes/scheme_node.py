@@ -31,7 +31,6 @@ update_period : double 0.02 s         period of the learning timer
 settle_time : 0.0, max_delay : 2.0, pairing_grace : 0.2 (s)   pairing rule, see body_scheme_core.pairing
 checkpoint_path : string ""           state file; restored on start if it exists; "" disables checkpoints
 checkpoint_period : double 30.0 s
-urdf_path, markers_path : string ""   start from the engineered body scheme of this robot description
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
@@ -47,6 +46,7 @@ from collections import Counter, deque
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -74,8 +74,6 @@ def config_from_parameters(node, prefix="learner."):
     defaults = BodySchemeConfig()
     values = {}
     for field in dataclasses.fields(BodySchemeConfig):
-        if field.name == "extra":
-            continue
         default = getattr(defaults, field.name) if field.name not in _NONE_SENTINELS else _NONE_SENTINELS[field.name]
         value = node.declare_parameter(prefix + field.name, default).value
         if field.name in _NONE_SENTINELS and value == _NONE_SENTINELS[field.name]:
@@ -128,6 +126,7 @@ class SchemeNode(Node):
         if self.checkpoint_path and checkpoint_period > 0:
             self.create_timer(checkpoint_period, self._checkpoint, callback_group=work)
         self._last_structure_key = None
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_structure(force=True)
         self.get_logger().info(
             f"scheme_node ready: parts {self.part_ids}, joints {self.joint_names}, phase {self.learner.phase}")
@@ -236,6 +235,12 @@ class SchemeNode(Node):
                 f"body_scheme: local model {e['parent']}->{e['child']}", level, message,
                 {k: e[k] for k in ("model", "kind", "n_test", "trans_error", "rot_error", "theta_trans", "theta_rot")}))
         self.pub_diagnostics.publish(array)
+
+    def _on_set_parameters(self, parameters):
+        # Everything is read once at start-up into the learner's config; changing it later would silently not apply.
+        names = ", ".join(p.name for p in parameters)
+        return SetParametersResult(successful=False,
+                                   reason=f"{names}: read at start-up only; restart scheme_node to change it")
 
     # -- services ------------------------------------------------------------------------------------------------
     def _on_save(self, request, response):
