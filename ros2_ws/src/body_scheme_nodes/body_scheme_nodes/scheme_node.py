@@ -31,6 +31,8 @@ update_period : double 0.02 s         period of the learning timer
 settle_time : 0.0, max_delay : 2.0, pairing_grace : 0.2 (s)   pairing rule, see body_scheme_core.pairing
 checkpoint_path : string ""           state file; restored on start if it exists; "" disables checkpoints
 checkpoint_period : double 30.0 s
+urdf_path, markers_path : string ""   start from the engineered body scheme of this robot (paper Sec. IV-B/C)
+                                      instead of bootstrapping; joints map to actions by ``joint_names``
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
@@ -56,7 +58,9 @@ from std_srvs.srv import Trigger
 
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.kinematics import KinematicTree, load_markers_yaml
 from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.pairing import CommandObservationPairer
 from body_scheme_core.persistence import load_state, save_state
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -100,6 +104,8 @@ class SchemeNode(Node):
             grace=self.declare_parameter("pairing_grace", 0.2).value)
         self.checkpoint_path = self.declare_parameter("checkpoint_path", "").value
         checkpoint_period = self.declare_parameter("checkpoint_period", 30.0).value
+        self.urdf_path = self.declare_parameter("urdf_path", "").value
+        self.markers_path = self.declare_parameter("markers_path", "").value
         self.config = config_from_parameters(self)
         if len(self.lower) != m or len(self.upper) != m:
             raise InvalidInputError(f"action_lower/action_upper need {m} values (one per joint name)")
@@ -133,7 +139,9 @@ class SchemeNode(Node):
 
     # -- set-up -------------------------------------------------------------------------------------------------
     def _new_learner(self):
-        return BodySchemeLearner(self.part_ids, len(self.joint_names), self.config,
+        initial = engineered_body_scheme(self.urdf_path, self.markers_path, self.joint_names, self.part_ids) \
+            if self.urdf_path else None
+        return BodySchemeLearner(self.part_ids, len(self.joint_names), self.config, initial_models=initial,
                                  action_lower=self.lower, action_upper=self.upper)
 
     def _restore_or_create(self):
@@ -276,6 +284,23 @@ class SchemeNode(Node):
             save_state(self.learner, self.checkpoint_path)
         except (OSError, BodySchemeError) as error:
             self.get_logger().error(f"checkpoint to {self.checkpoint_path} failed: {error}")
+
+
+def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids):
+    """Engineered local models of a robot description, one per edge of its marker tree (the initial body scheme).
+
+    Raises
+    ------
+    InvalidInputError
+        If the marker file is missing, or the robot's markers are not exactly ``part_ids``.
+    """
+    if not markers_path:
+        raise InvalidInputError("urdf_path needs markers_path: the marker placement file of the robot")
+    tree = KinematicTree.from_urdf(pathlib.Path(urdf_path).read_text(), markers=load_markers_yaml(markers_path),
+                                   joint_actions={name: k for k, name in enumerate(joint_names)})
+    if sorted(tree.marker_ids) != sorted(part_ids):
+        raise InvalidInputError(f"markers of {markers_path} are {sorted(tree.marker_ids)}, part_ids are {part_ids}")
+    return engineered_models(tree)
 
 
 def _short_reason(text):

@@ -1,0 +1,218 @@
+"""control_node: moves a body part to a target with inverse kinematics on the learned body scheme.
+
+Subscriptions
+-------------
+body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
+    The current body scheme from scheme_node; rebuilt into a :class:`~body_scheme_core.scheme.BodyScheme`.
+ik_target : body_scheme_msgs/IKTarget
+    Target position of a part (``part_id`` -1: the ``part_id`` parameter), in ``header.frame_id``.
+ik_target/point : geometry_msgs/PointStamped
+    Target position of the ``part_id`` parameter's part.
+joint_commands : sensor_msgs/JointState
+    The latest command (from anyone) is the IK start point.
+
+Publishers
+----------
+joint_commands : sensor_msgs/JointState
+    The solution, or ``trajectory_steps`` commands interpolated from the current command to it.
+ik_result : body_scheme_msgs/IKResult
+    One per request, success or not, with the reason.
+/diagnostics : diagnostic_msgs/DiagnosticArray
+    ``body_scheme: control``: model age, requests, successes, last outcome (1 Hz).
+
+Parameters
+----------
+part_id : int 7                      default part to move
+tolerance : double 0.005 m           IK success: predicted distance to the target below this
+max_iterations : int 100, restarts : int 3
+max_snapshot_age : double 0.0 s      refuse to act on an older model (0: never stale)
+trajectory_steps : int 1             commands per solution (1: jump to it)
+trajectory_period : double 0.05 s    time between interpolated commands
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PointStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.ik import solve_ik
+from body_scheme_msgs.msg import IKResult, IKTarget, ModelSnapshot
+
+from . import conversions
+
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class ControlNode(Node):
+    """ROS wrapper of :func:`body_scheme_core.ik.solve_ik` (see the module docstring)."""
+
+    def __init__(self):
+        super().__init__("control_node")
+        self.default_part = self.declare_parameter("part_id", 7).value
+        self.tolerance = self.declare_parameter("tolerance", 0.005).value
+        self.max_iterations = self.declare_parameter("max_iterations", 100).value
+        self.restarts = self.declare_parameter("restarts", 3).value
+        self.max_age = self.declare_parameter("max_snapshot_age", 0.0).value
+        self.trajectory_steps = max(1, self.declare_parameter("trajectory_steps", 1).value)
+        trajectory_period = self.declare_parameter("trajectory_period", 0.05).value
+
+        self.model = None  # (scheme, world2root, lower, upper, joint names, frame_id, received_at)
+        self.current = None  # latest commanded actions, in the model's joint order
+        self.requests = deque()  # (stamp msg, part, frame_id, position) awaiting a solve
+        self.trajectory = deque()  # action vectors still to command
+        self.counts = {"requests": 0, "succeeded": 0, "failed": 0}
+        self.last_outcome = "none yet"
+        self._lock = threading.Lock()
+
+        work = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(ModelSnapshot, "body_scheme/snapshot", self._on_snapshot, LATCHED)
+        self.create_subscription(IKTarget, "ik_target", self._on_target, 10)
+        self.create_subscription(PointStamped, "ik_target/point", self._on_point, 10)
+        self.create_subscription(JointState, "joint_commands", self._on_command, 10)
+        self.pub_command = self.create_publisher(JointState, "joint_commands", 10)
+        self.pub_result = self.create_publisher(IKResult, "ik_result", 10)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(0.01, self._solve_pending, callback_group=work)
+        self.create_timer(trajectory_period, self._command_next, callback_group=work)
+        self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
+        self.get_logger().info(f"control_node ready: default part {self.default_part}, tolerance {self.tolerance} m")
+
+    # -- callbacks only store --------------------------------------------------------------------------------------
+    def _on_snapshot(self, msg):
+        try:
+            scheme, world2root, lower, upper = conversions.scheme_from_snapshot(msg)
+        except BodySchemeError as error:
+            self.get_logger().error(f"ignoring unusable model snapshot: {error}")
+            return
+        with self._lock:
+            self.model = (scheme, world2root, lower, upper, list(msg.action_names), msg.header.frame_id,
+                          time.monotonic())
+
+    def _on_command(self, msg):
+        with self._lock:
+            names = None if self.model is None else self.model[4]
+        if names is None:
+            return
+        try:
+            _, self.current = conversions.actions_from_joint_state(msg, names)
+        except BodySchemeError:
+            pass  # someone else's command for other joints: not a start point for us
+
+    def _on_target(self, msg):
+        part = self.default_part if msg.part_id < 0 else msg.part_id
+        p = msg.position
+        with self._lock:
+            self.requests.append((msg.header, int(part), [p.x, p.y, p.z]))
+
+    def _on_point(self, msg):
+        p = msg.point
+        with self._lock:
+            self.requests.append((msg.header, int(self.default_part), [p.x, p.y, p.z]))
+
+    # -- work in timers --------------------------------------------------------------------------------------------
+    def _solve_pending(self):
+        with self._lock:
+            if not self.requests:
+                return
+            header, part, target = self.requests.popleft()
+            model = self.model
+        self.counts["requests"] += 1
+        result = self._solve(header, part, target, model)
+        self.counts["succeeded" if result.success else "failed"] += 1
+        self.last_outcome = f"part {part}: {result.reason}"
+        self.pub_result.publish(result)
+        text = f"IK part {part} -> {np.round(target, 3).tolist()}: {result.reason} (residual {result.residual:.4f} m)"
+        if result.success:
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warn(text)
+
+    def _solve(self, header, part, target, model):
+        result = IKResult(header=header, part_id=part, success=False)
+        result.target.x, result.target.y, result.target.z = (float(v) for v in target)
+        if not np.all(np.isfinite(target)):
+            result.reason = "target contains NaN or inf"
+            return result
+        if model is None or model[0] is None:
+            result.reason = "no body scheme yet: waiting for a model snapshot from scheme_node"
+            return result
+        scheme, world2root, lower, upper, names, frame_id, received_at = model
+        age = time.monotonic() - received_at
+        if self.max_age > 0 and age > self.max_age:
+            result.reason = f"model snapshot is stale: {age:.1f} s old (max_snapshot_age {self.max_age} s)"
+            return result
+        if header.frame_id and frame_id and header.frame_id != frame_id:
+            result.reason = f"target frame {header.frame_id!r} differs from the body scheme's frame {frame_id!r}"
+            return result
+        a0 = self.current if self.current is not None else (lower + upper) / 2.0
+        a0 = np.where(np.isfinite(a0), a0, 0.0)
+        outcome = solve_ik(scheme, part, target, a0, lower, upper, tol=self.tolerance,
+                           max_iterations=self.max_iterations, n_restarts=self.restarts, world2root=world2root)
+        result.success = bool(outcome.success)
+        result.reason = outcome.reason
+        result.iterations = int(outcome.iterations)
+        result.residual = float(outcome.residual)
+        result.actions = [float(v) for v in outcome.actions]
+        if outcome.success:
+            steps = np.linspace(0.0, 1.0, self.trajectory_steps + 1)[1:]
+            with self._lock:
+                self.trajectory = deque(a0 + s * (outcome.actions - a0) for s in steps)
+        return result
+
+    def _command_next(self):
+        with self._lock:
+            if not self.trajectory or self.model is None:
+                return
+            actions = self.trajectory.popleft()
+            names = self.model[4]
+        msg = JointState(name=names, position=[float(v) for v in actions])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.current = actions
+        self.pub_command.publish(msg)
+
+    def _publish_diagnostics(self):
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        model = self.model
+        if model is None or model[0] is None:
+            level, message, age = DiagnosticStatus.WARN, "no body scheme yet", float("nan")
+        else:
+            age = time.monotonic() - model[6]
+            stale = self.max_age > 0 and age > self.max_age
+            level = DiagnosticStatus.WARN if stale else DiagnosticStatus.OK
+            message = "model snapshot stale" if stale else "ready"
+        values = dict(self.counts, model_age_s=age, last_outcome=self.last_outcome)
+        array.status.append(conversions.diagnostic_status("body_scheme: control", level, message, values))
+        self.pub_diagnostics.publish(array)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ControlNode()
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
