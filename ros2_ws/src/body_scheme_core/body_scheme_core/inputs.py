@@ -1,0 +1,242 @@
+"""Validation of the learner's inputs: constructor arguments, action vectors, time stamps and marker observations.
+
+Two kinds of bad input are told apart (``docs/core/learning-and-adaptation.md``, Sec. 1). An argument the caller got
+wrong (actions of the wrong length or not finite, observations that are not a mapping, a non-finite stamp, a bad
+constructor argument) raises :class:`~body_scheme_core.errors.InvalidInputError` before anything changes. A single
+bad marker pose among good ones is only dropped: :func:`filter_observations` keeps the good ones and returns a
+:class:`Rejection` per bad one, which the learner counts and reports.
+
+:func:`~body_scheme_core.transforms.check_transform` is not used for observations: it raises on the first bad pose,
+while the learner must keep the others and name the reason for each bad one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import NamedTuple
+
+import numpy as np
+
+from .config import BodySchemeConfig
+from .errors import InvalidInputError
+from .scheme import BodyScheme
+
+__all__ = [
+    "OBSERVATION_TOLERANCE",
+    "Rejection",
+    "check_config",
+    "check_part_ids",
+    "check_n_actions",
+    "root_part",
+    "check_action_bounds",
+    "check_initial_models",
+    "check_actions",
+    "check_stamp",
+    "check_observation_mapping",
+    "filter_observations",
+]
+
+#: Largest deviation of an observed rotation block from orthonormality (and of the last row from [0 0 0 1]).
+OBSERVATION_TOLERANCE = 1e-4
+
+
+class Rejection(NamedTuple):
+    """One dropped observation.
+
+    Attributes
+    ----------
+    part : int or None
+        The key as given when it is an integer (known or not), else ``None``.
+    reason : str
+        ``unknown_id``, ``bad_shape``, ``not_finite`` or ``not_rigid``.
+    detail : str
+        What was wrong, for the ``input_rejected`` event.
+    """
+
+    part: int | None
+    reason: str
+    detail: str
+
+
+def _is_id(key):
+    """Whether ``key`` can be a part id: an integer, but not a bool."""
+    return isinstance(key, (int, np.integer)) and not isinstance(key, bool)
+
+
+# ---------------------------------------------------------------------- constructor arguments
+def check_config(config):
+    """Raise unless ``config`` is a :class:`BodySchemeConfig`."""
+    if not isinstance(config, BodySchemeConfig):
+        raise InvalidInputError(f"config must be a BodySchemeConfig, got {type(config).__name__}")
+    return config
+
+
+def check_part_ids(part_ids):
+    """Part ids as a non-empty tuple of unique ints.
+
+    Parameters
+    ----------
+    part_ids : iterable of int
+
+    Returns
+    -------
+    parts : tuple of int
+    """
+    try:
+        parts = tuple(int(p) for p in part_ids)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"part_ids must be integer ids, got {part_ids!r}") from exc
+    if not parts or len(set(parts)) != len(parts):
+        raise InvalidInputError(f"part_ids must be non-empty and unique, got {parts}")
+    return parts
+
+
+def check_n_actions(n_actions):
+    """The number of actions m as an int >= 0 (bools refused)."""
+    if isinstance(n_actions, bool) or not isinstance(n_actions, (int, np.integer)) or n_actions < 0:
+        raise InvalidInputError(f"n_actions must be an integer >= 0, got {n_actions!r}")
+    return int(n_actions)
+
+
+def root_part(parts, root=None):
+    """The root part: ``root`` (``config.root``) if given, else the lowest id; it must be one of ``parts``."""
+    root = min(parts) if root is None else int(root)
+    if root not in parts:
+        raise InvalidInputError(f"config.root {root} is not one of the parts {parts}")
+    return root
+
+
+def check_action_bounds(lower, upper, n_actions):
+    """Action limits as float arrays of shape (m,) (or ``None``), without NaN and with ``lower <= upper``.
+
+    Parameters
+    ----------
+    lower, upper : array-like, shape (m,), or None
+        Infinite limits (continuous joints) are allowed.
+    n_actions : int
+
+    Returns
+    -------
+    lower, upper : ndarray, shape (m,), or None
+    """
+    def check(bounds, name):
+        if bounds is None:
+            return None
+        bounds = np.array(bounds, dtype=float)
+        if bounds.shape != (n_actions,):
+            raise InvalidInputError(f"{name} must have shape ({n_actions},), got {bounds.shape}")
+        if np.any(np.isnan(bounds)):
+            raise InvalidInputError(f"{name} contains NaN: {bounds.tolist()}")
+        return bounds
+
+    lower, upper = check(lower, "action_lower"), check(upper, "action_upper")
+    if lower is not None and upper is not None and np.any(lower > upper):
+        raise InvalidInputError(f"action_lower {lower.tolist()} exceeds action_upper {upper.tolist()}")
+    return lower, upper
+
+
+def check_initial_models(models, parts, root, n_actions):
+    """A given body scheme: fitted models forming a spanning tree over ``parts``, using actions below ``n_actions``.
+
+    Returns
+    -------
+    models : list of LocalModel
+    """
+    models = list(models)
+    BodyScheme(parts, root, models)  # validates the tree and that every model is fitted
+    for model in models:
+        if model.actions and max(model.actions) >= n_actions:
+            raise InvalidInputError(f"{model.describe()} uses action {max(model.actions)} but n_actions is "
+                                    f"{n_actions}")
+    return models
+
+
+# ---------------------------------------------------------------------- one time step
+def check_actions(actions, n_actions):
+    """One action vector as a float array of shape (m,), finite.
+
+    Returns
+    -------
+    a : ndarray, shape (m,)
+        Not necessarily a copy.
+    """
+    a = np.asarray(actions, dtype=float)
+    if a.shape != (n_actions,):
+        raise InvalidInputError(f"actions must have shape ({n_actions},), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InvalidInputError(f"actions contain NaN or inf: {a.tolist()}")
+    return a
+
+
+def check_stamp(stamp):
+    """A time stamp as a finite float, or ``None``."""
+    if stamp is None:
+        return None
+    try:
+        stamp = float(stamp)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"stamp must be a number or None, got {stamp!r}") from exc
+    if not math.isfinite(stamp):
+        raise InvalidInputError(f"stamp must be finite, got {stamp!r}")
+    return stamp
+
+
+def check_observation_mapping(observations):
+    """Raise unless ``observations`` is a mapping (part id -> pose); the entries are checked one by one later."""
+    if not isinstance(observations, Mapping):
+        raise InvalidInputError(f"observations must be a mapping part id -> (4, 4) pose, got "
+                                f"{type(observations).__name__}")
+    return observations
+
+
+def filter_observations(observations, part_ids):
+    """Split observations into valid poses and rejections.
+
+    Parameters
+    ----------
+    observations : mapping of int to array-like, shape (4, 4)
+        ``world2part`` per observed part.
+    part_ids : tuple of int
+        The known parts.
+
+    Returns
+    -------
+    valid : dict of int to ndarray, shape (4, 4)
+        Copies of the valid poses (the caller may reuse its arrays), in the given order.
+    rejections : list of Rejection
+        In the order: unknown ids, bad shapes and non-finite values as met, then non-rigid poses.
+    """
+    valid, rejected = {}, []
+    for key, value in observations.items():
+        if not _is_id(key) or int(key) not in part_ids:
+            what = f"id {key!r} is not an integer" if not isinstance(key, (int, np.integer)) else f"id {key}"
+            rejected.append(Rejection(key if _is_id(key) else None, "unknown_id",
+                                      f"{what} is not one of the parts {part_ids}"))
+            continue
+        part = int(key)
+        try:
+            Y = np.array(value, dtype=float)  # a copy: the history must not change with the caller's arrays
+        except (TypeError, ValueError):
+            Y = None
+        if Y is None or Y.shape != (4, 4):
+            shape = None if Y is None else Y.shape
+            rejected.append(Rejection(part, "bad_shape", f"pose of part {part} must have shape (4, 4), got {shape}"))
+        elif not np.all(np.isfinite(Y)):
+            rejected.append(Rejection(part, "not_finite", f"pose of part {part} contains NaN or inf"))
+        else:
+            valid[part] = Y
+    if valid:
+        # Rigidity of all remaining poses in one vectorised check.
+        Y = np.stack(list(valid.values()))
+        R = Y[:, :3, :3]
+        dev = np.maximum(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)),
+                         np.abs(Y[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1))
+        bad = (dev > OBSERVATION_TOLERANCE) | (np.linalg.det(R) < 0.0)
+        for part, is_bad, d in zip(list(valid), bad, dev, strict=True):
+            if is_bad:
+                del valid[part]
+                rejected.append(Rejection(part, "not_rigid", f"pose of part {part} is not a rigid transform "
+                                                             f"(deviation {d:.3g} > {OBSERVATION_TOLERANCE:g} or "
+                                                             f"det < 0)"))
+    return valid, rejected

@@ -1,0 +1,134 @@
+"""Relative observations ``Z_ij = Y_i^-1 Y_j`` of one time step, for every pair of observed parts (paper Sec. III-A).
+
+Local models describe pairs of parts. :class:`PartPairs` numbers the unordered pairs once, in the part order (the
+*canonical* direction of pair ``(p_i, p_j)`` is ``i < j``), and turns the marker poses of one step into a
+:class:`RelativeObservations`: all relative transforms of observed pairs, formed in one vectorised pass, with the
+translational validity threshold of each (it grows with the parts' distance, see
+:func:`~body_scheme_core.quality.translation_threshold`). A model whose parent comes later in the part order
+predicts the inverse of the canonical transform (:meth:`PartPairs.flip`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .quality import translation_threshold
+from .transforms import invert_transform
+
+__all__ = ["PartPairs", "RelativeObservations"]
+
+
+class RelativeObservations(NamedTuple):
+    """The relative observations of one time step.
+
+    Attributes
+    ----------
+    Z : ndarray, shape (k, 4, 4)
+        ``part_i2part_j`` of every observed pair, in the canonical direction.
+    row : ndarray of int, shape (n_pairs,)
+        Row of each pair in ``Z``; -1 where the pair is not observed.
+    theta_trans : ndarray, shape (k,)
+        Translational validity threshold of each row of ``Z`` (m).
+    """
+
+    Z: np.ndarray
+    row: np.ndarray
+    theta_trans: np.ndarray
+
+    def of_pairs(self, pair, flip):
+        """Observed transforms of models with pair indices ``pair`` (all observed), inverted where ``flip``.
+
+        Parameters
+        ----------
+        pair : ndarray of int, shape (k,)
+        flip : ndarray of bool, shape (k,)
+
+        Returns
+        -------
+        Z : ndarray, shape (k, 4, 4)
+            ``parent2child`` for each model (a new array).
+        """
+        Z = self.Z[self.row[pair]]
+        if np.any(flip):
+            Z[flip] = invert_transform(Z[flip])
+        return Z
+
+
+class PartPairs:
+    """The unordered pairs of parts, numbered once, and the relative observations of a time step.
+
+    Parameters
+    ----------
+    part_ids : tuple of int
+        Unique part ids; their order defines the canonical direction of each pair.
+    theta_trans, theta_rot : float
+        Validity thresholds (m, rad) behind :meth:`threshold`.
+
+    Attributes
+    ----------
+    part_ids : tuple of int
+    part_index : dict of int to int
+        Position of each part id in ``part_ids``.
+    """
+
+    def __init__(self, part_ids, theta_trans, theta_rot):
+        self.part_ids = tuple(part_ids)
+        self.theta_trans = theta_trans
+        self.theta_rot = theta_rot
+        self.part_index = {p: k for k, p in enumerate(self.part_ids)}
+        n = len(self.part_ids)
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+        self._first = np.array([i for i, _ in pairs], dtype=np.intp)
+        self._second = np.array([j for _, j in pairs], dtype=np.intp)
+        self._index = {}
+        for k, (i, j) in enumerate(pairs):
+            self._index[(self.part_ids[i], self.part_ids[j])] = k
+            self._index[(self.part_ids[j], self.part_ids[i])] = k
+
+    @property
+    def n_pairs(self):
+        """Number of unordered pairs, ``n (n - 1) / 2``."""
+        return self._first.size
+
+    def index(self, parent, child):
+        """Index of the unordered pair ``{parent, child}``."""
+        return self._index[(parent, child)]
+
+    def flip(self, parent, child):
+        """Whether ``parent2child`` is the inverse of its pair's canonical direction."""
+        return self.part_index[parent] > self.part_index[child]
+
+    def threshold(self, Z):
+        """Translational validity thresholds (m) of relative transforms ``Z`` (..., 4, 4): they grow with distance."""
+        return translation_threshold(self.theta_trans, self.theta_rot, np.linalg.norm(Z[..., :3, 3], axis=-1))
+
+    def observe(self, observations):
+        """Relative observations of every pair with both parts observed.
+
+        Parameters
+        ----------
+        observations : dict of int to ndarray, shape (4, 4)
+            Valid ``world2part`` of known parts.
+
+        Returns
+        -------
+        relative : RelativeObservations
+        """
+        n_parts = len(self.part_ids)
+        seen = np.zeros(n_parts, dtype=bool)
+        Y = np.empty((n_parts, 4, 4))
+        for part, pose in observations.items():
+            k = self.part_index[part]
+            seen[k] = True
+            Y[k] = pose
+        both = np.flatnonzero(seen[self._first] & seen[self._second])
+        row = np.full(self._first.size, -1, dtype=np.intp)
+        row[both] = np.arange(both.size)
+        if both.size == 0:
+            return RelativeObservations(np.zeros((0, 4, 4)), row, np.zeros(0))
+        Yinv = invert_transform(Y[seen])
+        inv_index = np.cumsum(seen) - 1
+        Z = Yinv[inv_index[self._first[both]]] @ Y[self._second[both]]
+        return RelativeObservations(Z, row, self.threshold(Z))

@@ -1,0 +1,90 @@
+"""Tests of bootstrapping: candidates, the structure search per step, and the end of bootstrapping."""
+
+import numpy as np
+
+from body_scheme_core.bootstrap import Bootstrap
+from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.pool import CANDIDATE, TREE, ModelPool, new_batch, new_monitor
+from body_scheme_core.relative import PartPairs
+from body_scheme_core.structure import n_candidates
+from body_scheme_core.synthetic import Fault, make_session, planar_2dof
+from body_scheme_core.transforms import transform_from_rotvec
+
+
+def _bootstrap(robot, config):
+    pairs = PartPairs(robot.marker_ids, config.theta_trans, config.theta_rot)
+    pool = ModelPool(config, robot.n_actions, pairs,
+                     new_batch(config, robot.n_actions, config.train_window, config.max_complexity),
+                     new_monitor(config))
+    Bootstrap.add_candidates(pool, robot.marker_ids, robot.n_actions, config.max_complexity)
+    return Bootstrap(config, pool)
+
+
+def _run(boot, session, observations=None, stop_when_finished=True):
+    """Feed the session; returns (tree per step, events, step at which bootstrapping finished or None)."""
+    observations = session.observations if observations is None else observations
+    tree, trees, events = None, [], []
+    for t in range(session.n_steps):
+        relative = boot.pool.pairs.observe(observations[t])
+        tree, _ = boot.step(tree, session.actions[t], relative, t, events)
+        trees.append(tree)
+        if boot.finish_if_ready(tree, t, events):
+            if stop_when_finished:
+                return trees, events, t
+    return trees, events, None
+
+
+def test_every_pair_and_action_subset_is_a_candidate():
+    """The fully connected network: C(3, 2) pairs times the 4 action subsets of at most 2 of 2 actions."""
+    robot = planar_2dof()
+    boot = _bootstrap(robot, BodySchemeConfig())
+    assert len(boot.pool.tracked) == n_candidates(3, 2, 2) == 12
+    assert all(e.role == CANDIDATE and e.slot >= 0 and e.origin == "bootstrap" for e in boot.pool.tracked.values())
+
+
+def test_the_true_tree_is_found_and_kept_after_bootstrapping():
+    """On clean babbling the first tree event is structure_found; at the end only the true tree's models remain."""
+    robot = planar_2dof()
+    config = BodySchemeConfig()
+    session = make_session(robot, 80, seed=0, visibility=0.9)
+    boot = _bootstrap(robot, config)
+    trees, events, finished = _run(boot, session)
+    assert finished is not None and events[0].kind == "structure_found"
+    assert [e.kind for e in events].count("bootstrap_finished") == 1 and events[-1].kind == "bootstrap_finished"
+    assert "all candidates are frozen" in events[-1].reason and "dropped 10 other candidates" in events[-1].reason
+    tree = trees[-1]
+    edges = {frozenset((boot.pool.tracked[i].parent, boot.pool.tracked[i].child)) for i in tree}
+    assert edges == {frozenset(e) for e in robot.marker_tree_edges()}
+    assert set(boot.pool.tracked) == set(tree)
+    assert all(e.role == TREE and e.last_used == finished for e in boot.pool.tracked.values())
+    # The tree was found long before its models had learned train_window samples: it waited for them.
+    first = next(t for t, tree in enumerate(trees) if tree is not None)
+    assert first < config.train_window <= finished
+
+
+def test_a_stable_tree_ends_bootstrapping_although_some_pair_is_rarely_seen():
+    """Markers 1 and 3 are seen together only at the start: their candidates never freeze; patience ends it."""
+    robot = planar_2dof()
+    config = BodySchemeConfig(bootstrap_patience=5)
+    session = make_session(robot, 150, seed=1)
+    observations = [obs if t < 5 else {k: v for k, v in obs.items() if k != (1 if t % 2 else 3)}
+                    for t, obs in enumerate(session.observations)]
+    boot = _bootstrap(robot, config)
+    _, events, finished = _run(boot, session, observations)
+    assert finished is not None
+    assert "the tree was stable for" in events[-1].reason
+    assert boot.pool.batch.n_allocated == 2  # the two tree models keep refining; the 1-3 candidates are gone
+
+
+def test_losing_every_valid_tree_is_reported():
+    """A marker knocked during bootstrapping invalidates its candidates: the tree is lost and that is said."""
+    robot = planar_2dof()
+    knock = transform_from_rotvec([0.0, 2.0, 0.0], [0.0, 0.4, 0.3])
+    session = make_session(robot, 120, seed=1, faults=[(18, Fault("displace_marker", marker_id=2, delta=knock))])
+    boot = _bootstrap(robot, BodySchemeConfig(train_window=40))
+    trees, events, _ = _run(boot, session)
+    lost = [e for e in events if e.reason.startswith("no valid spanning tree any more")]
+    assert lost and lost[0].kind == "structure_changed"
+    assert trees[lost[0].step] is None and trees[lost[0].step - 1] is not None
+    assert boot.tree_since >= lost[0].step
+    assert np.all([e.kind != "structure_found" for e in events[1:]])

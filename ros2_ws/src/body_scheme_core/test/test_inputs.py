@@ -1,0 +1,147 @@
+"""Tests of the learner's input validation: constructor arguments, actions, stamps and observations."""
+
+import math
+
+import numpy as np
+import pytest
+
+from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.inputs import (
+    OBSERVATION_TOLERANCE,
+    check_action_bounds,
+    check_actions,
+    check_config,
+    check_initial_models,
+    check_n_actions,
+    check_observation_mapping,
+    check_part_ids,
+    check_stamp,
+    filter_observations,
+    root_part,
+)
+from body_scheme_core.models.engineered import engineered_models
+from body_scheme_core.synthetic import planar_2dof
+from body_scheme_core.transforms import transform_from_rotvec
+
+PARTS = (1, 2, 3)
+
+
+def _pose(rng):
+    return transform_from_rotvec(rng.normal(size=3), rng.normal(size=3))
+
+
+def test_check_actions_accepts_one_finite_vector():
+    """A finite vector of length m passes as floats; other lengths, stacks and NaN or inf are refused."""
+    np.testing.assert_array_equal(check_actions([1, 2], 2), [1.0, 2.0])
+    for bad in ([0.1, 0.2, 0.3], [[0.1, 0.2]], 0.5):
+        with pytest.raises(InvalidInputError, match=r"shape \(2,\)"):
+            check_actions(bad, 2)
+    for bad in ([np.nan, 0.0], [0.0, np.inf]):
+        with pytest.raises(InvalidInputError, match="NaN or inf"):
+            check_actions(bad, 2)
+
+
+def test_check_stamp_wants_a_finite_number_or_none():
+    """None stays None, numbers become floats; NaN, inf and non-numbers are refused."""
+    assert check_stamp(None) is None
+    assert check_stamp(3) == 3.0 and isinstance(check_stamp(3), float)
+    for bad in (float("nan"), float("inf"), "soon", [1.0]):
+        with pytest.raises(InvalidInputError, match="stamp"):
+            check_stamp(bad)
+
+
+def test_observations_must_be_a_mapping():
+    """A list of poses is refused with a message naming the expected mapping."""
+    check_observation_mapping({})
+    with pytest.raises(InvalidInputError, match="mapping"):
+        check_observation_mapping([np.eye(4)])
+
+
+def test_valid_observations_are_kept_as_copies():
+    """Valid poses are returned in the given order, as copies the caller may change afterwards."""
+    rng = np.random.default_rng(0)
+    Y3, Y1 = _pose(rng), _pose(rng)
+    valid, rejections = filter_observations({3: Y3, np.int64(1): Y1}, PARTS)
+    assert rejections == [] and list(valid) == [3, 1] and all(type(p) is int for p in valid)
+    Y3[0, 3] += 1.0
+    assert valid[3][0, 3] != Y3[0, 3]
+    np.testing.assert_array_equal(valid[1], Y1)
+
+
+def test_each_bad_observation_is_rejected_with_its_reason():
+    """Unknown ids, wrong shapes, NaN, scaled and reflected poses are dropped one by one; the good pose stays."""
+    rng = np.random.default_rng(1)
+    good = _pose(rng)
+    nan = _pose(rng)
+    nan[0, 3] = np.nan
+    scaled = good @ np.diag([1.1, 1.0, 1.0, 1.0])
+    reflected = good @ np.diag([-1.0, 1.0, 1.0, 1.0])
+    observations = {1: good, 99: good, "x": good, 2: good[:3], 3: nan}
+    valid, rejections = filter_observations(observations, PARTS)
+    assert list(valid) == [1]
+    assert [(r.part, r.reason) for r in rejections] == [(99, "unknown_id"), (None, "unknown_id"),
+                                                        (2, "bad_shape"), (3, "not_finite")]
+    assert "id 'x' is not an integer" in rejections[1].detail and "(3, 4)" in rejections[2].detail
+    valid, rejections = filter_observations({True: good}, PARTS)  # a bool is no id, although True == 1
+    assert valid == {} and [(r.part, r.reason) for r in rejections] == [(None, "unknown_id")]
+    valid, rejections = filter_observations({2: scaled, 3: reflected, 1: object()}, PARTS)
+    assert valid == {}
+    assert [(r.part, r.reason) for r in rejections] == [(1, "bad_shape"), (2, "not_rigid"), (3, "not_rigid")]
+
+
+def test_rigidity_tolerance():
+    """A rotation block off by less than the tolerance passes, one off by more is rejected."""
+    pose = np.eye(4)
+    pose[0, 0] = 1.0 + 0.4 * OBSERVATION_TOLERANCE
+    valid, _ = filter_observations({1: pose}, PARTS)
+    assert list(valid) == [1]
+    pose[0, 0] = 1.0 + 0.6 * OBSERVATION_TOLERANCE  # R^T R deviates by about twice this
+    valid, rejections = filter_observations({1: pose}, PARTS)
+    assert valid == {} and rejections[0].reason == "not_rigid"
+    pose = np.eye(4)
+    pose[3, 0] = 2.0 * OBSERVATION_TOLERANCE
+    assert filter_observations({1: pose}, PARTS)[1][0].reason == "not_rigid"
+
+
+def test_constructor_arguments():
+    """Part ids must be unique integers, n_actions a non-negative int, the root one of the parts."""
+    assert check_part_ids([3, np.int64(1)]) == (3, 1)
+    for bad in ([], [1, 1], ["a"], None):
+        with pytest.raises(InvalidInputError, match="part_ids"):
+            check_part_ids(bad)
+    assert check_n_actions(np.int64(2)) == 2
+    for bad in (-1, True, 2.0):
+        with pytest.raises(InvalidInputError, match="n_actions"):
+            check_n_actions(bad)
+    assert root_part((5, 3, 9)) == 3 and root_part((5, 3, 9), 9) == 9
+    with pytest.raises(InvalidInputError, match="root"):
+        root_part((5, 3, 9), 4)
+    assert check_config(BodySchemeConfig()) == BodySchemeConfig()
+    with pytest.raises(InvalidInputError, match="BodySchemeConfig"):
+        check_config({"root": 1})
+
+
+def test_action_bounds():
+    """Limits have shape (m,), no NaN and lower <= upper; infinite limits (continuous joints) are fine."""
+    lower, upper = check_action_bounds([-np.inf, -1], [np.inf, 1], 2)
+    np.testing.assert_array_equal(upper, [np.inf, 1.0])
+    assert check_action_bounds(None, None, 2) == (None, None)
+    with pytest.raises(InvalidInputError, match=r"action_upper must have shape \(2,\)"):
+        check_action_bounds(None, [1.0], 2)
+    with pytest.raises(InvalidInputError, match="action_lower contains NaN"):
+        check_action_bounds([np.nan, 0.0], None, 2)
+    with pytest.raises(InvalidInputError, match="exceeds"):
+        check_action_bounds([0.0, 2.0], [1.0, 1.0], 2)
+
+
+def test_initial_models_must_be_a_spanning_tree_within_the_actions():
+    """The engineered scheme of the 2-DOF robot passes; a partial tree or too few actions are refused."""
+    robot = planar_2dof()
+    models = engineered_models(robot)
+    assert check_initial_models(iter(models), robot.marker_ids, 1, 2) == models
+    with pytest.raises(InvalidInputError):
+        check_initial_models(models[:1], robot.marker_ids, 1, 2)
+    with pytest.raises(InvalidInputError, match="uses action 1 but n_actions is 1"):
+        check_initial_models(models, robot.marker_ids, 1, 1)
+    assert math.isfinite(OBSERVATION_TOLERANCE)

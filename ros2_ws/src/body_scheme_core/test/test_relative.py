@@ -1,0 +1,74 @@
+"""Tests of the pair index and the relative observations of one time step."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from body_scheme_core.quality import translation_threshold
+from body_scheme_core.relative import PartPairs
+from body_scheme_core.transforms import invert_transform, relative_transform, transform_from_rotvec
+
+THETA_T, THETA_R = 0.15, np.radians(45.0)
+
+
+def _poses(rng, parts):
+    return {p: transform_from_rotvec(rng.normal(size=3), rng.normal(size=3)) for p in parts}
+
+
+def test_pairs_are_numbered_once_and_symmetrically():
+    """Every unordered pair gets one index; both directions map to it; flip follows the part order."""
+    pairs = PartPairs((7, 3, 5), THETA_T, THETA_R)
+    assert pairs.n_pairs == 3
+    indices = {pairs.index(i, j) for i, j in itertools.combinations((7, 3, 5), 2)}
+    assert indices == {0, 1, 2}
+    assert all(pairs.index(i, j) == pairs.index(j, i) for i, j in itertools.permutations((7, 3, 5), 2))
+    assert not pairs.flip(7, 5) and pairs.flip(5, 7) and pairs.flip(3, 7)
+
+
+def test_relative_observations_of_observed_pairs():
+    """Z of each pair with both parts seen is Y_i^-1 Y_j in the part order; pairs with a missing part get row -1."""
+    rng = np.random.default_rng(0)
+    parts = (7, 3, 5, 9)
+    pairs = PartPairs(parts, THETA_T, THETA_R)
+    Y = _poses(rng, (9, 7, 5))  # part 3 not observed
+    rel = pairs.observe(Y)
+    for i, j in itertools.combinations(parts, 2):
+        row = rel.row[pairs.index(i, j)]
+        if 3 in (i, j):
+            assert row == -1
+        else:
+            np.testing.assert_allclose(rel.Z[row], relative_transform(Y[i], Y[j]), atol=1e-12)
+    assert rel.Z.shape == (3, 4, 4) and sorted(rel.row[rel.row >= 0]) == [0, 1, 2]
+
+
+def test_thresholds_grow_with_the_observed_distance():
+    """Each row's translational threshold is translation_threshold at the distance of its parts."""
+    rng = np.random.default_rng(1)
+    pairs = PartPairs((1, 2, 3), THETA_T, THETA_R)
+    rel = pairs.observe(_poses(rng, (1, 2, 3)))
+    distance = np.linalg.norm(rel.Z[:, :3, 3], axis=1)
+    np.testing.assert_allclose(rel.theta_trans, translation_threshold(THETA_T, THETA_R, distance))
+    assert pairs.threshold(np.eye(4)) == pytest.approx(THETA_T)
+
+
+def test_of_pairs_inverts_flipped_directions():
+    """A model predicting child2parent of the canonical pair sees the inverse transform; the source is unchanged."""
+    rng = np.random.default_rng(2)
+    pairs = PartPairs((1, 2, 3), THETA_T, THETA_R)
+    Y = _poses(rng, (1, 2, 3))
+    rel = pairs.observe(Y)
+    before = rel.Z.copy()
+    idx = np.array([pairs.index(3, 1), pairs.index(1, 2)])
+    Z = rel.of_pairs(idx, np.array([pairs.flip(3, 1), pairs.flip(1, 2)]))
+    np.testing.assert_allclose(Z[0], relative_transform(Y[3], Y[1]), atol=1e-12)
+    np.testing.assert_allclose(Z[1], relative_transform(Y[1], Y[2]), atol=1e-12)
+    np.testing.assert_allclose(Z[0] @ invert_transform(Z[0]), np.eye(4), atol=1e-12)
+    np.testing.assert_array_equal(rel.Z, before)
+
+
+def test_fewer_than_two_observed_parts_give_no_relative_observation():
+    """With one part seen, nothing is observed and every row is -1."""
+    pairs = PartPairs((1, 2, 3), THETA_T, THETA_R)
+    rel = pairs.observe({2: np.eye(4)})
+    assert rel.Z.shape == (0, 4, 4) and rel.theta_trans.shape == (0,) and np.all(rel.row == -1)
