@@ -3,6 +3,7 @@
 #   make test    set up (if needed), build, run every test and ruff   <- the README's test command, run by CI
 #   make demo    set up (if needed), build, run the end-to-end demo
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
+#   make bags    regenerate the sample babbling sessions in bags/ (see bags/README.md)
 #
 # Set-up is idempotent: each step leaves a stamp file in .venv/.stamps and is redone only when its inputs change.
 # Without ROS installed, ROS 2 Jazzy (rclpy + Fast DDS) comes from pinned PyPI wheels (docs/ros-from-pypi.md).
@@ -20,7 +21,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test unit lint demo bench clean distclean
+.PHONY: all setup build test unit lint demo bench bags clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -61,6 +62,15 @@ demo: build
 
 bench: build
 	$(RUN) python -m body_scheme_core.bench --out out/bench/core.json
+	$(RUN) python -m body_scheme_sim.bench --out out/bench/sim.json
+
+# The sample sessions; the commands are the ones in bags/README.md (a test regenerates them and compares).
+bags: build
+	rm -rf bags/joint_blocked_seed0 bags/limb_deformed_seed0 bags/rendered_seed0
+	$(RUN) python -m body_scheme_sim.record --protocol joint_blocked --seed 0 --out bags/joint_blocked_seed0 --quiet
+	$(RUN) python -m body_scheme_sim.record --protocol limb_deformed --seed 0 --out bags/limb_deformed_seed0 --quiet
+	$(RUN) python -m body_scheme_sim.record --steps 40 --seed 0 --markers-of-interest 6 7 --perception rendered \
+	  --images 10 --out bags/rendered_seed0 --quiet
 
 clean:
 	rm -rf $(WS)/build $(WS)/install $(WS)/log $(STAMPS)/build out

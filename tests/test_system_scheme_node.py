@@ -107,3 +107,78 @@ def test_scheme_node_learns_structure_over_dds(start_node, ros_node, spin_until)
     assert spin_until(scheme_ok, timeout=10, during=babbler), collector.diagnostics
     edge_statuses = [name for name in collector.diagnostics if name.startswith("body_scheme: local model")]
     assert len(edge_statuses) == len(true_edges)
+
+
+def _learned(collector, true_edges):
+    s = collector.structure
+    return s is not None and {frozenset((e.parent_id, e.child_id)) for e in s.edges} == true_edges \
+        and all(e.valid for e in s.edges)
+
+
+def test_malformed_input_is_counted_and_the_node_keeps_learning(start_node, ros_node, spin_until):
+    """NaN poses, zero quaternions, unknown ids, length mismatches and backward stamps are counted, not fatal."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=120, seed=1, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
+    process = start_node("body_scheme_nodes", "scheme_node", scheme_parameters(tree))
+    collector = Collector(ros_node)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    babbler = Babbler(ros_node, session)
+    names = list(tree.action_joint_names)
+    now = ros_node.get_clock().now().nanoseconds * 1e-9
+
+    # A command, then observations that are broken in every way the tracker or a bag could break them.
+    good = JointState(name=names, position=[0.1, 0.2])
+    good.header.stamp = conversions.stamp_from_seconds(now)
+    babbler.commands.publish(good)
+    broken = conversions.marker_poses_msg(now + 0.005, "camera", {k: np.eye(4) for k in (1, 2, 3, 99)})
+    broken.poses[1].pose.position.x = float("nan")          # marker 2: NaN position
+    broken.poses[2].pose.orientation.w = 0.0                 # marker 3: zero quaternion
+    babbler.observations.publish(broken)                     # marker 99: unknown id
+    mismatched = conversions.marker_poses_msg(now + 0.006, "camera", {1: np.eye(4)})
+    mismatched.marker_ids = [1, 2]
+    babbler.observations.publish(mismatched)
+    backwards = JointState(name=names, position=[0.0, 0.0])
+    backwards.header.stamp = conversions.stamp_from_seconds(now - 10.0)
+    babbler.commands.publish(backwards)
+    babbler.commands.publish(JointState(name=["nope"], position=[0.0]))
+    nan_command = JointState(name=names, position=[float("nan"), 0.0])
+    babbler.commands.publish(nan_command)
+
+    expected = {"rejected.invalid_pose": 2, "rejected.unknown_id": 1, "rejected.bad_observations_message": 1,
+                "rejected.out_of_order_command": 1, "rejected.bad_command_message": 2}
+
+    def counted():
+        status = collector.diagnostics.get("body_scheme: scheme")
+        values = {} if status is None else {kv.key: kv.value for kv in status.values}
+        return all(values.get(key) == str(count) for key, count in expected.items())
+
+    assert spin_until(counted, timeout=15), (collector.diagnostics.get("body_scheme: scheme"), process.output())
+    # ... and the node still learns from the good data that follows.
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert process.process.poll() is None
+
+
+def test_kill_and_restart_restores_the_checkpoint(start_node, ros_node, spin_until, tmp_path):
+    """After kill -9, a restarted scheme_node restores its checkpoint and publishes the same body scheme."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=150, seed=2, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
+    checkpoint = tmp_path / "state.json"
+    parameters = dict(scheme_parameters(tree), checkpoint_path=str(checkpoint), checkpoint_period=0.5)
+    first = start_node("body_scheme_nodes", "scheme_node", parameters)
+    collector = Collector(ros_node)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), first.output()  # discovery done
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    babbler = Babbler(ros_node, session)
+    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), first.output()
+    learned = [(e.parent_id, e.child_id, e.description) for e in collector.structure.edges]
+    mtime = checkpoint.stat().st_mtime_ns if checkpoint.exists() else 0
+    assert spin_until(lambda: checkpoint.exists() and checkpoint.stat().st_mtime_ns > mtime, timeout=10)
+    first.kill()  # SIGKILL: no clean shutdown, no final save
+
+    collector.structure = None
+    second = start_node("body_scheme_nodes", "scheme_node", parameters)
+    assert spin_until(lambda: collector.structure is not None and collector.structure.edges, timeout=30), \
+        second.output()
+    assert "restored checkpoint" in second.output()
+    assert [(e.parent_id, e.child_id, e.description) for e in collector.structure.edges] == learned

@@ -20,6 +20,7 @@ setup(
     entry_points={
         "console_scripts": [
             "scheme_node = body_scheme_nodes.scheme_node:main",
+            "tracker_node = body_scheme_nodes.tracker_node:main",
             "control_node = body_scheme_nodes.control_node:main",
         ],
     },

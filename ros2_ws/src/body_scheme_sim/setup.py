@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "body_scheme_sim"
@@ -8,11 +10,21 @@ setup(
     description="pybullet arm simulator seen by a fixed camera, with fault injection and ground truth.",
     license="Apache-2.0",
     packages=find_packages(exclude=["test"]),
+    # The robot files live in the Python package (found next to robots/__init__.py) and in share/ for ROS tools.
+    package_data={package_name: ["robots/*.urdf", "robots/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/robots", glob(package_name + "/robots/*.urdf")
+         + glob(package_name + "/robots/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
-    entry_points={"console_scripts": []},
+    entry_points={
+        "console_scripts": [
+            "sim_node = body_scheme_sim.sim_node:main",
+            "record_session = body_scheme_sim.record:main",
+        ],
+    },
 )

@@ -12,10 +12,11 @@ import math
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseWithCovariance
+from geometry_msgs.msg import Pose, PoseArray, PoseWithCovariance
+from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.transforms import pose_from_transform, transform_from_pose
+from body_scheme_core.transforms import pose_from_transform, transform_from_pose, transform_from_rotvec
 from body_scheme_msgs.msg import BodySchemeStructure, LocalModelInfo, MarkerPoses, ModelSnapshot, SchemeEvent
 
 __all__ = [
@@ -31,6 +32,15 @@ __all__ = [
     "snapshot_msg",
     "scheme_from_snapshot",
     "diagnostic_status",
+    "IMAGE_ENCODINGS",
+    "image_from_msg",
+    "image_msg",
+    "camera_matrix_from_info",
+    "distortion_from_info",
+    "tracked_poses_msgs",
+    "camera_info_msg",
+    "joint_state_msg",
+    "fault_from_request",
 ]
 
 SNAPSHOT_FORMAT = "body_scheme/scheme"
@@ -71,8 +81,8 @@ def observations_from_msg(msg):
     stamp : float
     observations : dict of int to ndarray, shape (4, 4)
         ``frame2marker`` for every marker whose pose is valid.
-    rejected : list of (int, str)
-        Marker id and reason for every marker that was dropped (NaN, zero quaternion, repeated id, ...).
+    rejected : list of (int, str, str)
+        Marker id, reason code (``repeated_id`` or ``invalid_pose``) and detail for every marker that was dropped.
 
     Raises
     ------
@@ -86,12 +96,12 @@ def observations_from_msg(msg):
     for marker_id, pose in zip(msg.marker_ids, msg.poses, strict=True):
         marker_id = int(marker_id)
         if marker_id in observations:
-            rejected.append((marker_id, "repeated marker id in one message"))
+            rejected.append((marker_id, "repeated_id", "repeated marker id in one message"))
             continue
         try:
             observations[marker_id] = transform_from_pose_msg(pose.pose)
         except InvalidInputError as error:
-            rejected.append((marker_id, str(error)))
+            rejected.append((marker_id, "invalid_pose", str(error)))
     return seconds_from_stamp(msg.header.stamp), observations, rejected
 
 
@@ -241,3 +251,149 @@ def _format_value(value):
     if isinstance(value, float):
         return f"{value:.6g}"
     return str(value)
+
+
+# ---------------------------------------------------------------------- images and cameras (no cv_bridge)
+#: Image encodings read and written here: channels per pixel (all 8 bit).
+IMAGE_ENCODINGS = {"mono8": 1, "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4}
+
+
+def image_from_msg(msg):
+    """``sensor_msgs/Image`` to a numpy array in RGB channel order (BGR and BGRA are reordered).
+
+    Returns
+    -------
+    image : ndarray, shape (H, W) for mono8, (H, W, 3) for rgb8/bgr8, (H, W, 4) for rgba8/bgra8, dtype uint8
+
+    Raises
+    ------
+    InvalidInputError
+        If the encoding is not in :data:`IMAGE_ENCODINGS`, or height, width, step and data length disagree.
+    """
+    channels = IMAGE_ENCODINGS.get(msg.encoding)
+    if channels is None:
+        raise InvalidInputError(f"image encoding {msg.encoding!r} not supported; use one of {sorted(IMAGE_ENCODINGS)}")
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    if height < 1 or width < 1 or step < width * channels:
+        raise InvalidInputError(
+            f"image of {height}x{width} {msg.encoding} needs step >= {width * channels}, got {step}")
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    if data.size != height * step:
+        raise InvalidInputError(f"image data has {data.size} bytes, expected height * step = {height * step}")
+    image = data.reshape(height, step)[:, :width * channels].reshape(height, width, channels)
+    if msg.encoding in ("bgr8", "bgra8"):
+        image = image[:, :, [2, 1, 0, 3][:channels]]
+    return image[:, :, 0] if channels == 1 else image
+
+
+def image_msg(stamp, frame_id, image):
+    """numpy image to ``sensor_msgs/Image``: (H, W) uint8 as mono8, (H, W, 3) as rgb8, (H, W, 4) as rgba8."""
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in (1, 3, 4))):
+        raise InvalidInputError(f"image must be uint8 of shape (H, W), (H, W, 3) or (H, W, 4), got "
+                                f"{image.dtype} {image.shape}")
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    msg = Image()
+    msg.header.stamp = stamp_from_seconds(stamp)
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = int(image.shape[0]), int(image.shape[1])
+    msg.encoding = {1: "mono8", 3: "rgb8", 4: "rgba8"}[channels]
+    msg.is_bigendian = 0
+    msg.step = msg.width * channels
+    msg.data = np.ascontiguousarray(image).tobytes()
+    return msg
+
+
+def camera_matrix_from_info(msg):
+    """The (3, 3) intrinsic matrix ``K`` of a ``sensor_msgs/CameraInfo``; an uncalibrated (zero) K raises."""
+    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1.0):
+        raise InvalidInputError(f"CameraInfo.k is not a calibrated camera matrix: {K.ravel().tolist()}")
+    return K
+
+
+def distortion_from_info(msg):
+    """OpenCV distortion coefficients of a ``sensor_msgs/CameraInfo`` (plumb_bob / rational_polynomial), or None.
+
+    Raises
+    ------
+    InvalidInputError
+        For a distortion model OpenCV's pinhole functions do not implement.
+    """
+    d = np.asarray(msg.d, dtype=float)
+    if d.size == 0 or not np.any(d):
+        return None
+    if msg.distortion_model not in ("plumb_bob", "rational_polynomial"):
+        raise InvalidInputError(f"distortion model {msg.distortion_model!r} not supported (plumb_bob, "
+                                "rational_polynomial)")
+    return d
+
+
+def tracked_poses_msgs(header, poses):
+    """``(MarkerPoses, PoseArray)`` of tracked ``{id: camera2marker}``, both carrying ``header`` unchanged.
+
+    The image's header is copied as is (not through float seconds) so that consumers can match stamps exactly.
+    """
+    markers = marker_poses_msg(0.0, header.frame_id, poses)
+    markers.header = header
+    array = PoseArray(header=header)
+    array.poses = [item.pose for item in markers.poses]
+    return markers, array
+
+
+# ---------------------------------------------------------------------- simulator (sim_node)
+def camera_info_msg(stamp, frame_id, width, height, K):
+    """``sensor_msgs/CameraInfo`` of an undistorted pinhole camera with intrinsic matrix ``K`` (3, 3)."""
+    K = np.asarray(K, dtype=float)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise InvalidInputError(f"K must be a finite (3, 3) matrix, got {K.tolist()}")
+    msg = CameraInfo()
+    msg.header.stamp = stamp_from_seconds(stamp)
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = int(width), int(height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [0.0] * 5
+    msg.k = K.ravel().tolist()
+    msg.r = np.eye(3).ravel().tolist()
+    msg.p = np.hstack([K, np.zeros((3, 1))]).ravel().tolist()
+    return msg
+
+
+def joint_state_msg(stamp, joint_names, positions):
+    """``sensor_msgs/JointState`` command: ``positions`` (m,) by ``joint_names`` (the inverse of
+    :func:`actions_from_joint_state`)."""
+    positions = np.asarray(positions, dtype=float)
+    if positions.shape != (len(joint_names),):
+        raise InvalidInputError(f"{len(joint_names)} joint names but positions of shape {positions.shape}")
+    msg = JointState(name=list(joint_names), position=[float(v) for v in positions])
+    msg.header.stamp = stamp_from_seconds(stamp)
+    return msg
+
+
+def fault_from_request(request):
+    """A ``body_scheme_msgs/InjectFault`` request as ``(kind, params)`` for ``body_scheme_sim.faults.apply_fault``.
+
+    Raises
+    ------
+    InvalidInputError
+        For an unknown kind, a non-finite ``delta``, or a deform_limb request with a translation in ``delta``.
+    """
+    kind = request.kind
+    delta = np.asarray(request.delta, dtype=float)
+    if delta.shape != (6,) or not np.all(np.isfinite(delta)):
+        raise InvalidInputError(f"delta must be 6 finite numbers, got {delta.tolist()}")
+    if kind == "block_joint":
+        angle = float(request.angle)
+        return kind, {"action_index": int(request.action_index), "angle": None if math.isnan(angle) else angle}
+    if kind == "deform_limb":
+        if np.any(delta[:3]):
+            raise InvalidInputError("deform_limb takes the length change from delta_length and the bend from "
+                                    f"delta[3:6]; delta[0:3] must be zero, got {delta[:3].tolist()}")
+        return kind, {"joint_name": request.joint_name, "delta_length": float(request.delta_length),
+                      "delta_rotvec": delta[3:].tolist()}
+    if kind == "displace_marker":
+        return kind, {"marker_id": int(request.marker_id), "delta": transform_from_rotvec(delta[3:], delta[:3])}
+    if kind == "repair":
+        return kind, {"repair_kind": request.repair_kind or None}
+    raise InvalidInputError(
+        f"unknown fault kind {kind!r}; kinds: block_joint, deform_limb, displace_marker, repair")

@@ -175,12 +175,11 @@ class SchemeNode(Node):
                     samples += self.pairer.add_command(stamp, actions)
                 else:
                     stamp, observations, rejected = conversions.observations_from_msg(msg)
-                    for _, reason in rejected:
-                        self.rejected[_short_reason(reason)] += 1
+                    for marker_id, code, detail in rejected:
+                        self._reject(code, f"marker {marker_id}: {detail}")
                     self.pairer.add_observation(stamp, observations)
             except InvalidInputError as error:
-                self.rejected[_short_reason(str(error))] += 1
-                self.get_logger().warn(f"rejected {kind} message: {error}", throttle_duration_sec=5.0)
+                self._reject(f"bad_{kind}_message", str(error))
         samples += self.pairer.flush(self.get_clock().now().nanoseconds * 1e-9)
         for stamp, actions, observations in samples:
             self._learn(stamp, actions, observations)
@@ -190,7 +189,7 @@ class SchemeNode(Node):
         try:
             events = self.learner.update(actions, observations, stamp=stamp)
         except InvalidInputError as error:
-            self.rejected[_short_reason(str(error))] += 1
+            self._reject("bad_sample", str(error))
             return
         self.latency.append(time.perf_counter() - start)
         for event in events:
@@ -201,6 +200,11 @@ class SchemeNode(Node):
             poses, std = self.learner.predict(actions, return_std=True)
             self.pub_predicted.publish(conversions.marker_poses_msg(stamp, self.frame_id, poses, std))
         self._publish_structure()
+
+    def _reject(self, code, detail):
+        """Count a rejected input under a stable reason code (reported on /diagnostics) and log it, throttled."""
+        self.rejected[code] += 1
+        self.get_logger().warn(f"rejected input ({code}): {detail}", throttle_duration_sec=5.0)
 
     def _publish_structure(self, force=False):
         learner = self.learner
@@ -301,11 +305,6 @@ def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids):
     if sorted(tree.marker_ids) != sorted(part_ids):
         raise InvalidInputError(f"markers of {markers_path} are {sorted(tree.marker_ids)}, part_ids are {part_ids}")
     return engineered_models(tree)
-
-
-def _short_reason(text):
-    """Counter key for a rejection message: its first words, so similar rejections add up."""
-    return " ".join(str(text).split()[:4])
 
 
 def main(args=None):

@@ -57,7 +57,8 @@ def test_bad_markers_rejected_individually():
     msg.poses = [msg.poses[0], bad_nan, bad_zero, repeated]
     _, observations, rejected = conversions.observations_from_msg(msg)
     assert sorted(observations) == [1]
-    assert [marker_id for marker_id, _ in rejected] == [2, 3, 1]
+    codes = [(marker_id, code) for marker_id, code, _ in rejected]
+    assert codes == [(2, "invalid_pose"), (3, "invalid_pose"), (1, "repeated_id")]
 
 
 def test_mismatched_lengths_rejected():

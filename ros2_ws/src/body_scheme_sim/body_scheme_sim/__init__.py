@@ -1,1 +1,13 @@
-"""pybullet arm simulator seen by a fixed camera (issue 4): robots, rendering, babbling, faults, ground truth."""
+"""pybullet arm simulator seen by a fixed camera (issue 4): robots, rendering, babbling, faults, ground truth.
+
+The library (everything but :mod:`body_scheme_sim.sim_node`) has no ROS dependency. See docs/sim.md.
+"""
+
+from .babbling import babble
+from .camera import Camera, look_at
+from .faults import ScheduledFault, apply_fault, parse_fault_schedule
+from .robots import load_robot, robot_names
+from .world import SimWorld
+
+__all__ = ["SimWorld", "Camera", "look_at", "babble", "load_robot", "robot_names", "parse_fault_schedule",
+           "ScheduledFault", "apply_fault"]

@@ -1,0 +1,31 @@
+"""Named exceptions of body_scheme_sim.
+
+All derive from :class:`body_scheme_core.errors.BodySchemeError`, so callers catch the simulator's errors and the
+core's with one clause; bad arguments also derive from ``ValueError`` (via ``InvalidInputError``).
+"""
+
+from __future__ import annotations
+
+from body_scheme_core.errors import BodySchemeError, InvalidInputError
+
+__all__ = ["SimError", "RobotFileError", "BabblingError", "FaultScheduleError", "BagError"]
+
+
+class SimError(BodySchemeError):
+    """Base class of every error raised on purpose by body_scheme_sim."""
+
+
+class RobotFileError(SimError, InvalidInputError):
+    """A robot name is unknown, or its URDF or marker file is missing or unreadable."""
+
+
+class BabblingError(SimError):
+    """Motor babbling found too few valid configurations within its budget of tries."""
+
+
+class FaultScheduleError(SimError, InvalidInputError):
+    """A fault schedule entry (``"step:kind:args"``) cannot be parsed."""
+
+
+class BagError(SimError):
+    """A session bag is missing, truncated, corrupt, of another format, or cannot be written."""

@@ -1,0 +1,331 @@
+"""Recorded babbling sessions of the simulator: commands, what the camera saw, ground truth and the fault timeline.
+
+:func:`record_session` babbles with a :class:`~body_scheme_sim.world.SimWorld`, applies a fault schedule
+(:mod:`body_scheme_sim.faults`) at the given steps and collects per step the command, the observation and the ground
+truth. Perception is either
+
+- ``"noise"``: the visible markers' true poses perturbed with the paper's noise (``SimWorld.observe_noisy``), fast;
+- ``"rendered"``: the camera image through the ArUco tracker (:class:`body_scheme_nodes.tracker.MarkerTracker`),
+  exactly what ``sim_node`` + ``tracker_node`` produce.
+
+Both give ``{marker id: camera2marker}`` per step, so downstream code cannot tell them apart. The commands are
+babbled on the healthy robot before any fault, from their own random stream, so sessions with the same seed share
+their commands whatever the faults and the perception mode.
+
+Time: command ``k`` is stamped ``START_STAMP_NS + k * period``; its observation (the camera image taken after the
+arm moved) :data:`IMAGE_DELAY_NS` later. Stamps are integer nanoseconds, so bags round-trip them exactly.
+
+:func:`joint_blocked_protocol` and :func:`limb_deformed_protocol` are the paper's two adaptation experiments
+(Sec. IV-B/C, 4 blocks of 100 samples) on the 6-DOF arm. Bags: :mod:`body_scheme_sim.bags`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
+from body_scheme_core.transforms import relative_transform
+from body_scheme_nodes.tracker import MarkerTracker
+
+from .babbling import babble
+from .camera import Camera
+from .faults import parse_fault_schedule
+from .world import SimWorld
+
+__all__ = [
+    "PERCEPTION_MODES",
+    "PROTOCOLS",
+    "START_STAMP_NS",
+    "IMAGE_DELAY_NS",
+    "Session",
+    "record_session",
+    "PROTOCOL_MARKERS_OF_INTEREST",
+    "protocol_faults",
+    "joint_blocked_protocol",
+    "limb_deformed_protocol",
+]
+
+PERCEPTION_MODES = ("noise", "rendered")
+#: Stamp of the first command: 2023-11-14T22:13:20Z, a fixed epoch so recordings are reproducible.
+START_STAMP_NS = 1_700_000_000 * 1_000_000_000
+#: Time from a command to the image showing its result (the simulator executes kinematically), ns.
+IMAGE_DELAY_NS = 5_000_000
+#: Frame of observations and ground truth: the camera optical frame (``sim_node``'s default ``frame_id``).
+FRAME_ID = "camera"
+
+
+@dataclass
+class Session:
+    """A babbling session of the simulator.
+
+    Attributes
+    ----------
+    robot : str
+        Robot name or URDF path.
+    joint_names : tuple of str
+        Joint of each action, in action order.
+    marker_ids : tuple of int
+    command_stamps : ndarray of int64, shape (n,)
+        Stamp of each command, ns.
+    observation_stamps : ndarray of int64, shape (n,)
+        Stamp of each observation (the image after the command), ns.
+    actions : ndarray, shape (n, m)
+        Commanded joint positions.
+    executed : ndarray, shape (n, m)
+        Joint positions reached (they differ from ``actions`` where a joint is blocked).
+    observations : list of dict of int to ndarray, shape (4, 4)
+        Per step ``{marker id: camera2marker}`` as perceived.
+    true_poses : ndarray, shape (n, n_markers, 4, 4)
+        True ``camera2marker`` of every marker, in ``marker_ids`` order (evaluation only).
+    faults : list of (int, str)
+        Step at which each schedule entry takes effect, and the entry.
+    camera : Camera
+    images : dict of int to ndarray, shape (H, W, 3), dtype uint8
+        Stored camera images by step (RGB).
+    perception : str
+        ``"noise"`` or ``"rendered"``.
+    seed : int or None
+    protocol : str
+        ``"none"`` or the protocol that made the fault schedule.
+    sigma_trans, sigma_rot, visibility : float
+        Noise-mode settings (recorded for reference in rendered mode too).
+    frame_id : str
+    tracker_rejected : dict of str to int
+        Rendered mode: tracker detections that gave no pose, by reason.
+    visible_truth : ndarray of bool, shape (n, n_markers) or None
+        Markers the camera could geometrically see at each step (``SimWorld.visible_marker_ids``); not in bags.
+    """
+
+    robot: str
+    joint_names: tuple
+    marker_ids: tuple
+    command_stamps: np.ndarray
+    observation_stamps: np.ndarray
+    actions: np.ndarray
+    executed: np.ndarray
+    observations: list
+    true_poses: np.ndarray
+    faults: list = field(default_factory=list)
+    camera: Camera = field(default_factory=Camera)
+    images: dict = field(default_factory=dict)
+    perception: str = "noise"
+    seed: int | None = None
+    protocol: str = "none"
+    sigma_trans: float = PAPER_SIGMA_TRANS
+    sigma_rot: float = PAPER_SIGMA_ROT
+    visibility: float = 1.0
+    frame_id: str = FRAME_ID
+    tracker_rejected: dict = field(default_factory=dict)
+    visible_truth: np.ndarray | None = None
+
+    @property
+    def n_steps(self):
+        """Number of steps (commands)."""
+        return self.actions.shape[0]
+
+    @property
+    def stamps(self):
+        """Command stamps in seconds, shape (n,)."""
+        return self.command_stamps * 1e-9
+
+    @property
+    def phase(self):
+        """Number of schedule entries in effect at each step (0 before the first), shape (n,)."""
+        steps = np.array([step for step, _ in self.faults], dtype=int)
+        return np.searchsorted(np.sort(steps), np.arange(self.n_steps), side="right")
+
+    @property
+    def visible(self):
+        """Boolean mask (n, n_markers) of the observed markers."""
+        return np.array([[i in obs for i in self.marker_ids] for obs in self.observations], dtype=bool).reshape(
+            self.n_steps, len(self.marker_ids))
+
+    def true_relative(self, id_i, id_j):
+        """True ``marker_i2marker_j`` at every step, shape (n, 4, 4)."""
+        columns = [self._column(i) for i in (id_i, id_j)]
+        return relative_transform(self.true_poses[:, columns[0]], self.true_poses[:, columns[1]])
+
+    def _column(self, marker_id):
+        try:
+            return self.marker_ids.index(int(marker_id))
+        except ValueError:
+            raise InvalidInputError(f"unknown marker id {marker_id!r}; markers: {list(self.marker_ids)}") from None
+
+
+def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perception="noise",
+                   sigma_trans=PAPER_SIGMA_TRANS, sigma_rot=PAPER_SIGMA_ROT, visibility=1.0, image_every=0,
+                   markers_of_interest=None, period=0.1, protocol="none", camera=None, markers_path=None,
+                   progress=None):
+    """Babble with the simulator and record what happens.
+
+    Parameters
+    ----------
+    robot : str or os.PathLike
+        Shipped robot name or URDF path (see :class:`SimWorld`).
+    n_steps : int
+    seed : int or None
+        Equal seeds give equal sessions (commands, noise, faults).
+    faults : iterable of str
+        Fault schedule entries ``"step:kind:args"`` (:mod:`body_scheme_sim.faults`); a fault at step ``k`` affects
+        command ``k`` and later ones.
+    perception : str
+        ``"noise"`` or ``"rendered"`` (see the module docstring).
+    sigma_trans, sigma_rot, visibility : float
+        Noise mode: 3D RMS translational (m) and rotational (rad) noise, and the probability that a geometrically
+        visible marker is observed.
+    image_every : int
+        Store every ``image_every``-th camera image (steps 0, N, 2N, ...); 0 stores none.
+    markers_of_interest : iterable of int or None
+        Markers that must be visible in every babbled configuration (see :func:`~body_scheme_sim.babbling.babble`).
+    period : float
+        Seconds between commands.
+    protocol : str
+        Name recorded with the session (``"none"`` for a hand-made schedule).
+    camera : Camera or None
+    markers_path : str or os.PathLike or None
+    progress : callable or None
+        Called with the number of steps done after each step (e.g. a tqdm bar's ``update``-like callback).
+
+    Returns
+    -------
+    session : Session
+
+    Raises
+    ------
+    InvalidInputError
+        For an unknown perception mode, bad sizes, a fault step outside the session, or a bad schedule entry.
+    BabblingError
+        If too few valid commands turn up (markers of interest rarely visible).
+    """
+    if perception not in PERCEPTION_MODES:
+        raise InvalidInputError(f"perception must be one of {PERCEPTION_MODES}, got {perception!r}")
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 1:
+        raise InvalidInputError(f"n_steps must be an integer >= 1, got {n_steps!r}")
+    if isinstance(image_every, bool) or not isinstance(image_every, (int, np.integer)) or image_every < 0:
+        raise InvalidInputError(f"image_every must be an integer >= 0, got {image_every!r}")
+    if not (math.isfinite(period) and period > 0):
+        raise InvalidInputError(f"period must be > 0 s, got {period!r}")
+    schedule = parse_fault_schedule(list(faults))
+    late = [fault.text for step, fault in schedule if step >= n_steps]
+    if late:
+        raise InvalidInputError(f"fault entries {late} lie outside the session's steps 0..{n_steps - 1}")
+    rng_actions, rng_noise = np.random.default_rng(seed).spawn(2)
+    period_ns = int(round(period * 1e9))
+
+    with SimWorld(robot=robot, camera=camera, markers_path=markers_path, seed=seed) as world:
+        marker_ids = tuple(sorted(world.marker_ids))
+        tracker = _tracker(world) if perception == "rendered" else None
+        actions = babble(world, rng_actions, n_steps, markers_of_interest=markers_of_interest)
+        executed = np.zeros_like(actions)
+        true_poses = np.zeros((n_steps, len(marker_ids), 4, 4))
+        visible_truth = np.zeros((n_steps, len(marker_ids)), dtype=bool)
+        observations, images, rejected = [], {}, Counter()
+        pending = list(schedule)
+        for k in range(n_steps):
+            while pending and pending[0][0] == k:
+                pending.pop(0)[1](world)
+            executed[k] = world.execute(actions[k])
+            truth = world.true_marker_poses()
+            true_poses[k] = [truth[marker_id] for marker_id in marker_ids]
+            visible = world.visible_marker_ids()
+            visible_truth[k] = [marker_id in visible for marker_id in marker_ids]
+            image = world.render() if tracker is not None or (image_every and k % image_every == 0) else None
+            if tracker is not None:
+                poses, dropped = tracker.detect(image)
+                rejected.update(reason for _, reason in dropped)
+            else:
+                poses = world.observe_noisy(sigma_trans, sigma_rot, visibility, rng=rng_noise)
+            observations.append(poses)
+            if image_every and k % image_every == 0:
+                images[k] = image
+            if progress is not None:
+                progress(k + 1)
+        camera = world.camera
+        joint_names = tuple(world.action_joint_names)
+
+    command_stamps = START_STAMP_NS + period_ns * np.arange(n_steps, dtype=np.int64)
+    return Session(
+        robot=str(robot), joint_names=joint_names, marker_ids=marker_ids, command_stamps=command_stamps,
+        observation_stamps=command_stamps + IMAGE_DELAY_NS, actions=actions, executed=executed,
+        observations=observations, true_poses=true_poses, faults=[(step, f.text) for step, f in schedule],
+        camera=camera, images=images, perception=perception, seed=seed, protocol=protocol,
+        sigma_trans=float(sigma_trans), sigma_rot=float(sigma_rot), visibility=float(visibility),
+        tracker_rejected=dict(rejected), visible_truth=visible_truth)
+
+
+def _tracker(world):
+    """The ArUco tracker for the world's camera and marker sizes."""
+    sizes = {marker_id: world.robot.marker(marker_id).size for marker_id in world.marker_ids}
+    return MarkerTracker(world.camera.K, marker_sizes=sizes)
+
+
+# ---------------------------------------------------------------------- the paper's protocols
+#: Markers that must be visible in the protocols' babbled configurations: the paper's X_6 and X_7 (Sec. IV-B).
+PROTOCOL_MARKERS_OF_INTEREST = (6, 7)
+
+
+def _joint_blocked_faults(n, blocked_angle=0.8):
+    fault = f"block_joint:5:{blocked_angle}"
+    return [f"{n}:{fault}", f"{2 * n}:repair", f"{3 * n}:{fault}"]
+
+
+def _limb_deformed_faults(n, delta_length=0.1, delta_rotvec=(math.pi / 4, 0.0, 0.0)):
+    fault = "deform_limb:tool_joint:" + ":".join(repr(float(v)) for v in (delta_length, *delta_rotvec))
+    return [f"{n}:{fault}", f"{2 * n}:repair", f"{3 * n}:{fault}"]
+
+
+#: Protocol name -> function giving its fault schedule for ``n`` steps per block.
+PROTOCOLS = {"joint_blocked": _joint_blocked_faults, "limb_deformed": _limb_deformed_faults}
+
+
+def protocol_faults(protocol, n_per_block=100):
+    """Fault schedule of a protocol (``"none"``, ``"joint_blocked"`` or ``"limb_deformed"``), a list of entries."""
+    if protocol == "none":
+        return []
+    if protocol not in PROTOCOLS:
+        raise InvalidInputError(f"protocol must be one of {['none', *PROTOCOLS]}, got {protocol!r}")
+    return PROTOCOLS[protocol](n_per_block)
+
+
+def joint_blocked_protocol(seed, n_per_block=100, perception="noise", **options):
+    """The paper's "joint stuck" experiment (Sec. IV-B) on the simulated 6-DOF arm.
+
+    Four blocks of ``n_per_block`` steps: normal; end-effector joint (action 5) blocked at 0.8 rad; repaired;
+    blocked again at the same angle (so the learner can recall the model it learnt in block 2). Commands are babbled
+    such that markers 6 and 7 are visible on the healthy robot, as in the paper.
+
+    Parameters
+    ----------
+    seed : int
+    n_per_block : int
+    perception : str
+    **options
+        Further arguments of :func:`record_session`.
+
+    Returns
+    -------
+    session : Session
+    """
+    options.setdefault("markers_of_interest", PROTOCOL_MARKERS_OF_INTEREST)
+    return record_session("powercube_6dof", 4 * n_per_block, seed, faults=_joint_blocked_faults(n_per_block),
+                          perception=perception, protocol="joint_blocked", **options)
+
+
+def limb_deformed_protocol(seed, n_per_block=100, perception="noise", **options):
+    """The paper's "deformed limb" experiment (Sec. IV-C) on the simulated 6-DOF arm.
+
+    Four blocks of ``n_per_block`` steps: normal; tool displaced (``tool_joint`` 0.1 m longer and bent by 45 deg
+    about its parent's x axis); restored; displaced again the same way. Markers 6 and 7 visible as above.
+
+    Returns
+    -------
+    session : Session
+    """
+    options.setdefault("markers_of_interest", PROTOCOL_MARKERS_OF_INTEREST)
+    return record_session("powercube_6dof", 4 * n_per_block, seed, faults=_limb_deformed_faults(n_per_block),
+                          perception=perception, protocol="limb_deformed", **options)

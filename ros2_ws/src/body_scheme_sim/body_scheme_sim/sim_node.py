@@ -1,0 +1,264 @@
+"""sim_node: a simulated arm with ArUco markers seen by a fixed camera; executes joint commands or babbles.
+
+Subscriptions
+-------------
+joint_commands : sensor_msgs/JointState  (reliable, depth 10; not in babbling mode)
+    Commanded joint positions by joint name. Only the newest pending command is executed (older ones are counted
+    as superseded).
+
+Publishers
+----------
+joint_commands : sensor_msgs/JointState  (reliable, depth 100; babbling mode only)
+    The babbling commands, stamped at command time.
+camera/image_raw : sensor_msgs/Image  (sensor data QoS; perception_mode "rendered")
+    rgb8 image after each executed command, stamped when it was taken (>= the command's stamp).
+camera/camera_info : sensor_msgs/CameraInfo  (sensor data QoS; perception_mode "rendered")
+    With each image, same header.
+observations : body_scheme_msgs/MarkerPoses  (reliable, depth 100; perception_mode "noise")
+    Visible markers' true poses with noise and random dropout, ``camera2marker``.
+ground_truth/marker_poses : body_scheme_msgs/MarkerPoses  (reliable, depth 100)
+    True pose of every marker after each command, same stamp as the image or observations. Evaluation only.
+
+Services
+--------
+~/inject_fault : body_scheme_msgs/InjectFault
+    Block a joint, deform a limb, displace a marker, or repair.
+
+Parameters
+----------
+robot : string "powercube_6dof"      shipped robot name or URDF path
+markers_path : string ""             marker placement file ("" = shipped / next to the URDF)
+frame_id : string "camera"           frame of images, observations and ground truth (camera optical frame)
+camera.width, camera.height : int 640, 480
+camera.fx, camera.fy, camera.cx, camera.cy : double   default Camera() intrinsics (60 deg horizontal FOV)
+camera.xyz, camera.rpy : double[3]   camera optical frame pose in the world (URDF rpy); default Camera() pose
+perception_mode : string "rendered"  "rendered" (images) or "noise" (noisy ground truth on observations)
+sigma_trans : double 0.044 m, sigma_rot : double 0.2618 rad, visibility : double 1.0   noise mode settings
+seed : int 0                         seed of babbling and noise
+babbling : bool false                publish and execute own random commands
+babbling_period : double 0.2 s       time between babbling commands
+markers_of_interest : int[] []       markers that must be visible in babbled configurations
+fault_schedule : string[] []         "step:kind:args" entries (body_scheme_sim.faults); steps count executed commands
+update_period : double 0.01 s        period of the timer executing subscribed commands
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image, JointState
+
+from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.kinematics import transform_from_xyz_rpy, xyz_rpy_from_transform
+from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
+from body_scheme_msgs.msg import MarkerPoses
+from body_scheme_msgs.srv import InjectFault
+from body_scheme_nodes import conversions
+
+from .babbling import babble
+from .camera import Camera
+from .faults import apply_fault, parse_fault_schedule
+from .world import SimWorld
+
+PERCEPTION_MODES = ("rendered", "noise")
+
+
+def camera_from_parameters(node, prefix="camera."):
+    """Declare the camera parameters (defaults: :class:`Camera`'s) and build the camera from their values."""
+    default = Camera()
+    xyz, rpy = xyz_rpy_from_transform(default.world2camera)
+    values = {name: node.declare_parameter(prefix + name, getattr(default, name)).value
+              for name in ("width", "height", "fx", "fy", "cx", "cy")}
+    xyz = node.declare_parameter(prefix + "xyz", [float(v) for v in xyz]).value
+    rpy = node.declare_parameter(prefix + "rpy", [float(v) for v in rpy]).value
+    return Camera(**values, world2camera=transform_from_xyz_rpy(list(xyz), list(rpy)))
+
+
+def declare_list_parameter(node, name, item_type):
+    """Declare a list parameter whose default is empty and return its value as a list of ``item_type``.
+
+    ROS cannot type an empty list (rclpy would call ``[]`` a byte array and refuse a later string list), so the
+    parameter is dynamically typed and checked here.
+    """
+    value = node.declare_parameter(name, [], ParameterDescriptor(dynamic_typing=True)).value
+    if value is None:  # "[]" in a parameter file
+        return []
+    if isinstance(value, (str, bytes)) or not all(isinstance(v, item_type) and not isinstance(v, bool)
+                                                  for v in value):
+        raise InvalidInputError(f"parameter {name} must be a list of {item_type.__name__}, got {value!r}")
+    return list(value)
+
+
+class SimNode(Node):
+    """ROS wrapper of :class:`body_scheme_sim.world.SimWorld` (see the module docstring)."""
+
+    def __init__(self, **node_options):
+        super().__init__("sim_node", **node_options)
+        robot = self.declare_parameter("robot", "powercube_6dof").value
+        markers_path = self.declare_parameter("markers_path", "").value or None
+        self.frame_id = self.declare_parameter("frame_id", "camera").value
+        camera = camera_from_parameters(self)
+        self.mode = self.declare_parameter("perception_mode", "rendered").value
+        self.sigma_trans = self.declare_parameter("sigma_trans", PAPER_SIGMA_TRANS).value
+        self.sigma_rot = self.declare_parameter("sigma_rot", PAPER_SIGMA_ROT).value
+        self.visibility = self.declare_parameter("visibility", 1.0).value
+        seed = self.declare_parameter("seed", 0).value
+        self.babbling = self.declare_parameter("babbling", False).value
+        babbling_period = self.declare_parameter("babbling_period", 0.2).value
+        self.markers_of_interest = declare_list_parameter(self, "markers_of_interest", int)
+        fault_schedule = declare_list_parameter(self, "fault_schedule", str)
+        update_period = self.declare_parameter("update_period", 0.01).value
+        if self.mode not in PERCEPTION_MODES:
+            raise InvalidInputError(f"perception_mode must be one of {PERCEPTION_MODES}, got {self.mode!r}")
+        if not (babbling_period > 0 and update_period > 0):
+            raise InvalidInputError("babbling_period and update_period must be > 0 s")
+        ObservationModel(self.sigma_trans, self.sigma_rot, self.visibility)  # validates the noise settings now
+
+        self.schedule = parse_fault_schedule(fault_schedule)
+        self.rng_babbling, self.rng_noise = np.random.default_rng(seed).spawn(2)
+        self.world = SimWorld(robot, camera=camera, markers_path=markers_path, seed=seed,
+                              marker_texture=self.mode == "rendered")
+        unknown = sorted(set(self.markers_of_interest) - set(self.world.marker_ids))
+        if unknown:
+            self.world.close()
+            raise InvalidInputError(f"markers_of_interest {unknown} are not markers of {robot}: "
+                                    f"{list(self.world.marker_ids)}")
+        self.n_executed = 0
+        self.counts = Counter()
+        self._pending = None
+        self._lock = threading.Lock()
+
+        work = MutuallyExclusiveCallbackGroup()
+        if self.babbling:
+            self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
+            self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
+        else:
+            self.create_subscription(JointState, "joint_commands", self._on_command, 10)
+            self.create_timer(update_period, self._on_update_timer, callback_group=work)
+        if self.mode == "rendered":
+            self.pub_image = self.create_publisher(Image, "camera/image_raw", qos_profile_sensor_data)
+            self.pub_info = self.create_publisher(CameraInfo, "camera/camera_info", qos_profile_sensor_data)
+        else:
+            self.pub_observations = self.create_publisher(MarkerPoses, "observations", 100)
+        self.pub_truth = self.create_publisher(MarkerPoses, "ground_truth/marker_poses", 100)
+        self.create_service(InjectFault, "~/inject_fault", self._on_inject_fault, callback_group=work)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.get_logger().info(
+            f"sim_node ready: {robot}, joints {list(self.world.action_joint_names)}, markers "
+            f"{list(self.world.marker_ids)}, {self.mode} perception, "
+            f"{'babbling' if self.babbling else 'executing joint_commands'}, {len(self.schedule)} scheduled fault(s)")
+
+    # -- callbacks ------------------------------------------------------------------------------------------------
+    def _on_command(self, msg):
+        with self._lock:
+            if self._pending is not None:
+                self.counts["superseded"] += 1
+            self._pending = msg
+
+    def _on_update_timer(self):
+        with self._lock:
+            msg, self._pending = self._pending, None
+        if msg is None:
+            return
+        try:
+            stamp, actions = conversions.actions_from_joint_state(msg, self.world.action_joint_names)
+        except InvalidInputError as error:
+            self.counts["rejected"] += 1
+            self.get_logger().warn(f"rejected joint command: {error}", throttle_duration_sec=5.0)
+            return
+        self._step(actions, stamp)
+
+    def _on_babbling_timer(self):
+        self._apply_due_faults()
+        try:
+            actions = babble(self.world, self.rng_babbling, 1, self.markers_of_interest)[0]
+        except BodySchemeError as error:
+            self.get_logger().error(f"babbling failed: {error}", throttle_duration_sec=5.0)
+            return
+        stamp = self._now()
+        self.pub_commands.publish(conversions.joint_state_msg(stamp, self.world.action_joint_names, actions))
+        self._step(actions, stamp)
+
+    # -- the work -------------------------------------------------------------------------------------------------
+    def _now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _apply_due_faults(self):
+        while self.schedule and self.schedule[0][0] <= self.n_executed:
+            _, fault = self.schedule.pop(0)
+            try:
+                fault(self.world)
+                self.get_logger().info(f"scheduled fault {fault.text!r} applied before command {self.n_executed}")
+            except BodySchemeError as error:
+                self.get_logger().error(f"scheduled fault {fault.text!r} failed: {error}")
+
+    def _step(self, actions, command_stamp):
+        """Execute one command and publish what the camera sees and the ground truth."""
+        self._apply_due_faults()
+        self.world.execute(actions)
+        self.n_executed += 1
+        stamp = max(self._now(), command_stamp)  # the picture is taken after the command, never before
+        if self.mode == "rendered":
+            image = conversions.image_msg(stamp, self.frame_id, self.world.render())
+            camera = self.world.camera
+            info = conversions.camera_info_msg(stamp, self.frame_id, camera.width, camera.height, camera.K)
+            info.header = image.header
+            self.pub_image.publish(image)
+            self.pub_info.publish(info)
+        else:
+            observed = self.world.observe_noisy(self.sigma_trans, self.sigma_rot, self.visibility, self.rng_noise)
+            self.pub_observations.publish(conversions.marker_poses_msg(stamp, self.frame_id, observed))
+        self.pub_truth.publish(conversions.marker_poses_msg(stamp, self.frame_id, self.world.true_marker_poses()))
+
+    def _on_inject_fault(self, request, response):
+        try:
+            kind, params = conversions.fault_from_request(request)
+            apply_fault(self.world, kind, **params)
+        except BodySchemeError as error:
+            response.success, response.message = False, f"{request.kind} refused: {error}"
+        else:
+            response.success = True
+            response.message = f"{kind} applied; active faults: {[f['kind'] for f in self.world.faults]}"
+            self.get_logger().info(f"fault injected: {kind} {params}")
+        return response
+
+    def _on_set_parameters(self, parameters):
+        names = ", ".join(p.name for p in parameters)
+        return SetParametersResult(successful=False,
+                                   reason=f"{names}: read at start-up only; restart sim_node to change it")
+
+    def destroy_node(self):
+        self.world.close()
+        super().destroy_node()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimNode()
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except BodySchemeError as error:
+        # Bad parameters (unknown robot, malformed fault schedule, ...): say why, exit non-zero.
+        rclpy.logging.get_logger("sim_node").fatal(str(error))
+        raise SystemExit(1) from error
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

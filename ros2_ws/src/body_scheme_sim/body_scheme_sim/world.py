@@ -1,0 +1,558 @@
+"""The simulated world: a robot arm in pybullet with ArUco marker plates, a ground plane and a fixed camera.
+
+Execution is kinematic (no dynamics): a command is clipped to the joint limits, blocked joints keep their angle, and
+the joints are set directly. The true geometry lives in a core :class:`~body_scheme_core.synthetic.Body` (a
+:class:`KinematicTree` plus blocked joints); faults are the core's fault functions applied to it, so the simulator
+and the synthetic sessions of the core share one definition of "block", "deform" and "displace". pybullet draws
+the robot and answers collision and line-of-sight queries; ground-truth marker poses come from the tree's forward
+kinematics (a test checks that pybullet's link poses agree).
+
+Frames: the robot's root link sits at the world origin (``world2root`` is the identity), the ground is the plane
+``z = 0``, and the camera's optical frame is at ``camera.world2camera``. Observations and ground truth are
+``camera2marker``: marker poses in the camera optical frame.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import pathlib
+import tempfile
+import xml.etree.ElementTree as ET
+
+import cv2
+import numpy as np
+import pybullet
+from pybullet_utils.bullet_client import BulletClient
+from scipy.spatial.transform import Rotation
+
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.kinematics import KinematicTree, xyz_rpy_from_transform
+from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, Body, ObservationModel
+from body_scheme_core.synthetic import block_joint as core_block_joint
+from body_scheme_core.synthetic import deform_limb as core_deform_limb
+from body_scheme_core.synthetic import displace_marker as core_displace_marker
+from body_scheme_core.transforms import check_transform, invert_transform
+
+from .camera import Camera
+from .markers import PLATE_THICKNESS, marker_corners, marker_texture, plate_side, write_plate_obj
+from .robots import ROBOT_BUILDERS, load_robot, robot_files
+
+__all__ = ["SimWorld", "FAULT_KINDS", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE"]
+
+#: Fault kinds of :meth:`SimWorld.repair` and :attr:`SimWorld.faults` entries.
+FAULT_KINDS = ("block_joint", "deform_limb", "displace_marker")
+#: A marker counts as visible only if its normal is within this angle of the direction to the camera, rad.
+MAX_VIEW_ANGLE = math.radians(70.0)
+#: A marker counts as visible only if each edge of its square spans at least this many pixels in the image (2 pixels
+#: per cell of the 6-cell ArUco square; below that cv2.aruco rarely decodes a marker).
+MIN_MARKER_PIXELS = 12.0
+#: Penetrations shallower than this (m) are not collisions (contact-margin noise).
+COLLISION_TOLERANCE = 1e-3
+#: Visible marker corners must lie this many pixels inside the image border.
+IMAGE_MARGIN = 2.0
+# Collision filter group of the marker plates: rays hit them, the robot and the ground never collide with them.
+_MARKER_GROUP = 2
+# Rays stop this far (m) in front of a marker point, so they never hit the marker's own plate.
+_RAY_STANDOFF = 2e-3
+_GROUND_HALF_SIZE = 1.4  # m; the floor ends behind the robot (a white wall beyond)
+_GROUND_RGBA = (0.55, 0.6, 0.5, 1.0)
+_PLAIN_PLATE_RGBA = (0.9, 0.9, 0.9, 1.0)
+
+
+class SimWorld:
+    """A robot with ArUco markers seen by a fixed camera, with runtime faults and ground truth.
+
+    Parameters
+    ----------
+    robot : str or os.PathLike or KinematicTree
+        A shipped robot name (:func:`~body_scheme_sim.robots.robot_names`), a URDF path (markers from
+        ``markers_path`` or ``<stem>.markers.yaml`` next to it) or a tree (drawn from ``KinematicTree.to_urdf``).
+    camera : Camera or None
+        ``None``: :class:`Camera` defaults (640x480, 60 deg, about 2 m in front of the robot).
+    markers_path : str or os.PathLike or None
+        Marker placement file (see :func:`~body_scheme_sim.robots.load_robot`).
+    seed : int or None
+        Seed of :attr:`rng`, the default random stream of :meth:`observe_noisy` and babbling.
+    marker_texture : bool
+        Draw the ArUco patterns; ``False`` draws plain plates (same occlusion, no texture loading).
+    max_view_angle : float
+        See :data:`MAX_VIEW_ANGLE`.
+    min_marker_pixels : float
+        See :data:`MIN_MARKER_PIXELS`.
+
+    Notes
+    -----
+    Each world owns a pybullet DIRECT client, so several worlds live in one process. Call :meth:`close` (or use
+    ``with SimWorld(...) as world:``) to free it.
+    """
+
+    def __init__(self, robot="powercube_6dof", camera=None, markers_path=None, seed=0, marker_texture=True,
+                 max_view_angle=MAX_VIEW_ANGLE, min_marker_pixels=MIN_MARKER_PIXELS):
+        self.camera = Camera() if camera is None else camera
+        if not isinstance(self.camera, Camera):
+            raise InvalidInputError(f"camera must be a Camera, got {type(self.camera).__name__}")
+        self.rng = np.random.default_rng(seed)
+        self.max_view_angle = float(max_view_angle)
+        self.min_marker_pixels = float(min_marker_pixels)
+        self._tmp = tempfile.TemporaryDirectory(prefix="body_scheme_sim_")
+        self._dir = pathlib.Path(self._tmp.name)
+        self._pb = None
+        self._backdrop_cache = None
+        if isinstance(robot, KinematicTree):
+            tree, self._urdf_path = robot, None
+        else:
+            self._urdf_path, markers_path = robot_files(robot, markers_path)
+            tree = load_robot(self._urdf_path, markers_path)
+        # Shipped robots are to_urdf() output: a deformed one is drawn the same way. Other URDFs keep their own
+        # meshes and get only the joint origins patched.
+        self._redraw_from_tree = self._urdf_path is None or os.fspath(robot) in ROBOT_BUILDERS
+        self._n_loads = 0
+        self._nominal = Body(tree)
+        self._body = self._nominal
+        self._faults = []
+        try:
+            self._pb = BulletClient(connection_mode=pybullet.DIRECT)
+            self._robot_id = self._load_robot(tree)
+            self._index_links(tree)
+            self._ground_id = self._create_ground()
+            self._marker_bodies = self._create_markers(tree, marker_texture)
+            self._command = np.clip(np.zeros(tree.n_actions), tree.action_lower, tree.action_upper)
+            self._set_configuration(self._body.execute(self._command))
+            self._ignored_pairs = self._pairs_in_contact()  # in the reference configuration
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ set-up
+    def _load_robot(self, tree):
+        """Load the robot into pybullet: its own URDF file, or one drawn for a deformed or in-memory tree."""
+        self._n_loads += 1
+        if self._urdf_path is not None and tree is self._nominal.tree:
+            path = self._urdf_path
+        else:
+            path = self._dir / f"robot_{self._n_loads}.urdf"
+            if self._redraw_from_tree:
+                text = tree.to_urdf("body_scheme_sim_robot")
+            else:
+                text = _patched_urdf(self._urdf_path.read_text(encoding="utf-8"), self._urdf_path.resolve().parent,
+                                     tree)
+            path.write_text(text, encoding="utf-8")
+        return self._pb.loadURDF(str(path), basePosition=(0.0, 0.0, 0.0), useFixedBase=True)
+
+    def _index_links(self, tree):
+        pb = self._pb
+        joint_index, link_index = {}, {tree.root_link: -1}
+        for index in range(pb.getNumJoints(self._robot_id)):
+            info = pb.getJointInfo(self._robot_id, index)
+            joint_index[info[1].decode()] = index
+            link_index[info[12].decode()] = index
+        missing = [name for name in tree.action_joint_names if name not in joint_index]
+        if missing:
+            raise InvalidInputError(f"pybullet did not load joints {missing} of the robot")
+        self._action_joint_index = [joint_index[name] for name in tree.action_joint_names]
+        self._link_index = link_index
+        self._parent_index = {link_index[j.child]: link_index[j.parent] for j in tree.joints}
+
+    def _create_ground(self):
+        """The ground plane for collisions and lines of sight; it is drawn by :meth:`_backdrop`."""
+        pb = self._pb
+        # A body without a visual shape would be drawn from its collision shape (an endless plane); give it an
+        # invisible speck instead.
+        speck = pb.createVisualShape(pybullet.GEOM_SPHERE, radius=1e-4, rgbaColor=(0.0, 0.0, 0.0, 0.0),
+                                     visualFramePosition=(0.0, 0.0, -1.0))
+        return pb.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=pb.createCollisionShape(pybullet.GEOM_PLANE),
+                                  baseVisualShapeIndex=speck)
+
+    def _create_markers(self, tree, textured):
+        pb = self._pb
+        obj_path = str(write_plate_obj(self._dir))
+        bodies = {}
+        for marker in tree.markers:
+            side = plate_side(marker.size)
+            visual = pb.createVisualShape(pybullet.GEOM_MESH, fileName=obj_path,
+                                          meshScale=(side, side, PLATE_THICKNESS),
+                                          rgbaColor=(1.0, 1.0, 1.0, 1.0) if textured else _PLAIN_PLATE_RGBA)
+            shape = pb.createCollisionShape(pybullet.GEOM_BOX, halfExtents=(0.5 * side, 0.5 * side,
+                                                                            0.5 * PLATE_THICKNESS),
+                                            collisionFramePosition=(0.0, 0.0, -0.5 * PLATE_THICKNESS))
+            body = pb.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=shape, baseVisualShapeIndex=visual)
+            pb.setCollisionFilterGroupMask(body, -1, _MARKER_GROUP, 0)
+            if textured:
+                texture_path = self._dir / f"aruco_{marker.id}.png"
+                cv2.imwrite(str(texture_path), cv2.cvtColor(marker_texture(marker.id), cv2.COLOR_GRAY2BGR))
+                pb.changeVisualShape(body, -1, textureUniqueId=pb.loadTexture(str(texture_path)))
+            bodies[marker.id] = body
+        return bodies
+
+    def _pairs_in_contact(self):
+        """Link pairs (``(a, b)`` by pybullet link index, or ``(a, "ground")``) penetrating each other now.
+
+        Evaluated once in the reference configuration (all actions 0, clipped to the limits) to find the pairs
+        that touch by design (a base standing on the ground, overlapping neighbours); :meth:`in_collision` ignores
+        those, like the "default" disabled pairs of a MoveIt configuration. Adjacent links are never checked.
+        """
+        pb = self._pb
+        pairs = set()
+        links = sorted(self._link_index.values())
+        for a_index, link_a in enumerate(links):
+            if _deeper_than(pb.getClosestPoints(self._robot_id, self._ground_id, 0.0, linkIndexA=link_a)):
+                pairs.add((link_a, "ground"))
+            for link_b in links[a_index + 1:]:
+                if self._parent_index.get(link_b) == link_a or self._parent_index.get(link_a) == link_b:
+                    continue  # adjacent links share a joint and always touch
+                if _deeper_than(pb.getClosestPoints(self._robot_id, self._robot_id, 0.0, linkIndexA=link_a,
+                                                    linkIndexB=link_b)):
+                    pairs.add((link_a, link_b))
+        return pairs
+
+    # ------------------------------------------------------------------ the robot
+    @property
+    def robot(self):
+        """The robot's true :class:`KinematicTree` now (deformed limbs and displaced markers included)."""
+        return self._body.tree
+
+    @property
+    def nominal_robot(self):
+        """The robot's :class:`KinematicTree` before any fault (its specification)."""
+        return self._nominal.tree
+
+    @property
+    def marker_ids(self):
+        """Marker ids, ascending."""
+        return self._nominal.tree.marker_ids
+
+    @property
+    def n_actions(self):
+        """Length m of the action vector."""
+        return self._nominal.tree.n_actions
+
+    @property
+    def action_lower(self):
+        """Lower joint limits, shape (m,)."""
+        return self._nominal.tree.action_lower
+
+    @property
+    def action_upper(self):
+        """Upper joint limits, shape (m,)."""
+        return self._nominal.tree.action_upper
+
+    @property
+    def action_joint_names(self):
+        """Joint name of each action, tuple of length m."""
+        return self._nominal.tree.action_joint_names
+
+    @property
+    def camera2root(self):
+        """Pose of the robot's root link in the camera optical frame, shape (4, 4) (the core's ``world2root``)."""
+        return invert_transform(self.camera.world2camera)
+
+    def execute(self, a):
+        """Execute a command: clip to the joint limits, hold blocked joints, set the joints.
+
+        Parameters
+        ----------
+        a : array-like, shape (m,)
+            Commanded joint positions (rad or m) in action order.
+
+        Returns
+        -------
+        q : ndarray, shape (m,)
+            Joint positions reached.
+        """
+        a = np.array(a, dtype=float)
+        if a.shape != (self.n_actions,):
+            raise InvalidInputError(f"command must have shape ({self.n_actions},), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise InvalidInputError(f"command must be finite, got {a.tolist()}")
+        self._command = a
+        self._set_configuration(self._body.execute(a))
+        return self._q.copy()
+
+    @property
+    def last_command(self):
+        """The last command executed (before clipping and blocking), shape (m,); initially zeros within limits."""
+        return self._command.copy()
+
+    def joint_positions(self):
+        """Joint positions reached by the last command, shape (m,)."""
+        return self._q.copy()
+
+    def _set_configuration(self, q):
+        pb = self._pb
+        for index, value in zip(self._action_joint_index, q, strict=True):
+            pb.resetJointState(self._robot_id, index, float(value))
+        self._q = np.array(q, dtype=float)
+        root2marker = self._body.tree.marker_poses(self._q)
+        self._world2marker = root2marker
+        for marker_id, body in self._marker_bodies.items():
+            pose = root2marker[marker_id]
+            pb.resetBasePositionAndOrientation(body, pose[:3, 3], Rotation.from_matrix(pose[:3, :3]).as_quat())
+
+    def drawn_link_poses(self):
+        """Link poses as pybullet holds them, ``{link: world2link (4, 4)}`` (a check against ``robot.link_poses``)."""
+        pb = self._pb
+        poses = {}
+        for link, index in self._link_index.items():
+            if index < 0:
+                position, orientation = pb.getBasePositionAndOrientation(self._robot_id)
+                # pybullet's base pose is its inertial frame; the URDF link frame is that times inertial^-1.
+                inertial = pb.getDynamicsInfo(self._robot_id, -1)[3:5]
+                position, orientation = pb.multiplyTransforms(
+                    position, orientation, *pb.invertTransform(*inertial))
+            else:
+                position, orientation = pb.getLinkState(self._robot_id, index, computeForwardKinematics=True)[4:6]
+            pose = np.eye(4)
+            pose[:3, :3] = Rotation.from_quat(orientation).as_matrix()
+            pose[:3, 3] = position
+            poses[link] = pose
+        return poses
+
+    # ------------------------------------------------------------------ perception
+    def render(self):
+        """Camera image of the scene (pybullet TinyRenderer, headless).
+
+        The static ground is rendered once per camera setting into a backdrop (colour and depth); each frame renders
+        only the robot and the markers and lets the closer of the two win per pixel, the same z-test the renderer
+        would do, at a third of the cost (TinyRenderer's cost grows with the pixels a surface covers).
+
+        Returns
+        -------
+        image : ndarray, shape (height, width, 3), dtype uint8
+            RGB, top row first.
+        """
+        backdrop_rgb, backdrop_depth = self._backdrop()
+        rgb, depth = _render(self._pb, self.camera)
+        image = backdrop_rgb.copy()
+        cv2.copyTo(rgb, (depth < backdrop_depth).view(np.uint8), image)  # in place, 30x faster than np.where
+        return image
+
+    def _backdrop(self):
+        key = (self.camera.width, self.camera.height, self.camera.view_matrix, self.camera.projection_matrix)
+        if self._backdrop_cache is None or self._backdrop_cache[0] != key:
+            scene = BulletClient(connection_mode=pybullet.DIRECT)
+            try:
+                half = _GROUND_HALF_SIZE
+                visual = scene.createVisualShape(pybullet.GEOM_BOX, halfExtents=(half, half, 0.0005),
+                                                 visualFramePosition=(0.0, 0.0, -0.0005), rgbaColor=_GROUND_RGBA)
+                scene.createMultiBody(baseMass=0.0, baseVisualShapeIndex=visual)
+                self._backdrop_cache = (key, _render(scene, self.camera))
+            finally:
+                scene.disconnect()
+        return self._backdrop_cache[1]
+
+    def true_marker_poses(self):
+        """Ground truth (for evaluation only): ``{marker id: camera2marker (4, 4)}`` of every marker."""
+        camera2world = invert_transform(self.camera.world2camera)
+        return {marker_id: camera2world @ pose for marker_id, pose in self._world2marker.items()}
+
+    def world_marker_poses(self):
+        """Ground truth in the world frame: ``{marker id: world2marker (4, 4)}``."""
+        return {marker_id: pose.copy() for marker_id, pose in self._world2marker.items()}
+
+    def visible_marker_ids(self):
+        """Markers the camera can see now: in the image, facing the camera, not occluded.
+
+        A marker is visible if its four corners project inside the image (``IMAGE_MARGIN`` pixels from the border)
+        in front of the camera, each edge spans at least ``min_marker_pixels``, its normal is within
+        ``max_view_angle`` of the direction to the camera, and rays
+        from the camera to its corners and centre hit nothing (robot, ground, other plates). No rendering needed.
+
+        Returns
+        -------
+        ids : set of int
+        """
+        camera = self.camera
+        eye = camera.position
+        cos_limit = math.cos(self.max_view_angle)
+        candidates, targets = [], []
+        for marker in self._body.tree.markers:
+            world2marker = self._world2marker[marker.id]
+            to_camera = eye - world2marker[:3, 3]
+            distance = np.linalg.norm(to_camera)
+            if not (distance > 0 and world2marker[:3, 2] @ to_camera / distance > cos_limit):
+                continue
+            points = np.vstack([marker_corners(marker.size), np.zeros(3)]) @ world2marker[:3, :3].T \
+                + world2marker[:3, 3]
+            uv, depth = camera.project(points[:4])
+            if not (np.all(depth > camera.near) and np.all(camera.in_image(uv, IMAGE_MARGIN))):
+                continue
+            if np.min(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)) < self.min_marker_pixels:
+                continue
+            rays = points - eye
+            lengths = np.linalg.norm(rays, axis=1, keepdims=True)
+            candidates.append(marker.id)
+            targets.append(eye + rays * (1.0 - _RAY_STANDOFF / lengths))
+        if not candidates:
+            return set()
+        targets = np.concatenate(targets)
+        hits = self._pb.rayTestBatch(np.tile(eye, (len(targets), 1)).tolist(), targets.tolist())
+        clear = np.array([hit[0] < 0 for hit in hits]).reshape(len(candidates), -1).all(axis=1)
+        return {marker_id for marker_id, ok in zip(candidates, clear, strict=True) if ok}
+
+    def observe_noisy(self, sigma_trans=PAPER_SIGMA_TRANS, sigma_rot=PAPER_SIGMA_ROT, visibility=1.0, rng=None):
+        """Fast noise-model perception: the visible markers' true poses, perturbed and randomly dropped.
+
+        Noise follows :class:`body_scheme_core.synthetic.ObservationModel` (``sigma_trans``, ``sigma_rot`` are 3D
+        RMS errors); each visible marker is kept with probability ``visibility``.
+
+        Parameters
+        ----------
+        sigma_trans : float
+            m.
+        sigma_rot : float
+            rad.
+        visibility : float
+            In [0, 1].
+        rng : numpy.random.Generator or int or None
+            ``None``: :attr:`rng`.
+
+        Returns
+        -------
+        observations : dict of int to ndarray, shape (4, 4)
+            ``camera2marker`` of the observed markers.
+        """
+        model = ObservationModel(sigma_trans, sigma_rot, visibility, rng=self.rng if rng is None else rng,
+                                 world2root=np.eye(4))
+        truth = self.true_marker_poses()
+        return model.observe({marker_id: truth[marker_id] for marker_id in sorted(self.visible_marker_ids())})
+
+    def in_collision(self):
+        """Whether the robot now collides with itself (non-adjacent links) or with the ground.
+
+        Pairs already touching in the reference configuration (all actions 0) are ignored, e.g. the base on the
+        ground.
+        """
+        return bool(self._pairs_in_contact() - self._ignored_pairs)
+
+    # ------------------------------------------------------------------ faults
+    @property
+    def faults(self):
+        """Active faults in the order applied, as dicts ``{"kind": ..., <arguments>}``."""
+        return copy.deepcopy(self._faults)
+
+    def block_joint(self, action_index, angle=None):
+        """Block the joint of ``action_index``: it ignores commands and stays at ``angle`` (``None``: where it is).
+
+        The fault takes effect at once (the last command is executed again on the changed body).
+        """
+        action_index = int(action_index)
+        if not 0 <= action_index < self.n_actions:
+            raise InvalidInputError(f"action_index must be in 0..{self.n_actions - 1}, got {action_index}")
+        angle = float(self._q[action_index] if angle is None else angle)
+        self._add_fault({"kind": "block_joint", "action_index": action_index, "angle": angle})
+
+    def deform_limb(self, joint_name, delta_length=0.0, delta_rotvec=(0.0, 0.0, 0.0)):
+        """Stretch and/or bend the limb ending at ``joint_name`` (see ``body_scheme_core.synthetic.deform_limb``).
+
+        Parameters
+        ----------
+        joint_name : str
+            Joint (or link: all its child joints) whose origin changes.
+        delta_length : float
+            m.
+        delta_rotvec : array-like, shape (3,)
+            Bend, rad, in the parent link frame.
+        """
+        delta_rotvec = [float(v) for v in np.asarray(delta_rotvec, dtype=float).reshape(-1)]
+        self._add_fault({"kind": "deform_limb", "joint_name": str(joint_name), "delta_length": float(delta_length),
+                         "delta_rotvec": delta_rotvec})
+
+    def displace_marker(self, marker_id, delta):
+        """Move a marker on its link (a shifted marker, or a tool displaced in the gripper).
+
+        Parameters
+        ----------
+        marker_id : int
+        delta : array-like, shape (4, 4)
+            ``old_marker2new_marker``: the displacement in the marker's own frame.
+        """
+        delta = check_transform(np.array(delta, dtype=float), name="delta")
+        if delta.shape != (4, 4):
+            raise InvalidInputError(f"delta must have shape (4, 4), got {delta.shape}")
+        self._add_fault({"kind": "displace_marker", "marker_id": int(marker_id), "delta": delta.tolist()})
+
+    def repair(self, kind=None):
+        """Undo all faults (``kind=None``) or all faults of one kind; the rest stay in effect."""
+        if kind is not None and kind not in FAULT_KINDS:
+            raise InvalidInputError(f"repair kind must be None or one of {FAULT_KINDS}, got {kind!r}")
+        self._rebuild([f for f in self._faults if kind is not None and f["kind"] != kind])
+
+    def _add_fault(self, fault):
+        self._rebuild(self._faults + [fault])
+
+    def _rebuild(self, faults):
+        body = self._nominal
+        for fault in faults:
+            body = _apply_fault(body, fault)  # raises before anything changes if a fault is invalid
+        old_joints = self._body.tree.joints
+        self._body, self._faults = body, faults
+        if any(a.origin.tobytes() != b.origin.tobytes() for a, b in zip(old_joints, body.tree.joints, strict=True)):
+            self._pb.removeBody(self._robot_id)
+            self._robot_id = self._load_robot(body.tree)
+            self._index_links(body.tree)
+        self._set_configuration(body.execute(self._command))
+
+    # ------------------------------------------------------------------ lifetime
+    def close(self):
+        """Disconnect the pybullet client and delete the temporary files (idempotent)."""
+        if self._pb is not None:
+            self._pb.disconnect()
+            self._pb = None
+        self._tmp.cleanup()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info):
+        self.close()
+
+    def __repr__(self):
+        return f"<SimWorld {self._nominal.tree!r} faults={self._faults}>"
+
+
+def _render(pb, camera):
+    """Colour (height, width, 3) uint8 and depth-buffer (height, width) float images of a pybullet scene."""
+    light = camera.position / max(np.linalg.norm(camera.position), 1e-9)
+    _, _, rgba, depth, _ = pb.getCameraImage(
+        camera.width, camera.height, viewMatrix=camera.view_matrix, projectionMatrix=camera.projection_matrix,
+        renderer=pybullet.ER_TINY_RENDERER, flags=pybullet.ER_NO_SEGMENTATION_MASK, shadow=0,
+        lightDirection=light, lightAmbientCoeff=0.6, lightDiffuseCoeff=0.4, lightSpecularCoeff=0.0)
+    shape = (camera.height, camera.width)
+    rgb = np.asarray(rgba, dtype=np.uint8).reshape(*shape, 4)[..., :3]
+    return rgb, np.asarray(depth, dtype=np.float32).reshape(shape)
+
+
+def _apply_fault(body, fault):
+    kind = fault["kind"]
+    if kind == "block_joint":
+        return core_block_joint(body, fault["action_index"], fault["angle"])
+    if kind == "deform_limb":
+        return core_deform_limb(body, fault["joint_name"], fault["delta_length"], fault["delta_rotvec"])
+    return core_displace_marker(body, fault["marker_id"], np.array(fault["delta"]))
+
+
+def _deeper_than(points, tolerance=COLLISION_TOLERANCE):
+    """Whether pybullet closest points contain a penetration deeper than ``tolerance``."""
+    return any(point[8] < -tolerance for point in points)
+
+
+def _patched_urdf(urdf_text, urdf_dir, tree):
+    """URDF text with every joint's ``<origin>`` set from ``tree`` and relative mesh paths made absolute."""
+    root = ET.fromstring(urdf_text)
+    for element in root.iter("joint"):
+        name = element.get("name")
+        if name is None or element.find("parent") is None:
+            continue  # transmission joints etc.
+        origin = element.find("origin")
+        if origin is None:
+            origin = ET.SubElement(element, "origin")
+        xyz, rpy = xyz_rpy_from_transform(tree.joint(name).origin)
+        origin.set("xyz", " ".join(repr(float(v)) for v in xyz))
+        origin.set("rpy", " ".join(repr(float(v)) for v in rpy))
+    for mesh in root.iter("mesh"):
+        filename = mesh.get("filename", "")
+        if filename and "://" not in filename and not os.path.isabs(filename):
+            mesh.set("filename", str(urdf_dir / filename))
+    return ET.tostring(root, encoding="unicode")
