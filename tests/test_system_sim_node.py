@@ -94,11 +94,14 @@ def test_babbling_noise_mode_and_a_blocked_joint_over_dds(start_node, ros_node, 
 
 
 def test_rendered_mode_answers_commands_with_images_over_dds(start_node, ros_node, spin_until):
-    """sim_node executes published commands and sends an rgb8 Image + CameraInfo of the configured size."""
+    """sim_node executes commands and sends an rgb8 Image + CameraInfo of the configured size.
+
+    The subscriber uses sensor-data (best effort) QoS: the sim's reliable image publisher must serve it too.
+    """
     tree = load_robot("arm_4dof")
     process = start_node("body_scheme_sim", "sim_node", {
         "robot": "arm_4dof", "perception_mode": "rendered", "camera.width": 320, "camera.height": 240,
-        "camera.fx": 280.0, "camera.fy": 280.0, "camera.cx": 159.5, "camera.cy": 119.5})
+        "camera.fx": 280.0, "camera.fy": 280.0, "camera.cx": 159.5, "camera.cy": 119.5, "image_encoding": "rgb8"})
     recorder = Recorder(ros_node, [("camera/image_raw", Image, qos_profile_sensor_data),
                                    ("camera/camera_info", CameraInfo, qos_profile_sensor_data),
                                    ("ground_truth/marker_poses", MarkerPoses, 100)])

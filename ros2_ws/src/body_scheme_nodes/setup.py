@@ -22,6 +22,8 @@ setup(
             "scheme_node = body_scheme_nodes.scheme_node:main",
             "tracker_node = body_scheme_nodes.tracker_node:main",
             "control_node = body_scheme_nodes.control_node:main",
+            "bag_replay = body_scheme_nodes.bag_replay:main",
+            "replay_offline = body_scheme_nodes.replay_offline:main",
         ],
     },
 )

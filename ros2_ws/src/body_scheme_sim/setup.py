@@ -25,6 +25,7 @@ setup(
         "console_scripts": [
             "sim_node = body_scheme_sim.sim_node:main",
             "record_session = body_scheme_sim.record:main",
+            "live_demo = body_scheme_sim.live_demo:main",
         ],
     },
 )

@@ -15,6 +15,8 @@ body_scheme/structure : body_scheme_msgs/BodySchemeStructure  (transient local)
 body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
 body_scheme/events : body_scheme_msgs/SchemeEvent
 /diagnostics : diagnostic_msgs/DiagnosticArray
+body_scheme/progress : std_msgs/UInt64
+    Number of observation messages taken in so far (bag_replay's backpressure signal).
 
 Services
 --------
@@ -39,8 +41,6 @@ learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...)
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import pathlib
 import threading
 import time
@@ -54,36 +54,19 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
+from std_msgs.msg import UInt64
 from std_srvs.srv import Trigger
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.kinematics import KinematicTree, load_markers_yaml
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.pairing import CommandObservationPairer
 from body_scheme_core.persistence import load_state, save_state
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import StatePath
 
 from . import conversions
+from .runner import feed_message
+from .settings import SchemeSettings, parameter_defaults
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-# Optional config fields that ROS parameters cannot hold as None: this value stands for None.
-_NONE_SENTINELS = {"theta_trans": 0.0, "theta_rot": 0.0, "root": -1}
-
-
-def config_from_parameters(node, prefix="learner."):
-    """Declare one parameter per BodySchemeConfig field and build the config from their values."""
-    defaults = BodySchemeConfig()
-    values = {}
-    for field in dataclasses.fields(BodySchemeConfig):
-        default = getattr(defaults, field.name) if field.name not in _NONE_SENTINELS else _NONE_SENTINELS[field.name]
-        value = node.declare_parameter(prefix + field.name, default).value
-        if field.name in _NONE_SENTINELS and value == _NONE_SENTINELS[field.name]:
-            value = None
-        values[field.name] = value
-    return BodySchemeConfig(**values)
 
 
 class SchemeNode(Node):
@@ -91,27 +74,20 @@ class SchemeNode(Node):
 
     def __init__(self):
         super().__init__("scheme_node")
-        self.part_ids = [int(p) for p in self.declare_parameter("part_ids", [0]).value]
-        self.joint_names = list(self.declare_parameter("joint_names", ["joint_0"]).value)
-        m = len(self.joint_names)
-        self.lower = list(self.declare_parameter("action_lower", [-math.pi] * m).value)
-        self.upper = list(self.declare_parameter("action_upper", [math.pi] * m).value)
-        self.frame_id = self.declare_parameter("frame_id", "camera").value
-        update_period = self.declare_parameter("update_period", 0.02).value
-        self.pairer = CommandObservationPairer(
-            settle_time=self.declare_parameter("settle_time", 0.0).value,
-            max_delay=self.declare_parameter("max_delay", 2.0).value,
-            grace=self.declare_parameter("pairing_grace", 0.2).value)
-        self.checkpoint_path = self.declare_parameter("checkpoint_path", "").value
-        checkpoint_period = self.declare_parameter("checkpoint_period", 30.0).value
-        self.urdf_path = self.declare_parameter("urdf_path", "").value
-        self.markers_path = self.declare_parameter("markers_path", "").value
-        self.config = config_from_parameters(self)
-        if len(self.lower) != m or len(self.upper) != m:
-            raise InvalidInputError(f"action_lower/action_upper need {m} values (one per joint name)")
+        # Joint count first: the joint-limit defaults depend on it.
+        n_joints = len(self.declare_parameter("joint_names", parameter_defaults()["joint_names"]).value)
+        values = {name: self.declare_parameter(name, default).value
+                  for name, default in parameter_defaults(n_joints).items() if name != "joint_names"}
+        values["joint_names"] = self.get_parameter("joint_names").value
+        self.settings = SchemeSettings.from_parameters(values)
+        self.joint_names = list(self.settings.joint_names)
+        self.frame_id = self.settings.frame_id
+        self.checkpoint_path = self.settings.checkpoint_path
+        self.pairer = self.settings.new_pairer()
 
         self.learner = self._restore_or_create()
         self.rejected = Counter()
+        self.event_counts = Counter()
         self.latency = deque(maxlen=200)
         self._inbox = deque()  # (kind, payload) from callbacks; drained by the timer
         self._lock = threading.Lock()
@@ -124,26 +100,23 @@ class SchemeNode(Node):
         self.pub_snapshot = self.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
         self.pub_events = self.create_publisher(SchemeEvent, "body_scheme/events", 100)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", 10)
+        self.n_observation_messages = 0
         self.create_service(StatePath, "~/save", self._on_save, callback_group=work)
         self.create_service(StatePath, "~/load", self._on_load, callback_group=work)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=work)
-        self.create_timer(update_period, self._on_timer, callback_group=work)
+        self.create_timer(self.settings.update_period, self._on_timer, callback_group=work)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
-        if self.checkpoint_path and checkpoint_period > 0:
-            self.create_timer(checkpoint_period, self._checkpoint, callback_group=work)
+        if self.checkpoint_path and self.settings.checkpoint_period > 0:
+            self.create_timer(self.settings.checkpoint_period, self._checkpoint, callback_group=work)
         self._last_structure_key = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_structure(force=True)
         self.get_logger().info(
-            f"scheme_node ready: parts {self.part_ids}, joints {self.joint_names}, phase {self.learner.phase}")
+            f"scheme_node ready: parts {list(self.settings.part_ids)}, joints {self.joint_names}, "
+            f"phase {self.learner.phase}")
 
     # -- set-up -------------------------------------------------------------------------------------------------
-    def _new_learner(self):
-        initial = engineered_body_scheme(self.urdf_path, self.markers_path, self.joint_names, self.part_ids) \
-            if self.urdf_path else None
-        return BodySchemeLearner(self.part_ids, len(self.joint_names), self.config, initial_models=initial,
-                                 action_lower=self.lower, action_upper=self.upper)
-
     def _restore_or_create(self):
         if self.checkpoint_path and pathlib.Path(self.checkpoint_path).exists():
             try:
@@ -152,7 +125,7 @@ class SchemeNode(Node):
                 return learner
             except BodySchemeError as error:
                 self.get_logger().error(f"ignoring unreadable checkpoint {self.checkpoint_path}: {error}")
-        return self._new_learner()
+        return self.settings.new_learner()
 
     # -- callbacks only buffer -----------------------------------------------------------------------------------
     def _on_command(self, msg):
@@ -169,17 +142,15 @@ class SchemeNode(Node):
             inbox, self._inbox = self._inbox, deque()
         samples = []
         for kind, msg in inbox:
-            try:
-                if kind == "command":
-                    stamp, actions = conversions.actions_from_joint_state(msg, self.joint_names)
-                    samples += self.pairer.add_command(stamp, actions)
-                else:
-                    stamp, observations, rejected = conversions.observations_from_msg(msg)
-                    for marker_id, code, detail in rejected:
-                        self._reject(code, f"marker {marker_id}: {detail}")
-                    self.pairer.add_observation(stamp, observations)
-            except InvalidInputError as error:
-                self._reject(f"bad_{kind}_message", str(error))
+            # The same function replay_offline uses: a bag replayed offline and through the graph pairs alike.
+            new_samples, rejections = feed_message(self.pairer, kind, msg, self.joint_names)
+            samples += new_samples
+            for code, detail in rejections:
+                self._reject(code, detail)
+        n_observations = sum(kind == "observations" for kind, _ in inbox)
+        if n_observations:
+            self.n_observation_messages += n_observations
+            self.pub_progress.publish(UInt64(data=self.n_observation_messages))
         samples += self.pairer.flush(self.get_clock().now().nanoseconds * 1e-9)
         for stamp, actions, observations in samples:
             self._learn(stamp, actions, observations)
@@ -193,6 +164,7 @@ class SchemeNode(Node):
             return
         self.latency.append(time.perf_counter() - start)
         for event in events:
+            self.event_counts[event.kind] += 1
             self.pub_events.publish(conversions.event_msg(stamp, event))
             if event.kind != "input_rejected":
                 self.get_logger().info(f"[step {event.step}] {event.kind}: {event.reason}")
@@ -217,7 +189,8 @@ class SchemeNode(Node):
         self.pub_structure.publish(conversions.structure_msg(
             stamp, learner.step, learner.phase, learner.root, learner.part_ids, edges))
         self.pub_snapshot.publish(conversions.snapshot_msg(
-            stamp, self.frame_id, learner.step, learner.body_scheme, self.joint_names, self.lower, self.upper,
+            stamp, self.frame_id, learner.step, learner.body_scheme, self.joint_names, self.settings.action_lower,
+            self.settings.action_upper,
             learner.root_pose))
 
     def _publish_diagnostics(self):
@@ -239,6 +212,9 @@ class SchemeNode(Node):
                   "update_latency_max_ms": 1e3 * latency[-1] if latency else float("nan"),
                   "rejected_total": sum(rejected.values())}
         values.update({f"rejected.{reason}": count for reason, count in sorted(rejected.items())})
+        # Cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
+        values.update({f"events.{kind}": count for kind, count in sorted(self.event_counts.items())
+                       if kind != "input_rejected"})
         array.status.append(conversions.diagnostic_status("body_scheme: scheme", level, message, values))
         for e in edges:
             level = (DiagnosticStatus.ERROR if e["in_mismatch"] or not e["valid"] else DiagnosticStatus.OK)
@@ -278,7 +254,7 @@ class SchemeNode(Node):
         return response
 
     def _on_reset(self, request, response):
-        self.learner = self._new_learner()
+        self.learner = self.settings.new_learner()
         self._publish_structure(force=True)
         response.success, response.message = True, "learner reset: bootstrapping from scratch"
         return response
@@ -288,23 +264,6 @@ class SchemeNode(Node):
             save_state(self.learner, self.checkpoint_path)
         except (OSError, BodySchemeError) as error:
             self.get_logger().error(f"checkpoint to {self.checkpoint_path} failed: {error}")
-
-
-def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids):
-    """Engineered local models of a robot description, one per edge of its marker tree (the initial body scheme).
-
-    Raises
-    ------
-    InvalidInputError
-        If the marker file is missing, or the robot's markers are not exactly ``part_ids``.
-    """
-    if not markers_path:
-        raise InvalidInputError("urdf_path needs markers_path: the marker placement file of the robot")
-    tree = KinematicTree.from_urdf(pathlib.Path(urdf_path).read_text(), markers=load_markers_yaml(markers_path),
-                                   joint_actions={name: k for k, name in enumerate(joint_names)})
-    if sorted(tree.marker_ids) != sorted(part_ids):
-        raise InvalidInputError(f"markers of {markers_path} are {sorted(tree.marker_ids)}, part_ids are {part_ids}")
-    return engineered_models(tree)
 
 
 def main(args=None):

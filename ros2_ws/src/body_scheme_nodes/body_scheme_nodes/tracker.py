@@ -7,7 +7,10 @@ marker frame being OpenCV ArUco's (origin at the marker centre, x right, y up, z
 
 Every detection that does not become a pose is reported as ``(marker id, reason)``: an id without a known size, an
 id seen twice in one image, a marker smaller than ``min_side_px`` on the image, a failed or non-finite PnP solution,
-a pose behind the camera, a reprojection error above ``max_reprojection_error`` pixels.
+a pose behind the camera, a reprojection error above ``max_reprojection_error`` pixels, or an ambiguous pose: IPPE
+gives two solutions for a square, the true one and a mirrored one; when the best explains the corners barely
+better than the other (ratio of their reprojection errors at or above ``max_ambiguity``), the marker's orientation
+is a coin toss and the detection is rejected rather than reported with a possibly mirrored orientation.
 
 Measured accuracy
 -----------------
@@ -185,6 +188,10 @@ class MarkerTracker:
         Detections whose shortest side is shorter than this (pixels) are rejected as too small to give a pose.
     max_reprojection_error : float
         Detections whose pose reprojects the corners worse than this (RMS, pixels) are rejected.
+    max_ambiguity : float
+        Detections whose two IPPE solutions have reprojection errors in a ratio (best / second) at or above this are
+        rejected as ambiguous; 1.0 (default) keeps every detection. On the simulator's images 0.8 keeps 92 % of the
+        detections and cuts mirrored orientations from 5.4 % to 3.3 %; 0.5 keeps 58 % and leaves 1.5 %.
     corner_refinement : str
         ``"apriltag"``, ``"subpix"``, ``"contour"`` or ``"none"`` (OpenCV's ``CORNER_REFINE_*``). ``"apriltag"``
         fits lines to the marker's edges; on small, distant markers the other methods place the corners up to
@@ -197,13 +204,17 @@ class MarkerTracker:
     """
 
     def __init__(self, camera_matrix, dist_coeffs=None, marker_sizes=0.08, dictionary="DICT_4X4_50",
-                 min_side_px=6.0, max_reprojection_error=2.0, corner_refinement="apriltag", default_size=None):
+                 min_side_px=6.0, max_reprojection_error=2.0, corner_refinement="apriltag", default_size=None,
+                 max_ambiguity=1.0):
         self.camera_matrix = _check_camera_matrix(camera_matrix)
         self.dist_coeffs = _check_dist_coeffs(dist_coeffs)
         self.marker_sizes, self.default_size = _check_marker_sizes(marker_sizes, default_size)
         self.dictionary = dictionary
         self.min_side_px = float(min_side_px)
         self.max_reprojection_error = float(max_reprojection_error)
+        self.max_ambiguity = float(max_ambiguity)
+        if not 0.0 < self.max_ambiguity <= 1.0:
+            raise InvalidInputError(f"max_ambiguity must be in (0, 1], got {max_ambiguity}")
         parameters = cv2.aruco.DetectorParameters()
         parameters.cornerRefinementMethod = _corner_refinement(corner_refinement)
         self._detector = cv2.aruco.ArucoDetector(_dictionary(dictionary), parameters)
@@ -262,10 +273,15 @@ class MarkerTracker:
         if not np.all(np.isfinite(image_points)) or sides.min() < self.min_side_px:
             return None, f"degenerate detection: shortest side {sides.min():.1f} px < {self.min_side_px} px"
         object_points = marker_object_points(size)
-        ok, rvec, tvec = cv2.solvePnP(object_points, image_points, self.camera_matrix, self.dist_coeffs,
-                                      flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        n, rvecs, tvecs, errors = cv2.solvePnPGeneric(object_points, image_points, self.camera_matrix,
+                                                      self.dist_coeffs, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        if n < 1 or not (np.all(np.isfinite(rvecs[0])) and np.all(np.isfinite(tvecs[0]))):
             return None, "solvePnP found no pose"
+        errors = np.ravel(errors)
+        if n > 1 and self.max_ambiguity < 1.0 and errors[0] >= self.max_ambiguity * errors[1]:
+            return None, (f"ambiguous pose: the mirrored solution reprojects almost as well ({errors[0]:.3f} vs "
+                          f"{errors[1]:.3f} px, ratio >= {self.max_ambiguity})")
+        rvec, tvec = rvecs[0], tvecs[0]
         if tvec[2, 0] <= 0:
             return None, "pose behind the camera"
         projected, _ = cv2.projectPoints(object_points, rvec, tvec, self.camera_matrix, self.dist_coeffs)

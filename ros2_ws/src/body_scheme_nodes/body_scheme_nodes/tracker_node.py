@@ -2,9 +2,9 @@
 
 Subscriptions
 -------------
-camera/image_raw : sensor_msgs/Image  (sensor data QoS)
+camera/image_raw : sensor_msgs/Image  (sensor data QoS; reliable with ``image_reliability: reliable``)
     mono8, rgb8, bgr8, rgba8 or bgra8. Only the latest image is kept; older unprocessed ones are counted as dropped.
-camera/camera_info : sensor_msgs/CameraInfo  (sensor data QoS)
+camera/camera_info : sensor_msgs/CameraInfo  (same QoS as the images)
     Intrinsics ``k`` and distortion ``d`` (plumb_bob or rational_polynomial); images wait for the first one.
 
 Publishers
@@ -28,6 +28,8 @@ dictionary : string "DICT_4X4_50"      OpenCV predefined ArUco dictionary
 corner_refinement : string "apriltag"  apriltag | subpix | contour | none
 min_side_px : double 6.0               smaller detections are rejected
 max_reprojection_error : double 2.0    px; worse poses are rejected
+max_ambiguity : double 1.0             reject poses whose mirrored IPPE solution reprojects nearly as well (1: off)
+image_reliability : string best_effort image QoS: best_effort (sensor data) or reliable
 process_period : double 0.01 s         period of the detection timer
 """
 
@@ -47,7 +49,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from body_scheme_core.errors import InvalidInputError
@@ -56,6 +58,12 @@ from body_scheme_msgs.msg import MarkerPoses
 
 from . import conversions
 from .tracker import MarkerTracker
+
+#: Image subscription QoS. Sensor data (best effort) is the ROS convention for cameras; a large image over best
+#: effort can be lost in transit (Fast DDS drops frames whose fragments do not all arrive), so with a publisher that
+#: offers reliability (sim_node does) ``reliable`` gets every frame.
+IMAGE_QOS = {"best_effort": qos_profile_sensor_data,
+             "reliable": QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)}
 
 
 def marker_sizes_from_parameters(markers_path, ids, sizes):
@@ -94,8 +102,12 @@ class TrackerNode(Node):
             "corner_refinement": self.declare_parameter("corner_refinement", "apriltag").value,
             "min_side_px": self.declare_parameter("min_side_px", 6.0).value,
             "max_reprojection_error": self.declare_parameter("max_reprojection_error", 2.0).value,
+            "max_ambiguity": self.declare_parameter("max_ambiguity", 1.0).value,
         }
         process_period = self.declare_parameter("process_period", 0.01).value
+        reliability = self.declare_parameter("image_reliability", "best_effort").value
+        if reliability not in IMAGE_QOS:
+            raise InvalidInputError(f"image_reliability must be one of {sorted(IMAGE_QOS)}, got {reliability!r}")
         # Fail at start-up on a bad dictionary or size, not at the first image.
         MarkerTracker(np.eye(3), **self.options)
 
@@ -108,8 +120,8 @@ class TrackerNode(Node):
         self.rejected = Counter()
 
         work = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(Image, "camera/image_raw", self._on_image, qos_profile_sensor_data)
-        self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, qos_profile_sensor_data)
+        self.create_subscription(Image, "camera/image_raw", self._on_image, IMAGE_QOS[reliability])
+        self.create_subscription(CameraInfo, "camera/camera_info", self._on_camera_info, IMAGE_QOS[reliability])
         self.pub_observations = self.create_publisher(MarkerPoses, "observations", 10)
         self.pub_poses = self.create_publisher(PoseArray, "observations/poses", 10)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)

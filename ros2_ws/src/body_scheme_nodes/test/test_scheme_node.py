@@ -1,4 +1,4 @@
-"""scheme_node's ROS-free parts: its parameter file and the engineered start."""
+"""scheme_node's settings: its parameter file, parsing and validation, and the engineered start."""
 
 import dataclasses
 import math
@@ -13,7 +13,7 @@ from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.kinematics import markers_to_yaml
 from body_scheme_core.scheme import BodyScheme
 from body_scheme_core.synthetic import powercube_6dof
-from body_scheme_nodes.scheme_node import _NONE_SENTINELS, engineered_body_scheme
+from body_scheme_nodes.settings import NONE_SENTINELS, SchemeSettings, engineered_body_scheme, parameter_defaults
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "scheme_node.yaml"
 
@@ -24,7 +24,7 @@ def test_yaml_lists_every_learner_field_with_its_default():
     fields = {f.name: f.default for f in dataclasses.fields(BodySchemeConfig)}
     assert set(learner) == set(fields)
     for name, default in fields.items():
-        expected = _NONE_SENTINELS[name] if default is None else default
+        expected = NONE_SENTINELS[name] if default is None else default
         assert type(learner[name]) is type(expected), name
         assert math.isclose(learner[name], expected), name
 
@@ -61,3 +61,30 @@ def test_engineered_start_rejects_missing_marker_file_and_wrong_parts(tmp_path):
         engineered_body_scheme(str(urdf), "", names, list(tree.marker_ids))
     with pytest.raises(InvalidInputError, match="part_ids"):
         engineered_body_scheme(str(urdf), str(markers), names, [1, 2, 3])
+
+
+def test_shipped_yaml_parses_into_settings():
+    """config/scheme_node.yaml builds settings whose learner config equals the core defaults."""
+    settings = SchemeSettings.from_yaml(CONFIG)
+    assert settings.config == BodySchemeConfig()
+    assert settings.part_ids == (1, 2, 3, 4, 5, 6, 7) and len(settings.joint_names) == 6
+
+
+def test_every_node_parameter_is_in_the_yaml():
+    """The YAML names every scheme_node parameter (flattening the learner block)."""
+    parameters = yaml.safe_load(CONFIG.read_text())["scheme_node"]["ros__parameters"]
+    flat = {k for k, v in parameters.items() if not isinstance(v, dict)}
+    flat |= {f"learner.{k}" for k in parameters["learner"]}
+    assert flat == set(parameter_defaults(6))
+
+
+def test_bad_settings_are_refused_with_reasons():
+    """Unknown parameters, mismatched limits, duplicate joints and too few parts raise InvalidInputError."""
+    good = {"part_ids": [1, 2], "joint_names": ["a"], "action_lower": [-1.0], "action_upper": [1.0]}
+    assert SchemeSettings.from_parameters(good).joint_names == ("a",)
+    bad = [({"learner.sigma": 1.0}, "unknown"), ({"action_lower": [-1.0, 0.0]}, "action_lower"),
+           ({"joint_names": ["a", "a"], "action_lower": [-1.0, -1.0], "action_upper": [1.0, 1.0]}, "unique"),
+           ({"part_ids": [1]}, "part_ids"), ({"learner.test_window": 0}, "test_window")]
+    for change, match in bad:
+        with pytest.raises(InvalidInputError, match=match):
+            SchemeSettings.from_parameters(dict(good, **change))

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo
 
 from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.transforms import rotational_error
 from body_scheme_nodes import conversions
 from body_scheme_nodes.tracker import (
     DOCUMENTED_DETECTION_RATE,
@@ -327,3 +328,20 @@ def test_config_yaml_holds_the_node_defaults():
     finally:
         rclpy.try_shutdown(context=context)
     assert documented == declared
+
+
+def test_ambiguity_filter_rejects_mirror_prone_poses(rendered):
+    """max_ambiguity < 1 rejects detections whose mirrored IPPE solution fits almost as well, with that reason."""
+    frames, tracker = rendered
+    strict = MarkerTracker(tracker.camera_matrix, marker_sizes=tracker.marker_sizes, max_ambiguity=0.8)
+    mirrored = {"all": 0, "strict": 0}
+    n_ambiguous = 0
+    for image, truth, _ in frames:
+        for name, t in (("all", tracker), ("strict", strict)):
+            poses, rejected = t.detect(image)
+            mirrored[name] += sum(np.degrees(rotational_error(poses[i], truth[i])) > 20 for i in poses)
+            if name == "strict":
+                n_ambiguous += sum("ambiguous pose" in reason for _, reason in rejected)
+    assert n_ambiguous > 0 and mirrored["strict"] < mirrored["all"]
+    with pytest.raises(InvalidInputError, match="max_ambiguity"):
+        MarkerTracker(tracker.camera_matrix, max_ambiguity=0.0)

@@ -2,17 +2,18 @@
 
 Subscriptions
 -------------
-joint_commands : sensor_msgs/JointState  (reliable, depth 10; not in babbling mode)
+joint_commands : sensor_msgs/JointState  (reliable, depth 10)
     Commanded joint positions by joint name. Only the newest pending command is executed (older ones are counted
-    as superseded).
+    as superseded). Ignored while babbling (counted), executed once ``babbling_steps`` commands were babbled.
 
 Publishers
 ----------
 joint_commands : sensor_msgs/JointState  (reliable, depth 100; babbling mode only)
     The babbling commands, stamped at command time.
-camera/image_raw : sensor_msgs/Image  (sensor data QoS; perception_mode "rendered")
-    rgb8 image after each executed command, stamped when it was taken (>= the command's stamp).
-camera/camera_info : sensor_msgs/CameraInfo  (sensor data QoS; perception_mode "rendered")
+camera/image_raw : sensor_msgs/Image  (reliable, depth 5, volatile; perception_mode "rendered")
+    ``image_encoding`` mono8 (default) or rgb8, after each executed command, stamped when it was taken (>= the
+    command's stamp).
+camera/camera_info : sensor_msgs/CameraInfo  (as the images; perception_mode "rendered")
     With each image, same header.
 observations : body_scheme_msgs/MarkerPoses  (reliable, depth 100; perception_mode "noise")
     Visible markers' true poses with noise and random dropout, ``camera2marker``.
@@ -37,6 +38,10 @@ sigma_trans : double 0.044 m, sigma_rot : double 0.2618 rad, visibility : double
 seed : int 0                         seed of babbling and noise
 babbling : bool false                publish and execute own random commands
 babbling_period : double 0.2 s       time between babbling commands
+babbling_steps : int 0               stop babbling after this many commands and execute joint_commands (0: never)
+wait_for_subscribers : int 0         babble only once joint_commands has this many subscriptions and the image (or
+                                     observations) and ground-truth topics one each, then 1 s more: messages sent
+                                     before discovery matched them are lost (volatile QoS)
 markers_of_interest : int[] []       markers that must be visible in babbled configurations
 fault_schedule : string[] []         "step:kind:args" entries (body_scheme_sim.faults); steps count executed commands
 update_period : double 0.01 s        period of the timer executing subscribed commands
@@ -45,15 +50,17 @@ update_period : double 0.01 s        period of the timer executing subscribed co
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter
 
+import cv2
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
@@ -69,6 +76,11 @@ from .faults import apply_fault, parse_fault_schedule
 from .world import SimWorld
 
 PERCEPTION_MODES = ("rendered", "noise")
+#: Images are offered reliably: best-effort (sensor data QoS) subscribers still match, and reliable ones get every
+#: frame. Frame size matters as much: Fast DDS moves messages up to its 512 KB shared-memory segment through shared
+#: memory, larger ones as fragmented UDP, which on loopback loses frames (best effort) or, reliable, starves the
+#: node's other topics. A 640x480 mono8 frame (300 KB) stays in shared memory; rgb8 (900 KB) does not.
+IMAGE_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def camera_from_parameters(node, prefix="camera."):
@@ -107,19 +119,27 @@ class SimNode(Node):
         self.frame_id = self.declare_parameter("frame_id", "camera").value
         camera = camera_from_parameters(self)
         self.mode = self.declare_parameter("perception_mode", "rendered").value
+        self.image_encoding = self.declare_parameter("image_encoding", "mono8").value
         self.sigma_trans = self.declare_parameter("sigma_trans", PAPER_SIGMA_TRANS).value
         self.sigma_rot = self.declare_parameter("sigma_rot", PAPER_SIGMA_ROT).value
         self.visibility = self.declare_parameter("visibility", 1.0).value
         seed = self.declare_parameter("seed", 0).value
         self.babbling = self.declare_parameter("babbling", False).value
         babbling_period = self.declare_parameter("babbling_period", 0.2).value
+        self.babbling_steps = self.declare_parameter("babbling_steps", 0).value
+        self.wait_for_subscribers = self.declare_parameter("wait_for_subscribers", 0).value
+        self._ready_at = None  # monotonic time babbling may start, once the subscribers are there
         self.markers_of_interest = declare_list_parameter(self, "markers_of_interest", int)
         fault_schedule = declare_list_parameter(self, "fault_schedule", str)
         update_period = self.declare_parameter("update_period", 0.01).value
+        if self.image_encoding not in ("mono8", "rgb8"):
+            raise InvalidInputError(f"image_encoding must be mono8 or rgb8, got {self.image_encoding!r}")
         if self.mode not in PERCEPTION_MODES:
             raise InvalidInputError(f"perception_mode must be one of {PERCEPTION_MODES}, got {self.mode!r}")
         if not (babbling_period > 0 and update_period > 0):
             raise InvalidInputError("babbling_period and update_period must be > 0 s")
+        if self.babbling_steps < 0:
+            raise InvalidInputError(f"babbling_steps must be >= 0, got {self.babbling_steps}")
         ObservationModel(self.sigma_trans, self.sigma_rot, self.visibility)  # validates the noise settings now
 
         self.schedule = parse_fault_schedule(fault_schedule)
@@ -132,6 +152,8 @@ class SimNode(Node):
             raise InvalidInputError(f"markers_of_interest {unknown} are not markers of {robot}: "
                                     f"{list(self.world.marker_ids)}")
         self.n_executed = 0
+        self.n_babbled = 0
+        self.last_babbled_stamp = -np.inf
         self.counts = Counter()
         self._pending = None
         self._lock = threading.Lock()
@@ -139,13 +161,12 @@ class SimNode(Node):
         work = MutuallyExclusiveCallbackGroup()
         if self.babbling:
             self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
-            self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
-        else:
-            self.create_subscription(JointState, "joint_commands", self._on_command, 10)
-            self.create_timer(update_period, self._on_update_timer, callback_group=work)
+            self.babbling_timer = self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
+        self.create_subscription(JointState, "joint_commands", self._on_command, 10)
+        self.create_timer(update_period, self._on_update_timer, callback_group=work)
         if self.mode == "rendered":
-            self.pub_image = self.create_publisher(Image, "camera/image_raw", qos_profile_sensor_data)
-            self.pub_info = self.create_publisher(CameraInfo, "camera/camera_info", qos_profile_sensor_data)
+            self.pub_image = self.create_publisher(Image, "camera/image_raw", IMAGE_QOS)
+            self.pub_info = self.create_publisher(CameraInfo, "camera/camera_info", IMAGE_QOS)
         else:
             self.pub_observations = self.create_publisher(MarkerPoses, "observations", 100)
         self.pub_truth = self.create_publisher(MarkerPoses, "ground_truth/marker_poses", 100)
@@ -159,6 +180,9 @@ class SimNode(Node):
     # -- callbacks ------------------------------------------------------------------------------------------------
     def _on_command(self, msg):
         with self._lock:
+            if self.babbling or conversions.seconds_from_stamp(msg.header.stamp) <= self.last_babbled_stamp:
+                self.counts["ignored_while_babbling"] += 1  # our own babbling commands come back here too
+                return
             if self._pending is not None:
                 self.counts["superseded"] += 1
             self._pending = msg
@@ -176,7 +200,23 @@ class SimNode(Node):
             return
         self._step(actions, stamp)
 
+    def _subscribers_ready(self):
+        """Whether babbling may start (see ``wait_for_subscribers``); logs while waiting."""
+        if self.wait_for_subscribers <= 0:
+            return True
+        now = time.monotonic()
+        if self._ready_at is None:
+            perception = self.pub_image if self.mode == "rendered" else self.pub_observations
+            if (self.pub_commands.get_subscription_count() >= self.wait_for_subscribers
+                    and perception.get_subscription_count() >= 1 and self.pub_truth.get_subscription_count() >= 1):
+                self._ready_at = now + 1.0  # the subscribers' side of the match may lag a little
+            else:
+                self.get_logger().info("waiting for subscribers before babbling", throttle_duration_sec=2.0)
+        return self._ready_at is not None and now >= self._ready_at
+
     def _on_babbling_timer(self):
+        if not self._subscribers_ready():
+            return
         self._apply_due_faults()
         try:
             actions = babble(self.world, self.rng_babbling, 1, self.markers_of_interest)[0]
@@ -186,6 +226,13 @@ class SimNode(Node):
         stamp = self._now()
         self.pub_commands.publish(conversions.joint_state_msg(stamp, self.world.action_joint_names, actions))
         self._step(actions, stamp)
+        self.n_babbled += 1
+        if self.babbling_steps and self.n_babbled >= self.babbling_steps:
+            with self._lock:
+                self.babbling = False
+                self.last_babbled_stamp = stamp
+            self.babbling_timer.cancel()
+            self.get_logger().info(f"babbled {self.n_babbled} commands: now executing joint_commands")
 
     # -- the work -------------------------------------------------------------------------------------------------
     def _now(self):
@@ -207,7 +254,10 @@ class SimNode(Node):
         self.n_executed += 1
         stamp = max(self._now(), command_stamp)  # the picture is taken after the command, never before
         if self.mode == "rendered":
-            image = conversions.image_msg(stamp, self.frame_id, self.world.render())
+            rendered = self.world.render()
+            if self.image_encoding == "mono8":
+                rendered = cv2.cvtColor(rendered, cv2.COLOR_RGB2GRAY)
+            image = conversions.image_msg(stamp, self.frame_id, rendered)
             camera = self.world.camera
             info = conversions.camera_info_msg(stamp, self.frame_id, camera.width, camera.height, camera.K)
             info.header = image.header

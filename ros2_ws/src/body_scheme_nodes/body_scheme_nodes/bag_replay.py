@@ -1,0 +1,285 @@
+"""bag_replay: publish a recorded session's topics at the original timing, faster, or as fast as scheme_node keeps up.
+
+Each message of the selected bag topics is published on the topic's name made relative (``/observations`` ->
+``observations``, so the node's namespace and remappings apply as for scheme_node's subscriptions), in log-time
+order, with reliable QoS, depth 100.
+
+Timing (``rate``)
+-----------------
+``rate > 0``: message ``i`` is published ``(log_i - log_0) / rate`` after the start (1.0: original timing, 2.0: twice
+as fast). ``rate = 0``: as fast as the consumer keeps up: at most ``max_in_flight`` ``/observations`` messages are
+ahead of what scheme_node reports on ``body_scheme/progress`` (the number of observation messages it has taken in,
+counted from the start of the replay). In this mode the replay starts only once a subscriber of ``observations`` and
+a publisher of ``body_scheme/progress`` exist; without ``/observations`` among the topics there is no backpressure.
+``rate > 0`` waits for no one: a consumer slower than the replay loses messages once its queue (depth 100) is full;
+the node warns when scheme_node's progress falls more than half that behind.
+
+Stamps (``restamp``)
+--------------------
+``restamp: true`` moves every header stamp into the present so that scheme_node's pairing (which compares stamps
+with its own clock, ``pairing_grace``) works as it does live: with ``rate > 0`` the stamps are shifted so that the
+first message is stamped at the start time and compressed by ``rate`` (a message is stamped its original latency
+``(log - header) / rate`` before it is published). With ``rate = 0`` a message is stamped with the time it is
+published (strictly increasing, so in the bag's log-time order). ``restamp: false`` keeps the original stamps;
+scheme_node's clock is then far past them, so it decides each observation in the first timer tick after it arrives,
+which pairs correctly only if the command arrives first.
+
+The pairing rule depends only on the stamps' order and on each observation's age after its command compared with
+``settle_time`` and ``max_delay`` (body_scheme_core.pairing). ``rate > 0`` keeps the order of the header stamps and
+divides the ages by ``rate``; ``rate = 0`` keeps the log-time order (the same for bags whose header stamps are their
+log times, as the shipped ones) and shrinks the ages to the publishing pace (tens of microseconds). So an observation
+that was stale in the original (older than ``max_delay``) can become fresh, and one that came after
+``settle_time`` can come before it. With the shipped bags (0.1 s command period, observations 5 ms after their
+command) and the default pairing (``settle_time`` 0, ``max_delay`` 2 s) nothing changes: the replay pairs exactly as
+``replay_offline`` does and ends with the same body scheme.
+
+The node keeps running after the end, so that ``bag_replay/done`` stays available; stop it with Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
+from std_msgs.msg import Bool, UInt64
+
+from body_scheme_core.errors import BodySchemeError, InvalidInputError
+
+from .bag_reader import MESSAGE_CLASSES, BagReadError, bag_topics, read_messages
+
+__all__ = ["BagReplay", "DEFAULT_TOPICS", "main"]
+
+DEFAULT_TOPICS = ["/joint_commands", "/observations", "/ground_truth/marker_poses"]
+#: The bag topic whose messages scheme_node counts on body_scheme/progress.
+BACKPRESSURE_TOPIC = "/observations"
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: Seconds between timer ticks; each tick publishes every message that is due.
+TICK = 0.005
+#: Smallest spacing of restamped stamps in rate 0, ns: keeps them distinct as float seconds (ulp ~0.24 us in 2023).
+MIN_SPACING_NS = 1_000
+#: Rate 0: warn when body_scheme/progress has not moved for this long while messages wait, s.
+STALL_WARNING = 5.0
+#: Rate > 0: warn when scheme_node's progress is this many observation messages behind (half the queue depth).
+LAG_WARNING = RELIABLE.depth // 2
+
+
+class BagReplay(Node):
+    """Publishes a recorded session's topics (timing and stamps: see the module docstring).
+
+    Parameters
+    ----------
+    bag_path : string  (required)              rosbag2 directory of a recorded session
+    rate : double 1.0                          1.0 original timing, 2.0 twice as fast, 0.0 backpressure
+    topics : string[] ["/joint_commands", "/observations", "/ground_truth/marker_poses"]
+                                               bag topics to publish (types: bag_reader.MESSAGE_CLASSES)
+    restamp : bool true                        move header stamps into the present (module docstring)
+    start_delay : double 1.0 s                 wait before the first message (for subscribers to connect)
+    max_in_flight : int 10                     rate 0: observation messages published but not yet taken in
+
+    Publishers
+    ----------
+    <topic without leading slash> : the bag's type, reliable, depth 100
+    bag_replay/done : std_msgs/Bool  (transient local)   true when every message is out; false if the bag broke midway
+
+    Subscriptions
+    -------------
+    body_scheme/progress : std_msgs/UInt64   scheme_node's count of observation messages taken in (rate 0)
+    """
+
+    def __init__(self, **node_options):
+        super().__init__("bag_replay", **node_options)
+        self.bag_path = self.declare_parameter("bag_path", "").value
+        self.rate = float(self.declare_parameter("rate", 1.0).value)
+        self.topics = list(self.declare_parameter("topics", DEFAULT_TOPICS).value)
+        self.restamp = bool(self.declare_parameter("restamp", True).value)
+        self.start_delay = float(self.declare_parameter("start_delay", 1.0).value)
+        self.max_in_flight = int(self.declare_parameter("max_in_flight", 10).value)
+        _check_parameters(self.bag_path, self.rate, self.topics, self.start_delay, self.max_in_flight)
+
+        available = bag_topics(self.bag_path)
+        missing = [topic for topic in self.topics if topic not in available]
+        if missing:
+            self.get_logger().warn(f"bag {self.bag_path} has no topic(s) {missing}; replaying the others")
+        self._messages = read_messages(self.bag_path, self.topics)  # checks the types at once
+        self.total = sum(available[topic][1] for topic in self.topics if topic in available)
+        self.publishers_by_topic = {
+            topic: self.create_publisher(MESSAGE_CLASSES[available[topic][0]], topic.lstrip("/"), RELIABLE)
+            for topic in self.topics if topic in available}
+        self.pub_done = self.create_publisher(Bool, "bag_replay/done", LATCHED)
+        self._progress_subscription = self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, 10)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.published = dict.fromkeys(self.publishers_by_topic, 0)
+        self.progress = 0                   # latest body_scheme/progress value
+        self._progress_start = None         # progress value when the replay started
+        self._next = None                   # next BagMessage, read ahead
+        self._start_at = self._now() + int(self.start_delay * 1e9)
+        self._anchor = None                 # (wall ns, log ns) of the first message
+        self._last_stamp = None             # rate 0: latest restamped header stamp, ns
+        self._waits = 0                     # ticks that ended because of backpressure
+        self._progress_changed = time.monotonic()
+        self._finished = False
+        self._started_wall = None
+        self.timer = self.create_timer(TICK, self._on_timer)
+        self.get_logger().info(
+            f"bag_replay: {self.total} messages of {sorted(self.publishers_by_topic)} from {self.bag_path}, "
+            f"rate {self.rate:g}{' (backpressure)' if self.rate == 0 else ''}, restamp {self.restamp}")
+
+    # -- callbacks ----------------------------------------------------------------------------------------------
+    def _on_progress(self, msg):
+        if int(msg.data) != self.progress:
+            self._progress_changed = time.monotonic()
+        self.progress = int(msg.data)
+
+    def _on_set_parameters(self, parameters):
+        names = ", ".join(p.name for p in parameters)
+        return SetParametersResult(successful=False, reason=f"{names}: read at start-up only; restart bag_replay")
+
+    def _on_timer(self):
+        if self._finished:
+            return
+        now = self._now()
+        if self._anchor is None and not self._ready(now):
+            return
+        try:
+            self._publish_due(now)
+        except BagReadError as error:
+            self.get_logger().error(f"stopping the replay: {error}")
+            self._finish(success=False)
+
+    # -- the work -----------------------------------------------------------------------------------------------
+    def _ready(self, now):
+        """Whether the replay may start: after start_delay and, in rate 0, once scheme_node is connected."""
+        if now < self._start_at:
+            return False
+        if self.rate == 0 and BACKPRESSURE_TOPIC in self.publishers_by_topic:
+            connected = (self.publishers_by_topic[BACKPRESSURE_TOPIC].get_subscription_count() > 0
+                         and self._progress_subscription.get_publisher_count() > 0)
+            if not connected:
+                self.get_logger().info("rate 0: waiting for a subscriber of observations and a publisher of "
+                                       "body_scheme/progress (scheme_node)", throttle_duration_sec=5.0)
+                return False
+        return True
+
+    def _publish_due(self, now):
+        if self._next is None:
+            self._next = next(self._messages, None)
+        if self._anchor is None:
+            if self._next is None:
+                self._finish(success=True)
+                return
+            self._anchor = (now, self._next.log_time)
+            self._progress_start = self.progress
+            self._started_wall = time.monotonic()
+        while self._next is not None:
+            if self.rate > 0:
+                publish_ns = self._anchor[0] + round((self._next.log_time - self._anchor[1]) / self.rate)
+                if publish_ns > now:
+                    self._warn_if_falling_behind()
+                    return
+            else:
+                if self._in_flight() >= self.max_in_flight:
+                    self._waits += 1
+                    if time.monotonic() - self._progress_changed > STALL_WARNING:
+                        self.get_logger().warn(
+                            f"rate 0: {self._in_flight()} observation messages in flight and no progress for "
+                            f"{STALL_WARNING:g} s: is scheme_node running?", throttle_duration_sec=STALL_WARNING)
+                    return
+                publish_ns = self._now()
+            self._publish(self._next, publish_ns)
+            self._next = next(self._messages, None)
+        self._finish(success=True)
+
+    def _warn_if_falling_behind(self):
+        """rate > 0 does not wait: warn when scheme_node lags so far that its queues (depth 100) may overflow."""
+        if self._progress_subscription.get_publisher_count() > 0 and self._in_flight() > LAG_WARNING:
+            self.get_logger().warn(
+                f"scheme_node is {self._in_flight()} observation messages behind at rate {self.rate:g}: beyond "
+                f"{RELIABLE.depth} messages are lost; lower the rate or use rate 0", throttle_duration_sec=5.0)
+
+    def _in_flight(self):
+        taken_in = self.progress - (self._progress_start or 0)
+        return self.published.get(BACKPRESSURE_TOPIC, 0) - taken_in
+
+    def _publish(self, item, publish_ns):
+        msg = item.msg
+        if self.restamp and hasattr(msg, "header"):
+            # Integer nanoseconds throughout: float64 cannot hold today's stamps to the nanosecond.
+            if self.rate > 0:
+                latency = item.log_time - Time.from_msg(msg.header.stamp).nanoseconds
+                stamp = publish_ns - round(latency / self.rate)
+            else:
+                stamp = publish_ns if self._last_stamp is None else max(publish_ns, self._last_stamp + MIN_SPACING_NS)
+                self._last_stamp = stamp
+            msg.header.stamp = Time(nanoseconds=stamp).to_msg()
+        self.publishers_by_topic[item.topic].publish(msg)
+        self.published[item.topic] += 1
+
+    def _finish(self, success):
+        self._finished = True
+        self.timer.cancel()
+        self.pub_done.publish(Bool(data=success))
+        seconds = time.monotonic() - self._started_wall if self._started_wall is not None else 0.0
+        count = sum(self.published.values())
+        rate = f", {count / seconds:.0f} messages/s" if seconds > 0 else ""
+        by_topic = ", ".join(f"{topic} {n}" for topic, n in self.published.items())
+        taken_in = self.progress - (self._progress_start or 0)
+        backpressure = f"; waited for scheme_node in {self._waits} ticks" if self.rate == 0 else ""
+        if taken_in:
+            backpressure += f"; scheme_node has taken in {taken_in} observation messages so far"
+        log = self.get_logger().info if success else self.get_logger().error
+        log(f"replay {'finished' if success else 'FAILED'}: {count} of {self.total} messages in {seconds:.2f} s"
+            f"{rate} ({by_topic}){backpressure}")
+
+    def _now(self):
+        return self.get_clock().now().nanoseconds
+
+    def destroy_node(self):
+        self._messages.close()  # closes the bag file
+        return super().destroy_node()
+
+
+def _check_parameters(bag_path, rate, topics, start_delay, max_in_flight):
+    if not bag_path:
+        raise InvalidInputError("parameter bag_path is required: the rosbag2 directory to replay")
+    if not (math.isfinite(rate) and rate >= 0):
+        raise InvalidInputError(f"rate must be >= 0 (0: as fast as scheme_node keeps up), got {rate}")
+    if not topics or any(not topic.startswith("/") for topic in topics):
+        raise InvalidInputError(f"topics must be a non-empty list of bag topic names (absolute), got {topics}")
+    if not (math.isfinite(start_delay) and start_delay >= 0):
+        raise InvalidInputError(f"start_delay must be >= 0 s, got {start_delay}")
+    if max_in_flight < 1:
+        raise InvalidInputError(f"max_in_flight must be >= 1, got {max_in_flight}")
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = BagReplay()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except BodySchemeError as error:
+        get_logger("bag_replay").error(str(error))
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

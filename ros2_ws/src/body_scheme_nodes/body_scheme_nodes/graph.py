@@ -1,0 +1,88 @@
+"""Running installed node executables as processes: what ``ros2 run`` and launch files do on a full ROS install.
+
+The PyPI route has no ``ros2cli`` and no ``launch``, so the live demo and the system tests start the very files
+``ros2 run <package> <executable>`` would execute (``<install>/<package>/lib/<package>/<executable>``) with a
+generated parameter file, and stop them with SIGINT (SIGKILL if they hang).
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import signal
+import subprocess
+
+import yaml
+from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+__all__ = ["NodeProcess", "executable"]
+
+
+def executable(package, name):
+    """Path of an installed node executable, as ``ros2 run <package> <name>`` would find it."""
+    try:
+        prefix = pathlib.Path(get_package_prefix(package))
+    except PackageNotFoundError as error:
+        raise FileNotFoundError(f"package {package!r} is not installed or not sourced (make build; source "
+                                f"ros2_ws/install/local_setup.bash)") from error
+    path = prefix / "lib" / package / name
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist: is {name!r} a console script of {package!r}?")
+    return path
+
+
+class NodeProcess:
+    """One node started as its own OS process, its output captured to ``<log_dir>/<name>.log``.
+
+    Parameters
+    ----------
+    package, name : str
+        Package and executable.
+    parameters : dict
+        ROS parameters, written to ``<log_dir>/<name>.params.yaml`` (nested dicts become dotted names).
+    log_dir : path-like
+    env : dict, optional
+        Environment of the process (default: this one's).
+    """
+
+    def __init__(self, package, name, parameters, log_dir, env=None):
+        log_dir = pathlib.Path(log_dir)
+        log_dir.mkdir(parents=True, exist_ok=True)
+        self.name = name
+        self.log_path = log_dir / f"{name}.log"
+        params_path = log_dir / f"{name}.params.yaml"
+        params_path.write_text(yaml.safe_dump({"/**": {"ros__parameters": parameters}}))
+        self._log = open(self.log_path, "w")
+        self.process = subprocess.Popen(
+            [str(executable(package, name)), "--ros-args", "--params-file", str(params_path)],
+            stdout=self._log, stderr=subprocess.STDOUT, env=dict(os.environ if env is None else env,
+                                                                  PYTHONUNBUFFERED="1"),
+            start_new_session=True)
+
+    def running(self):
+        """Whether the process is still alive."""
+        return self.process.poll() is None
+
+    def output(self):
+        """Everything the process printed so far."""
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text()
+
+    def kill(self, sig=signal.SIGKILL):
+        """Send a signal to the node's process group (``kill -9`` by default) and wait for it."""
+        if self.running():
+            os.killpg(self.process.pid, sig)
+        self.process.wait(timeout=10)
+
+    def stop(self):
+        """SIGINT (a clean shutdown), then SIGKILL after 10 s; returns the exit code."""
+        if self.running():
+            os.killpg(self.process.pid, signal.SIGINT)
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        if not self._log.closed:
+            self._log.close()
+        return self.process.returncode

@@ -1,0 +1,147 @@
+"""scheme_node's settings in one place, without ROS: defaults, parsing and validation, and what they build.
+
+The node declares one ROS parameter per entry of :func:`parameter_defaults` and passes their values to
+:meth:`SchemeSettings.from_parameters`; the offline replay reads the same YAML file through
+:meth:`SchemeSettings.from_yaml`. Both then build the learner and the pairer with the same code, so a bag replayed
+through the ROS graph and one replayed offline see identical settings.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+from dataclasses import dataclass
+
+import yaml
+
+from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.kinematics import KinematicTree, load_markers_yaml
+from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.models.engineered import engineered_models
+from body_scheme_core.pairing import CommandObservationPairer
+
+__all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "SchemeSettings", "engineered_body_scheme", "parameter_defaults"]
+
+#: ROS parameter prefix of the BodySchemeConfig fields.
+LEARNER_PREFIX = "learner."
+#: Optional config fields that ROS parameters cannot hold as None: this value stands for None.
+NONE_SENTINELS = {"theta_trans": 0.0, "theta_rot": 0.0, "root": -1}
+
+
+def parameter_defaults(n_joints=1):
+    """Every scheme_node parameter with its typed default (``action_*`` defaults depend on the joint count)."""
+    defaults = {
+        "part_ids": [0], "joint_names": [f"joint_{k}" for k in range(n_joints)],
+        "action_lower": [-math.pi] * n_joints, "action_upper": [math.pi] * n_joints,
+        "frame_id": "camera", "update_period": 0.02,
+        "settle_time": 0.0, "max_delay": 2.0, "pairing_grace": 0.2,
+        "checkpoint_path": "", "checkpoint_period": 30.0, "urdf_path": "", "markers_path": "",
+    }
+    config = BodySchemeConfig()
+    for field in dataclasses.fields(BodySchemeConfig):
+        value = getattr(config, field.name)
+        if field.name in NONE_SENTINELS:
+            value = NONE_SENTINELS[field.name]
+        defaults[LEARNER_PREFIX + field.name] = value
+    return defaults
+
+
+@dataclass(frozen=True)
+class SchemeSettings:
+    """Validated settings of scheme_node (see docs/nodes.md for each one)."""
+
+    part_ids: tuple
+    joint_names: tuple
+    action_lower: tuple
+    action_upper: tuple
+    config: BodySchemeConfig
+    frame_id: str = "camera"
+    update_period: float = 0.02
+    settle_time: float = 0.0
+    max_delay: float = 2.0
+    pairing_grace: float = 0.2
+    checkpoint_path: str = ""
+    checkpoint_period: float = 30.0
+    urdf_path: str = ""
+    markers_path: str = ""
+
+    def __post_init__(self):
+        m = len(self.joint_names)
+        if m == 0 or len(set(self.joint_names)) != m:
+            raise InvalidInputError(f"joint_names must be non-empty and unique, got {list(self.joint_names)}")
+        if len(self.action_lower) != m or len(self.action_upper) != m:
+            raise InvalidInputError(f"action_lower/action_upper need {m} values (one per joint name), got "
+                                    f"{len(self.action_lower)} and {len(self.action_upper)}")
+        if len(self.part_ids) < 2 or len(set(self.part_ids)) != len(self.part_ids):
+            raise InvalidInputError(f"part_ids must name at least two distinct parts, got {list(self.part_ids)}")
+        if self.update_period <= 0:
+            raise InvalidInputError(f"update_period must be > 0, got {self.update_period}")
+
+    @classmethod
+    def from_parameters(cls, values):
+        """Build from ``{parameter name: value}``; missing names take :func:`parameter_defaults`."""
+        defaults = parameter_defaults(len(values.get("joint_names", [None])))
+        unknown = sorted(set(values) - set(defaults))
+        if unknown:
+            raise InvalidInputError(f"unknown scheme_node parameter(s) {unknown}; known: {sorted(defaults)}")
+        merged = dict(defaults, **values)
+        learner = {}
+        for name, value in merged.items():
+            if name.startswith(LEARNER_PREFIX):
+                field = name[len(LEARNER_PREFIX):]
+                learner[field] = None if field in NONE_SENTINELS and value == NONE_SENTINELS[field] else value
+        plain = {k: v for k, v in merged.items() if not k.startswith(LEARNER_PREFIX)}
+        return cls(part_ids=tuple(int(p) for p in plain.pop("part_ids")),
+                   joint_names=tuple(str(n) for n in plain.pop("joint_names")),
+                   action_lower=tuple(float(v) for v in plain.pop("action_lower")),
+                   action_upper=tuple(float(v) for v in plain.pop("action_upper")),
+                   config=BodySchemeConfig(**learner), **plain)
+
+    @classmethod
+    def from_yaml(cls, path, node_name="scheme_node"):
+        """Read a ROS parameter file (``<node>: ros__parameters: ...``, nested ``learner:`` allowed)."""
+        try:
+            document = yaml.safe_load(pathlib.Path(path).read_text())
+            parameters = document[node_name]["ros__parameters"]
+        except (OSError, yaml.YAMLError, KeyError, TypeError) as error:
+            raise InvalidInputError(f"{path}: not a parameter file with {node_name}.ros__parameters ({error})") \
+                from error
+        flat = {}
+        for key, value in parameters.items():
+            if isinstance(value, dict):
+                flat.update({f"{key}.{sub}": v for sub, v in value.items()})
+            else:
+                flat[key] = value
+        return cls.from_parameters(flat)
+
+    def new_learner(self):
+        """A fresh learner: engineered start if ``urdf_path`` is set, else bootstrapping from scratch."""
+        initial = engineered_body_scheme(self.urdf_path, self.markers_path, self.joint_names, self.part_ids) \
+            if self.urdf_path else None
+        return BodySchemeLearner(list(self.part_ids), len(self.joint_names), self.config, initial_models=initial,
+                                 action_lower=list(self.action_lower), action_upper=list(self.action_upper))
+
+    def new_pairer(self):
+        """The command/observation pairer of these settings."""
+        return CommandObservationPairer(settle_time=self.settle_time, max_delay=self.max_delay,
+                                        grace=self.pairing_grace)
+
+
+def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids):
+    """Engineered local models of a robot description, one per edge of its marker tree (the initial body scheme).
+
+    Raises
+    ------
+    InvalidInputError
+        If the marker file is missing, or the robot's markers are not exactly ``part_ids``.
+    """
+    if not markers_path:
+        raise InvalidInputError("urdf_path needs markers_path: the marker placement file of the robot")
+    tree = KinematicTree.from_urdf(pathlib.Path(urdf_path).read_text(), markers=load_markers_yaml(markers_path),
+                                   joint_actions={name: k for k, name in enumerate(joint_names)})
+    if sorted(tree.marker_ids) != sorted(part_ids):
+        raise InvalidInputError(f"markers of {markers_path} are {sorted(tree.marker_ids)}, part_ids are "
+                                f"{list(part_ids)}")
+    return engineered_models(tree)

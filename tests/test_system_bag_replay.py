@@ -1,0 +1,81 @@
+"""System test of bag replay: bag_replay -> scheme_node over DDS ends where the offline replay ends."""
+
+from __future__ import annotations
+
+import pathlib
+import time
+
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Bool
+
+from body_scheme_msgs.msg import BodySchemeStructure, SchemeEvent
+from body_scheme_nodes.replay_offline import default_params_file, replay_bag
+from body_scheme_nodes.settings import SchemeSettings
+
+pytestmark = pytest.mark.system
+
+BAG = pathlib.Path(__file__).resolve().parents[1] / "bags" / "joint_blocked_seed0"
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class Collector:
+    """The latest structure, every event, bag_replay's done flag and scheme_node's step from /diagnostics."""
+
+    def __init__(self, node):
+        self.structure = None
+        self.events = []
+        self.done = None
+        self.step = None
+        node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, LATCHED)
+        self.events_subscription = node.create_subscription(
+            SchemeEvent, "body_scheme/events", self.events.append,
+            QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        node.create_subscription(Bool, "bag_replay/done", self._done, LATCHED)
+        node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
+
+    def _structure(self, msg):
+        self.structure = msg
+
+    def _done(self, msg):
+        self.done = msg.data
+
+    def _diagnostics(self, msg):
+        for status in msg.status:
+            if status.name == "body_scheme: scheme":
+                self.step = int(next(kv.value for kv in status.values if kv.key == "step"))
+
+
+def test_replay_through_the_graph_equals_the_offline_replay(start_node, ros_node, spin_until):
+    """bag_replay (rate 0, backpressure) into scheme_node gives the offline command's final structure and events."""
+    params_file = default_params_file()
+    collector = Collector(ros_node)
+    parameters = yaml.safe_load(params_file.read_text())["scheme_node"]["ros__parameters"]
+    scheme = start_node("body_scheme_nodes", "scheme_node", parameters)
+
+    # The offline replay runs while scheme_node starts up.
+    offline = replay_bag(BAG, SchemeSettings.from_yaml(params_file))
+    expected_edges = [(e["parent"], e["child"], e["model"]) for e in offline.learner.edge_status()]
+    expected_events = [(e.kind, e.step, e.model or "") for e in offline.events]
+    n_steps = len(offline.steps)
+    # Events are not latched: replay only once this test's subscription is matched with scheme_node's publisher.
+    assert spin_until(lambda: collector.structure is not None
+                      and collector.events_subscription.get_publisher_count() > 0, timeout=30), scheme.output()
+    replay = start_node("body_scheme_nodes", "bag_replay",
+                        {"bag_path": str(BAG), "rate": 0.0, "start_delay": 0.5, "max_in_flight": 10})
+    started = time.monotonic()
+    assert spin_until(lambda: collector.done is not None, timeout=40), (replay.output(), scheme.output())
+    replay_seconds = time.monotonic() - started
+    assert collector.done is True, replay.output()
+    # The last observation is decided after pairing_grace; wait until scheme_node has learned every sample.
+    assert spin_until(lambda: collector.step == n_steps, timeout=10), (collector.step, scheme.output())
+    assert spin_until(lambda: len(collector.events) >= len(expected_events), timeout=10), len(collector.events)
+
+    learned = [(e.parent_id, e.child_id, e.description) for e in collector.structure.edges]
+    assert learned == expected_edges, scheme.output()
+    received = [(e.kind, e.step, e.model) for e in collector.events]
+    assert received == expected_events
+    assert collector.structure.phase == offline.learner.phase
+    print(f"through-graph replay of {n_steps} steps: {replay_seconds:.1f} s until bag_replay/done")
