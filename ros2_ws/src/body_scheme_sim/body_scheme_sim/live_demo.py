@@ -46,6 +46,7 @@ class DemoResult:
 
     steps: int
     faults: list
+    perception: str
     true_edges: list
     learned_edges: list = field(default_factory=list)
     events: list = field(default_factory=list)          # dicts: step, kind, model, reason
@@ -169,7 +170,8 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     end_effector = max(ids)
     names = list(tree.action_joint_names)
     lower, upper = [float(v) for v in tree.action_lower], [float(v) for v in tree.action_upper]
-    result = DemoResult(steps=steps, faults=list(faults), true_edges=[list(e) for e in tree.marker_tree_edges()])
+    result = DemoResult(steps=steps, faults=list(faults), perception=perception,
+                        true_edges=[list(e) for e in tree.marker_tree_edges()])
 
     domain = int((env or {}).get("ROS_DOMAIN_ID", 0))
     context = rclpy.Context()
@@ -293,7 +295,9 @@ def _plot(result, path):
     ax.set_ylabel("mm")
     ax.set_yscale("symlog", linthresh=10)
     ax.legend(fontsize=7, loc="upper right")
-    ax.set_title("live graph: sim_node -> tracker_node -> scheme_node (learning from scratch)")
+    path_text = "sim_node -> tracker_node -> scheme_node" if result.perception == "rendered" else \
+        "sim_node (noise model) -> scheme_node"
+    ax.set_title(f"live graph: {path_text} (learning from scratch)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
