@@ -353,9 +353,15 @@ class ErrorMonitor:
         return mask
 
     def _ratios(self, rows):
-        """Per-sample errors in threshold units, shape (k, W, 2)."""
-        return self.errors[rows] / np.stack(
+        """Per-sample errors in threshold units, clipped at ``cusum_clip``, shape (k, W, 2).
+
+        The clip bounds what one outlier (a mirrored marker orientation, a misdetection) does to a window mean: at
+        most ``cusum_clip / window`` thresholds, while a model whose errors all exceed the threshold still averages
+        above 1. Validity, quality and the paired comparisons all use these clipped ratios.
+        """
+        ratios = self.errors[rows] / np.stack(
             [self.thresholds[rows], np.full(self.thresholds[rows].shape, self.theta[1])], axis=-1)
+        return np.minimum(ratios, self.cusum_clip)
 
     def stats(self, rows, since=None, n_train=None, stale_fraction=0.0):
         """Test-window statistics of ``rows``.

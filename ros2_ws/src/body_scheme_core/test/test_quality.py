@@ -105,11 +105,22 @@ def test_stale_predictions_of_a_learning_model_are_ignored():
     mon = _monitor(window=10)
     (row,) = mon.allocate(1)
     for n in range(1, 9):  # predictions by a model with n training samples: bad early, good later
-        mon.record([row], [1.0 if n < 4 else 0.01], [0.0], n, n_train=n)
-    assert not mon.valid(mon.stats([row]), 3)[0]
+        mon.record([row], [1.0 if n < 6 else 0.01], [0.0], n, n_train=n)
+    assert not mon.valid(mon.stats([row]), 3)[0]  # 5 of 8 far off (clipped at 2 thresholds each)
     st = mon.stats([row], n_train=[8], stale_fraction=0.5)
-    assert st.n[0] == 5  # predictions made with 4..8 samples
+    assert st.n[0] == 5  # predictions made with 4..8 samples: 2 bad, 3 good
     assert mon.valid(st, 3)[0]
+
+
+def test_one_outlier_cannot_invalidate_a_window():
+    """Per-sample ratios are clipped at cusum_clip: one wild error moves a window mean by at most clip/window."""
+    mon = _monitor(window=10)
+    (row,) = mon.allocate(1)
+    for step in range(10):
+        mon.record([row], [0.05 if step != 4 else 100.0], [0.1], step)
+    st = mon.stats([row])
+    assert mon.valid(st, 3)[0]
+    assert st.trans_ratio[0] == pytest.approx((9 * 0.05 / 0.15 + mon.cusum_clip) / 10)
 
 
 def test_stats_since_a_change_point():
