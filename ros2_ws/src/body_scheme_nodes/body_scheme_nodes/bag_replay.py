@@ -41,18 +41,16 @@ from __future__ import annotations
 import math
 import time
 
-import rclpy
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from std_msgs.msg import Bool, UInt64
 
-from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.errors import InvalidInputError
 
 from .bag_reader import MESSAGE_CLASSES, BagReadError, bag_topics, read_messages
+from .spin import run_node
 
 __all__ = ["BagReplay", "DEFAULT_TOPICS", "main"]
 
@@ -261,24 +259,7 @@ def _check_parameters(bag_path, rate, topics, start_delay, max_in_flight):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = BagReplay()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except BodySchemeError as error:
-        get_logger("bag_replay").error(str(error))
-        code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(BagReplay, args, threads=1)
 
 
 if __name__ == "__main__":

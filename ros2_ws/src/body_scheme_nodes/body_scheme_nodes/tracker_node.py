@@ -41,12 +41,10 @@ import threading
 from collections import Counter
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -57,6 +55,7 @@ from body_scheme_core.kinematics import load_markers_yaml
 from body_scheme_msgs.msg import MarkerPoses
 
 from . import conversions
+from .spin import run_node
 from .tracker import MarkerTracker
 
 #: Image subscription QoS. Sensor data (best effort) is the ROS convention for cameras; a large image over best
@@ -208,20 +207,8 @@ def _short_reason(text):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = TrackerNode()
-        executor = MultiThreadedExecutor(num_threads=2)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(TrackerNode, args)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

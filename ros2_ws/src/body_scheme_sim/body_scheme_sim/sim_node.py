@@ -55,10 +55,8 @@ from collections import Counter
 
 import cv2
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState
@@ -69,6 +67,7 @@ from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, Obser
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import InjectFault
 from body_scheme_nodes import conversions
+from body_scheme_nodes.spin import run_node
 
 from .babbling import babble
 from .camera import Camera
@@ -291,24 +290,8 @@ class SimNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimNode()
-        executor = MultiThreadedExecutor(num_threads=2)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except BodySchemeError as error:
-        # Bad parameters (unknown robot, malformed fault schedule, ...): say why, exit non-zero.
-        rclpy.logging.get_logger("sim_node").fatal(str(error))
-        raise SystemExit(1) from error
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(SimNode, args)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -1,0 +1,19 @@
+"""Tests of run_node, the main() shared by every node."""
+
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_nodes.spin import run_node
+
+
+class RefusingNode:
+    """Stands for a node whose constructor rejects its parameters."""
+
+    def __init__(self):
+        raise InvalidInputError("part_ids must name at least two distinct parts")
+
+
+def test_refused_parameters_give_exit_code_1():
+    """A BodySchemeError at start-up is not a traceback: exit code 1, rclpy shut down again."""
+    import rclpy
+
+    assert run_node(RefusingNode, args=[]) == 1
+    assert not rclpy.ok()
