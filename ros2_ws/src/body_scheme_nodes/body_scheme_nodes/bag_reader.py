@@ -25,6 +25,8 @@ from std_msgs.msg import String
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_msgs.msg import MarkerPoses
 
+from .session_format import SESSION_TOPICS
+
 try:  # the zstd module rosbags decompresses mcap chunks with (Python >= 3.14 has it built in)
     from compression.zstd import ZstdError
 except ImportError:
@@ -41,16 +43,7 @@ MESSAGE_CLASSES = {
     "sensor_msgs/msg/CameraInfo": CameraInfo,
     "body_scheme_msgs/msg/MarkerPoses": MarkerPoses,
 }
-#: Topic -> expected message type of the topics of a recorded session.
-SESSION_TOPICS = {
-    "/session/info": "std_msgs/msg/String",
-    "/joint_commands": "sensor_msgs/msg/JointState",
-    "/observations": "body_scheme_msgs/msg/MarkerPoses",
-    "/ground_truth/marker_poses": "body_scheme_msgs/msg/MarkerPoses",
-    "/ground_truth/joint_states": "sensor_msgs/msg/JointState",
-    "/camera/image_raw": "sensor_msgs/msg/Image",
-    "/camera/camera_info": "sensor_msgs/msg/CameraInfo",
-}
+
 # What a damaged file raises inside rosbags while reading (chunks that do not decompress, records cut short).
 _CORRUPT = (KeyError, ValueError, IndexError, AssertionError, EOFError, OSError, struct.error, ZstdError)
 

@@ -37,6 +37,7 @@ from rosbags.rosbag2.errors import WriterError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from body_scheme_core.transforms import pose_from_transform, transform_from_pose
+from body_scheme_nodes.session_format import SESSION_TOPICS
 
 try:  # the zstd module rosbags decompresses mcap chunks with (Python >= 3.14 has it built in)
     from compression.zstd import ZstdError
@@ -60,16 +61,8 @@ __all__ = [
 
 SESSION_FORMAT = "body_scheme/session"
 SESSION_FORMAT_VERSION = 1
-#: Topic name -> message type of every topic a session bag may hold.
-TOPICS = {
-    "/session/info": "std_msgs/msg/String",
-    "/joint_commands": "sensor_msgs/msg/JointState",
-    "/observations": "body_scheme_msgs/msg/MarkerPoses",
-    "/ground_truth/marker_poses": "body_scheme_msgs/msg/MarkerPoses",
-    "/ground_truth/joint_states": "sensor_msgs/msg/JointState",
-    "/camera/image_raw": "sensor_msgs/msg/Image",
-    "/camera/camera_info": "sensor_msgs/msg/CameraInfo",
-}
+#: Topic name -> message type of every topic a session bag may hold (the one table, shared with the readers).
+TOPICS = SESSION_TOPICS
 _REQUIRED_TOPICS = ("/session/info", "/joint_commands", "/observations", "/ground_truth/marker_poses")
 _MSG_PACKAGE = "body_scheme_msgs"
 
