@@ -6,8 +6,8 @@ DDS. A monitor node records what a user would watch (events, structure, ``/diagn
 truth), then, once babbling ends, sends IK targets and measures where the simulated end effector really goes.
 It prints the event timeline and a summary, and writes ``summary.json`` and ``live_demo.png`` to the output directory.
 
-``make demo`` runs ``python -m body_scheme_sim.live_demo``. On a ROS install the same graph starts with
-``ros2 launch body_scheme_sim live_demo.launch.py`` (see ``launch/``).
+``make demo`` runs ``python -m body_scheme_sim.live_demo`` (also ``ros2 run body_scheme_sim live_demo``); without
+the ``launch`` package it starts the installed node executables as processes (``body_scheme_nodes.graph``).
 """
 
 from __future__ import annotations
