@@ -288,13 +288,9 @@ class Adaptation:
         cost = np.where(ok, model_cost(layer, st.trans_ratio, st.rot_ratio), np.inf)
         best = int(np.argmin(cost))
         back = bridges[best]
-        tree[tree.index(failed.id)] = back.id
         pool.assign(back, TREE, step)
         monitor.forget_before([back.row], mismatch.tau)
-        monitor.reset_cusum([back.row])
-        del self.mismatch[failed.id]
-        for e in pool.candidates_of(failed.id):
-            pool.remove(e)
+        self._take_over(tree, failed, back)
         events.append(Event(step, "model_reinstated",
                             f"remembered {back.describe()} fits again: mean error {format_errors(mt[best], mr[best])} "
                             f"over {n[best]} samples since the change point (step {mismatch.tau}), below "
@@ -357,6 +353,17 @@ class Adaptation:
                            float(st.rot_error[best]), int(rel[best]), float(cost[best]), int(valid.sum()),
                            len(candidates))
 
+    def _take_over(self, tree, failed, new):
+        """``new`` takes ``failed``'s place in the tree: fresh CUSUM, mismatch closed, pending replacements dropped.
+
+        Returns the closed :class:`Mismatch`.
+        """
+        tree[tree.index(failed.id)] = new.id
+        self.pool.monitor.reset_cusum([new.row])
+        for e in self.pool.candidates_of(failed.id):
+            self.pool.remove(e)
+        return self.mismatch.pop(failed.id)
+
     def _install_replacement(self, tree, failed, choice, step, events):
         """The chosen replacement becomes the tree model (still refining); the failed one goes to memory."""
         pool = self.pool
@@ -366,11 +373,7 @@ class Adaptation:
         new.model = None  # keeps learning up to refine_window samples as a tree model; snapshot on demand
         if new.n_train >= pool.refine_window:
             pool.materialize(new)
-        pool.monitor.reset_cusum([new.row])
-        tree[tree.index(failed.id)] = new.id
-        mismatch = self.mismatch.pop(failed.id)
-        for e in pool.candidates_of(failed.id):
-            pool.remove(e)
+        mismatch = self._take_over(tree, failed, new)
         events.append(Event(step, "model_replaced",
                             f"{new.describe()} replaces {failed.describe()}: valid with mean error "
                             f"{format_errors(choice.trans_error, choice.rot_error)} over {choice.n_test} test samples "
