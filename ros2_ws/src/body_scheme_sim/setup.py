@@ -16,6 +16,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
         ("share/" + package_name + "/robots", glob(package_name + "/robots/*.urdf")
          + glob(package_name + "/robots/*.yaml")),
     ],

@@ -5,7 +5,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.ik import IKResult, solve_ik
+from body_scheme_core.ik import IKResult, solve_ik, trained_bounds
 from body_scheme_core.models.base import LocalModel
 from body_scheme_core.models.gp import GPModel
 from body_scheme_core.scheme import BodyScheme
@@ -265,3 +265,44 @@ def test_ik_on_learned_arm_reports_unreachable_target():
     assert result.reason.startswith("target unreachable")
     assert result.residual > 4.0
     assert np.all(result.actions >= lower) and np.all(result.actions <= upper)
+
+
+def test_trained_bounds_shrink_limits_to_the_training_inputs_of_learned_models():
+    """Each action's limits shrink to the training range of the GPs depending on it; analytic models keep limits."""
+    tree = planar_2dof()
+    rng = np.random.default_rng(0)
+    A = np.column_stack([rng.uniform(-0.5, 0.3, 40), rng.uniform(-1.0, 1.0, 40)])  # a0 seen only in [-0.5, 0.3]
+    gp = GPModel(1, 2, (0,)).fit(A, tree.relative_transform(1, 2, A))
+    low, high = gp.training_range()
+    assert_allclose([low[0], high[0]], [A[:, 0].min(), A[:, 0].max()])
+    scheme = BodyScheme((1, 2, 3), 1, [gp, RevoluteModel(2, 3, 1, B=translation(0.4))])
+    lower, upper = trained_bounds(scheme, [-2.0, -2.0], [2.0, 2.0])
+    assert_allclose(lower, [A[:, 0].min(), -2.0])
+    assert_allclose(upper, [A[:, 0].max(), 2.0])
+    # Limits tighter than the training range win; disjoint ones collapse onto the range's nearest end.
+    lower, upper = trained_bounds(scheme, [0.0, -1.0], [1.0, 1.0])
+    assert_allclose([lower[0], upper[0]], [0.0, A[:, 0].max()])
+    lower, upper = trained_bounds(scheme, [1.0, -1.0], [2.0, 1.0])
+    assert_allclose([lower[0], upper[0]], [A[:, 0].max(), A[:, 0].max()])
+    with pytest.raises(InvalidInputError, match="vectors of one length"):
+        trained_bounds(scheme, [0.0], [1.0, 1.0])
+
+
+def test_ik_within_trained_bounds_avoids_where_the_learned_model_only_guesses():
+    """With one arm configuration never observed, IK in the trained range lands the true arm nearer the target."""
+    tree = planar_2dof()
+    rng = np.random.default_rng(1)
+    lower, upper = tree.action_lower, tree.action_upper
+    A = np.column_stack([rng.uniform(lower[0], upper[0], 60), rng.uniform(lower[1], 0.0, 60)])  # a1 > 0 unseen
+    models = [GPModel(p, c, tree.path_actions(p, c)).fit(A, tree.relative_transform(p, c, A))
+              for p, c in tree.marker_tree_edges()]
+    scheme = BodyScheme(tree.marker_ids, tree.root_marker, models)
+    errors = {"limits": [], "trained": []}
+    for _ in range(10):
+        a_true = np.array([rng.uniform(lower[0], upper[0]), rng.uniform(lower[1], 0.0)])  # reachable with a1 <= 0
+        target = tree.relative_transform(1, 3, a_true)[:3, 3]
+        for name, (lo, hi) in (("limits", (lower, upper)), ("trained", trained_bounds(scheme, lower, upper))):
+            result = solve_ik(scheme, 3, target, np.array([0.0, upper[1]]), lo, hi, tol=1e-3)
+            errors[name].append(np.linalg.norm(tree.relative_transform(1, 3, result.actions)[:3, 3] - target))
+    assert np.max(errors["trained"]) < 0.05
+    assert np.max(errors["trained"]) < 0.5 * np.max(errors["limits"])

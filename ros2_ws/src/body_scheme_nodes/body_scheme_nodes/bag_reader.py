@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader, ReaderError
+from rosbags.serde import SerdeError
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import String
 
@@ -44,8 +45,9 @@ MESSAGE_CLASSES = {
     "body_scheme_msgs/msg/MarkerPoses": MarkerPoses,
 }
 
-# What a damaged file raises inside rosbags while reading (chunks that do not decompress, records cut short).
-_CORRUPT = (KeyError, ValueError, IndexError, AssertionError, EOFError, OSError, struct.error, ZstdError)
+# What a damaged file raises inside rosbags while reading (chunks that do not decompress, records cut short, message
+# bytes that are not CDR).
+_CORRUPT = (KeyError, ValueError, IndexError, AssertionError, EOFError, OSError, struct.error, ZstdError, SerdeError)
 
 
 class BagReadError(BodySchemeError):

@@ -28,6 +28,8 @@ max_iterations : int 100, restarts : int 3
 max_snapshot_age : double 0.0 s      refuse to act on an older model (0: never stale)
 trajectory_steps : int 1             commands per solution (1: jump to it)
 trajectory_period : double 0.05 s    time between interpolated commands
+stay_in_training_range : bool true   search only actions the learned local models were trained on
+                                     (:func:`~body_scheme_core.ik.trained_bounds`); false: the full joint limits
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.ik import solve_ik
+from body_scheme_core.ik import solve_ik, trained_bounds
 from body_scheme_msgs.msg import IKResult, IKTarget, ModelSnapshot
 
 from . import conversions
@@ -66,6 +68,7 @@ class ControlNode(Node):
         self.max_age = self.declare_parameter("max_snapshot_age", 0.0).value
         self.trajectory_steps = max(1, self.declare_parameter("trajectory_steps", 1).value)
         trajectory_period = self.declare_parameter("trajectory_period", 0.05).value
+        self.stay_in_training_range = self.declare_parameter("stay_in_training_range", True).value
 
         self.model = None  # (scheme, world2root, lower, upper, joint names, frame_id, received_at)
         self.current = None  # latest commanded actions, in the model's joint order
@@ -155,6 +158,8 @@ class ControlNode(Node):
         if header.frame_id and frame_id and header.frame_id != frame_id:
             result.reason = f"target frame {header.frame_id!r} differs from the body scheme's frame {frame_id!r}"
             return result
+        if self.stay_in_training_range:
+            lower, upper = trained_bounds(scheme, lower, upper)
         a0 = self.current if self.current is not None else (lower + upper) / 2.0
         a0 = np.where(np.isfinite(a0), a0, 0.0)
         outcome = solve_ik(scheme, part, target, a0, lower, upper, tol=self.tolerance,

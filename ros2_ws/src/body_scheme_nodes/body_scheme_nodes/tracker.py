@@ -205,7 +205,7 @@ class MarkerTracker:
 
     def __init__(self, camera_matrix, dist_coeffs=None, marker_sizes=0.08, dictionary="DICT_4X4_50",
                  min_side_px=6.0, max_reprojection_error=2.0, corner_refinement="apriltag", default_size=None,
-                 max_ambiguity=1.0):
+                 max_ambiguity=0.8):
         self.camera_matrix = _check_camera_matrix(camera_matrix)
         self.dist_coeffs = _check_dist_coeffs(dist_coeffs)
         self.marker_sizes, self.default_size = _check_marker_sizes(marker_sizes, default_size)

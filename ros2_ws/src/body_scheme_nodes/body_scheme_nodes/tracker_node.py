@@ -28,7 +28,7 @@ dictionary : string "DICT_4X4_50"      OpenCV predefined ArUco dictionary
 corner_refinement : string "apriltag"  apriltag | subpix | contour | none
 min_side_px : double 6.0               smaller detections are rejected
 max_reprojection_error : double 2.0    px; worse poses are rejected
-max_ambiguity : double 1.0             reject poses whose mirrored IPPE solution reprojects nearly as well (1: off)
+max_ambiguity : double 0.8             reject poses whose mirrored IPPE solution reprojects nearly as well (1: off)
 image_reliability : string best_effort image QoS: best_effort (sensor data) or reliable
 process_period : double 0.01 s         period of the detection timer
 """
@@ -101,7 +101,7 @@ class TrackerNode(Node):
             "corner_refinement": self.declare_parameter("corner_refinement", "apriltag").value,
             "min_side_px": self.declare_parameter("min_side_px", 6.0).value,
             "max_reprojection_error": self.declare_parameter("max_reprojection_error", 2.0).value,
-            "max_ambiguity": self.declare_parameter("max_ambiguity", 1.0).value,
+            "max_ambiguity": self.declare_parameter("max_ambiguity", 0.8).value,
         }
         process_period = self.declare_parameter("process_period", 0.01).value
         reliability = self.declare_parameter("image_reliability", "best_effort").value

@@ -112,7 +112,7 @@ def test_detects_every_visible_marker_with_its_pose():
 def test_pose_error_on_warped_markers_is_small():
     """On markers warped into images at known poses, translation p90 < 3 cm and rotation median < 2 deg."""
     rng = np.random.default_rng(1)
-    tracker = MarkerTracker(K, marker_sizes=SIZE)
+    tracker = MarkerTracker(K, marker_sizes=SIZE, max_ambiguity=1.0)  # every detection, ambiguous or not
     errors = []
     for _ in range(15):
         image, truth = scene(rng)
@@ -157,10 +157,10 @@ def test_markers_without_a_known_size_are_rejected_with_a_reason():
     """Ids missing from the size mapping are reported as rejected; sized ids and the default size still work."""
     rng = np.random.default_rng(3)
     image, truth = scene(rng, n_markers=3)
-    poses, rejected = MarkerTracker(K, marker_sizes={1: SIZE, 3: SIZE}).detect(image)
+    poses, rejected = MarkerTracker(K, marker_sizes={1: SIZE, 3: SIZE}, max_ambiguity=1.0).detect(image)
     assert sorted(poses) == [1, 3]
     assert rejected == [(2, "no size known for this marker id")]
-    poses, rejected = MarkerTracker(K, marker_sizes={1: SIZE}, default_size=SIZE).detect(image)
+    poses, rejected = MarkerTracker(K, marker_sizes={1: SIZE}, default_size=SIZE, max_ambiguity=1.0).detect(image)
     assert sorted(poses) == [1, 2, 3] and rejected == []
 
 
@@ -232,12 +232,16 @@ def rendered():
 
 
 def test_finds_the_visible_markers_in_rendered_images(rendered):
-    """In the simulator's images the tracker finds at least the documented share of the visible markers, no others."""
+    """In the simulator's images the tracker finds at least the documented share of the visible markers, no others.
+
+    Detections it drops are ambiguous (mirror-prone) or badly reprojected ones, never an unknown or duplicate id.
+    """
     frames, tracker = rendered
     n_visible = n_found = 0
     for image, truth, visible in frames:
         poses, rejected = tracker.detect(image)
-        assert set(poses) <= set(truth) and rejected == []
+        assert set(poses) <= set(truth)
+        assert all(reason.startswith(("ambiguous pose", "reprojection error")) for _, reason in rejected), rejected
         n_visible += len(visible)
         n_found += len(set(poses) & visible)
     assert n_visible > 100
@@ -333,11 +337,12 @@ def test_config_yaml_holds_the_node_defaults():
 def test_ambiguity_filter_rejects_mirror_prone_poses(rendered):
     """max_ambiguity < 1 rejects detections whose mirrored IPPE solution fits almost as well, with that reason."""
     frames, tracker = rendered
+    keep_all = MarkerTracker(tracker.camera_matrix, marker_sizes=tracker.marker_sizes, max_ambiguity=1.0)
     strict = MarkerTracker(tracker.camera_matrix, marker_sizes=tracker.marker_sizes, max_ambiguity=0.8)
     mirrored = {"all": 0, "strict": 0}
     n_ambiguous = 0
     for image, truth, _ in frames:
-        for name, t in (("all", tracker), ("strict", strict)):
+        for name, t in (("all", keep_all), ("strict", strict)):
             poses, rejected = t.detect(image)
             mirrored[name] += sum(np.degrees(rotational_error(poses[i], truth[i])) > 20 for i in poses)
             if name == "strict":

@@ -34,6 +34,7 @@ import struct
 import numpy as np
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, ReaderError, StoragePlugin, Writer
 from rosbags.rosbag2.errors import WriterError
+from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from body_scheme_core.transforms import pose_from_transform, transform_from_pose
@@ -240,7 +241,8 @@ def read_messages(path):
                 messages[connection.topic].append((timestamp, msg))
     except ReaderError as error:
         raise BagError(f"cannot read bag {path}: {error}") from error
-    except (KeyError, ValueError, IndexError, AssertionError, EOFError, OSError, struct.error, ZstdError) as error:
+    except (KeyError, ValueError, IndexError, AssertionError, EOFError, OSError, struct.error, ZstdError,
+            SerdeError) as error:
         # Chunks that do not decompress or messages that do not decode: the file was damaged after writing.
         raise BagError(f"bag {path} is corrupt: {type(error).__name__}: {error}") from error
     return messages

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
 import sys
 import time
@@ -33,7 +34,13 @@ from body_scheme_nodes.graph import NodeProcess
 
 from .robots import load_robot, robot_files
 
-__all__ = ["DemoResult", "run_live_demo", "main"]
+__all__ = ["DemoResult", "run_live_demo", "main", "RENDERED_SIGMA_TRANS", "RENDERED_SIGMA_ROT"]
+
+#: The learner's noise sigmas with rendered perception: the tracker's accuracy on the sim's images (median 2-4 mm and
+#: 0.3-0.5 deg on the arm's markers, docs/sim.md). 3-sigma validity (30 mm) then rejects local models through a marker
+#: whose orientation is often mirrored, and the structure search routes around it (e.g. 1->3 instead of 1->2->3).
+RENDERED_SIGMA_TRANS = 0.01
+RENDERED_SIGMA_ROT = math.radians(5.0)
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _LEVELS = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR",
@@ -136,8 +143,8 @@ def _spin(executor, predicate, timeout, during=None):
 
 
 def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=("120:block_joint:5:0.8",
-                  "220:repair"), perception="noise", n_targets=5, seed=0, sigma_trans=PAPER_SIGMA_TRANS,
-                  sigma_rot=PAPER_SIGMA_ROT, env=None, log=print):
+                  "220:repair"), perception="noise", n_targets=5, seed=0, sigma_trans=None, sigma_rot=None,
+                  env=None, log=print):
     """Start the graph, babble ``steps`` commands with the scheduled ``faults``, then test IK; returns a DemoResult.
 
     Parameters
@@ -155,13 +162,20 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     perception : {"noise", "rendered"}
         The simulator's noise model straight to scheme_node (the paper's protocol), or rendered images through
         tracker_node.
-    sigma_trans, sigma_rot : float
-        Noise model: RMS 3D position (m) and orientation (rad) error of a marker (the paper's 44 mm and 15 deg).
+    sigma_trans, sigma_rot : float or None
+        RMS 3D position (m) and orientation (rad) error of a marker: the noise model's (noise perception) and the
+        learner's noise sigmas (so its 3-sigma validity thresholds). ``None``: the paper's 44 mm and 15 deg with noise
+        perception, :data:`RENDERED_SIGMA_TRANS` and :data:`RENDERED_SIGMA_ROT` with rendered perception.
     n_targets : int
         IK targets: end-effector positions the healthy arm reached while babbling (reachable by construction).
     env : dict, optional
         Environment of the node processes (e.g. ROS_DOMAIN_ID); also applied to this process's rclpy context.
     """
+    if perception not in ("noise", "rendered"):
+        raise ValueError(f"perception must be 'noise' or 'rendered', got {perception!r}")
+    rendered = perception == "rendered"
+    sigma_trans = (RENDERED_SIGMA_TRANS if rendered else PAPER_SIGMA_TRANS) if sigma_trans is None else sigma_trans
+    sigma_rot = (RENDERED_SIGMA_ROT if rendered else PAPER_SIGMA_ROT) if sigma_rot is None else sigma_rot
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     tree = load_robot(robot)
@@ -188,8 +202,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             log(f"started {package}/{name}")
 
         # The learner's noise sigmas (and so its 3-sigma validity thresholds) are those of the perception in use.
-        learner_noise = {"learner.sigma_trans": float(sigma_trans), "learner.sigma_rot": float(sigma_rot)} \
-            if perception == "noise" else {}
+        learner_noise = {"learner.sigma_trans": float(sigma_trans), "learner.sigma_rot": float(sigma_rot)}
         start_node("body_scheme_nodes", "scheme_node", {
             "part_ids": ids, "joint_names": names, "action_lower": lower, "action_upper": upper, **learner_noise})
         start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.005})
@@ -348,8 +361,9 @@ def main(argv=None):
     parser.add_argument("--period", type=float, default=0.05, help="s between babbled commands")
     parser.add_argument("--fault", action="append", dest="faults", help="sim fault schedule entry (repeatable); "
                         "default: 120:block_joint:5:0.8 and 220:repair")
-    parser.add_argument("--perception", choices=["noise", "rendered"], default="noise",
-                        help="noise: the paper's noise model (default); rendered: camera images through tracker_node")
+    parser.add_argument("--perception", choices=["noise", "rendered"], default="rendered",
+                        help="rendered: camera images through tracker_node (default); noise: the paper's noise model "
+                        "straight to scheme_node")
     parser.add_argument("--targets", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="out/demo")

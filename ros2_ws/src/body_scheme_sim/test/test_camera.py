@@ -34,11 +34,11 @@ def rendered_centroids(camera, points, radius=0.015):
     return np.array(centroids)
 
 
-def test_default_camera_is_about_two_metres_from_the_robot_and_looks_at_it():
-    """The default optical axis points from DEFAULT_EYE at DEFAULT_TARGET, 2 m away, with a 60 deg FOV."""
+def test_default_camera_is_about_one_and_a_half_metres_from_the_robot_and_looks_at_it():
+    """The default optical axis points from DEFAULT_EYE at DEFAULT_TARGET, 1.5 m away, with a 60 deg FOV."""
     camera = Camera()
     distance = np.linalg.norm(np.subtract(DEFAULT_TARGET, DEFAULT_EYE))
-    assert 1.8 < distance < 2.3
+    assert 1.4 < distance < 1.6
     uv, depth = camera.project(np.array([DEFAULT_TARGET]))
     np.testing.assert_allclose(uv[0], [camera.cx, camera.cy], atol=1e-9)
     np.testing.assert_allclose(depth, [distance])

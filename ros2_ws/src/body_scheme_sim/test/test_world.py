@@ -128,9 +128,9 @@ def test_visibility_excludes_occluded_markers(world):
 def test_visibility_excludes_markers_facing_away_and_out_of_view():
     """Markers turned away from the camera, or outside a narrow camera's image, are not visible."""
     with SimWorld("powercube_6dof") as w:
-        w.execute(np.zeros(6))
+        w.execute([0.0, 0.3, 0.0, 0.3, 0.0, 0.0])  # leaning towards the camera (upright, the tool is above the image)
         assert w.visible_marker_ids() == set(w.marker_ids)
-        w.execute([1.5, 0.0, 0.0, 0.0, 0.0, 0.0])  # markers 2-7 turned 86 deg to the side
+        w.execute([1.5, 0.3, 0.0, 0.3, 0.0, 0.0])  # markers 2-7 turned 86 deg to the side
         assert w.visible_marker_ids() == {1}
     narrow = Camera(fx=1400.0, fy=1400.0, world2camera=look_at((1.55, 0.0, 1.7), (0.0, 0.0, 0.1)))
     with SimWorld("powercube_6dof", camera=narrow) as w:

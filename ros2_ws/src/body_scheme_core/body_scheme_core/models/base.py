@@ -125,6 +125,15 @@ class LocalModel(ABC):
     def predict(self, A, return_std=False):
         """Predict ``parent2child`` (k, 4, 4) for action vectors ``A`` (k, m) [and std (k, 2): trans m, rot rad]."""
 
+    def training_range(self):
+        """``(low, high)`` per action of :attr:`actions` that the model saw in training, or ``None``.
+
+        ``None`` (the default, e.g. for a model from the robot's specification) means the model claims to hold over
+        the whole action range; a model learned from data returns the box of its training inputs, outside of which it
+        extrapolates.
+        """
+        return None
+
     def jacobian(self, a, eps=1e-6):
         """Derivative ``dZ/da`` (m, 4, 4) at one full action vector ``a`` (m,).
 

@@ -411,6 +411,14 @@ class GPModel(LocalModel):
         self.alpha_ = alpha
         return self
 
+    def training_range(self):
+        """``(low, high)``, each shape (d,): the box of the training inputs (see :meth:`LocalModel.training_range`).
+
+        Far outside it the GP mean falls back to the training mean, so predictions there are guesses.
+        """
+        self._check_fitted()
+        return self.X_train_.min(axis=0), self.X_train_.max(axis=0)
+
     def predict_components(self, A, return_std=False):
         """Posterior mean (and latent std) of the 12 components, before projection onto SE(3).
 
