@@ -22,7 +22,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test unit lint demo bench bags replay clean distclean
+.PHONY: all setup build test unit lint demo bench bags replay experiments experiments-quick clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -81,6 +81,15 @@ bags: build
 # The offline replay of a shipped session: report, event timeline and error plot (docs/nodes.md#replay_offline-command).
 replay: build
 	$(RUN) python -m body_scheme_nodes.replay_offline bags/joint_blocked_seed0 --out out/replay/joint_blocked_seed0
+
+# The paper's experiments (docs/RESULTS.md): 20 noise-model runs + 1 rendered-camera run each, all cores.
+experiments: build
+	$(RUN) python -m body_scheme_sim.experiments --runs 20 --rendered-runs 1 --out docs/results --md docs/RESULTS.md
+
+# CI's small version: 2 quick noise runs + 1 quick rendered run each; fails unless every figure is finite and sane.
+experiments-quick: build
+	$(RUN) python -m body_scheme_sim.experiments --quick --runs 2 --rendered-runs 1 --out out/experiments-quick \
+		--md out/experiments-quick/RESULTS.md --check --quiet
 
 clean:
 	rm -rf $(WS)/build $(WS)/install $(WS)/log $(STAMPS)/build out

@@ -289,6 +289,7 @@ class Adaptation:
         best = int(np.argmin(cost))
         back = bridges[best]
         pool.assign(back, TREE, step)
+        pool.resume_refining(back)
         monitor.forget_before([back.row], mismatch.tau)
         self._take_over(tree, failed, back)
         events.append(Event(step, "model_reinstated",

@@ -70,7 +70,7 @@ __all__ = ["BodySchemeLearner", "PHASES", "STATE_VERSION"]
 #: Phases reported by :attr:`BodySchemeLearner.phase`.
 PHASES = ("bootstrapping", "steady", "adapting")
 #: Version of the dict layout of :meth:`BodySchemeLearner.to_state`.
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: root_samples (actions + all observations) replace root_observations
 
 
 class BodySchemeLearner:
@@ -111,7 +111,7 @@ class BodySchemeLearner:
         self.last_stamp = None
         self.rejected = Counter()
         self._history = deque(maxlen=config.history_length)
-        self._root_pose = RootPoseEstimator(config.root_window)
+        self._root_pose = RootPoseEstimator(config.root_window, self.root)
         if initial_models is None:
             # Candidates learn up to train_window samples.
             batch = new_batch(config, self.n_actions, config.train_window, config.max_complexity)
@@ -179,12 +179,13 @@ class BodySchemeLearner:
 
     @property
     def root_pose(self):
-        """Estimated ``world2root`` (4, 4): robust mean of the last ``root_window`` root observations.
+        """Estimated ``world2root`` (4, 4) from the last ``root_window`` samples (:mod:`~body_scheme_core.root_pose`).
 
-        Translation: coordinate-wise median. Rotation: the element-wise median of the rotation matrices projected
-        onto SO(3). Both ignore up to half of the samples being outliers. Identity while the root was never seen.
+        With a body scheme: the rigid transform that best maps its predicted marker positions onto the observed ones
+        (all markers, outliers dropped). Before: the robust mean of the root's own observations. Identity while
+        nothing was seen.
         """
-        return self._root_pose.pose
+        return self._root_pose.pose(self.body_scheme)
 
     def predict(self, a, return_std=False):
         """Predicted ``world2part`` of every part for one action vector (Eq. 8 and :attr:`root_pose`).
@@ -278,8 +279,7 @@ class BodySchemeLearner:
         events = []
         obs = self._accept(observations, step, events)
         self.last_stamp = stamp
-        if self.root in obs:
-            self._root_pose.add(obs[self.root])
+        self._root_pose.add(a, obs)
         self._history.append((step, a, obs))
         relative = self._pairs.observe(obs)
         if self._bootstrapping:
@@ -336,7 +336,8 @@ class BodySchemeLearner:
             "batch": self._pool.batch.state_dict(),
             "history": [{"step": s, "actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
                         for s, a, obs in self._history],
-            "root_observations": [Y.tolist() for Y in self._root_pose.observations],
+            "root_samples": [{"actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
+                             for a, obs in self._root_pose.samples],
         }
 
     @classmethod
@@ -379,8 +380,10 @@ class BodySchemeLearner:
                         raise ModelFileError(f"history observation of unknown part {part}")
                     obs[int(part)] = _finite_array(Y, (4, 4), "history observation")
                 self._history.append((int(rec["step"]), a, obs))
-            self._root_pose = RootPoseEstimator(config.root_window, (_finite_array(Y, (4, 4), "root observation")
-                                                                     for Y in state["root_observations"]))
+            self._root_pose = RootPoseEstimator(config.root_window, self.root, (
+                (_finite_array(rec["actions"], (self.n_actions,), "root sample actions"),
+                 {int(part): _finite_array(Y, (4, 4), "root sample observation") for part, Y in rec["observations"]})
+                for rec in state["root_samples"]))
             self._set_models(pool, tree, bootstrapping, found, tree_since, mismatch)
             if self._tree is not None:
                 self.body_scheme  # noqa: B018 - validates that the stored tree is a spanning tree of fitted models

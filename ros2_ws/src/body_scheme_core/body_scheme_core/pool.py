@@ -563,6 +563,28 @@ class ModelPool:
         entry.n_train = n
         self._changed()
 
+    def resume_refining(self, entry):
+        """Put a frozen GP with fewer than ``refine_window`` samples back into the batch to keep learning.
+
+        For a model that returns to the tree from memory: it was retired while still refining, so it holds fewer
+        samples than a tree model should (a replacement retired soon after its installation may hold only a handful);
+        like every tree model it refines up to ``refine_window``. Other models are left alone.
+
+        Returns
+        -------
+        resumed : bool
+        """
+        model = entry.model
+        if (entry.slot >= 0 or not isinstance(model, GPModel) or model.n_samples >= self.refine_window
+                or self.batch.capacity < self.refine_window or len(entry.actions) > self.batch.max_dim):
+            return False
+        entry.slot = int(self.batch.allocate([entry.actions])[0])
+        self._replay_training_data(entry.slot, model)
+        entry.n_train = model.n_samples
+        entry.model = None  # a snapshot of the batch slot on demand, like every refining tree model
+        self._changed()
+        return True
+
     def keep_only(self, keep):
         """Drop every other model and move ``keep`` into a fresh, compact batch and monitor.
 

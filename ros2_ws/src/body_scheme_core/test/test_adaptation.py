@@ -120,6 +120,22 @@ def test_a_remembered_model_that_fits_again_is_put_back():
     assert [e.id for e in rig.pool.with_role(MEMORY)] == [learned.id]
 
 
+def test_a_reinstated_model_retired_while_refining_keeps_learning():
+    """A replacement retired early (few samples) and reinstated for the same fault again resumes refining."""
+    robot = planar_2dof()
+    session = make_session(robot, 160, seed=0, faults=[(30, BLOCK), (60, REPAIR), (100, BLOCK)], visibility=0.95)
+    rig = _Rig(robot, engineered_models(robot))
+    rig.run(session, 0, 60)
+    learned = rig.edge(2, 3)
+    rig.run(session, 60, 100)
+    assert learned.role == MEMORY and learned.slot == -1
+    retired_with = learned.n_train
+    assert 0 < retired_with < rig.pool.refine_window
+    rig.run(session, 100, 160)
+    assert "model_reinstated" in rig.kinds(100) and rig.edge(2, 3) is learned
+    assert learned.slot >= 0 and rig.pool.n_now(learned) > retired_with
+
+
 def test_unpromising_replacements_are_sampled_again_after_patience():
     """When no replacement becomes valid within replacement_patience steps, new ones are sampled."""
     robot = planar_2dof()

@@ -147,7 +147,10 @@ def test_blocked_joint_detected_replaced_repaired_and_reused():
     (remembered,) = learner.memory
     events += _run(learner, session, 300)
     _check_failure_cycle(session, events, learner)
-    assert any(m is remembered for m in learner.body_scheme.models)
+    # The remembered model is back and, retired before refine_window samples, continued learning from its data.
+    (back,) = [m for m in learner.body_scheme.models if {m.parent, m.child} == {6, 7}]
+    assert remembered.n_samples < back.n_samples <= BodySchemeConfig().refine_window
+    np.testing.assert_array_equal(back.X_train_[:remembered.n_samples], remembered.X_train_)
     assert [s["model"] for s in learner.edge_status() if {s["parent"], s["child"]} == {6, 7}] == [tool_status["model"]]
     assert _position_error(learner, session, range(370, 400), 7) < BodySchemeConfig().theta_trans
 

@@ -151,9 +151,9 @@ def test_wrong_array_shapes(trained, tmp_path):
     with pytest.raises(ModelFileError, match="errors"):
         load_state(path)
     bad = json.loads(json.dumps(doc))
-    bad["state"]["root_observations"][0] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    bad["state"]["root_samples"][0]["actions"] = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     path.write_text(json.dumps(bad))
-    with pytest.raises(ModelFileError, match="root observation"):
+    with pytest.raises(ModelFileError, match="root sample actions"):
         load_state(path)
 
 

@@ -132,6 +132,25 @@ def test_refining_tree_models_freeze_at_refine_window():
     assert entry.slot == -1 and entry.n_train == 5 and entry.model.n_samples == 5
 
 
+def test_a_frozen_gp_with_few_samples_resumes_refining():
+    """resume_refining puts a GP below refine_window back into the batch with its data; others stay frozen."""
+    config = BodySchemeConfig(train_window=3, refine_window=5)
+    pool = _pool(config, capacity=refine_window(config))
+    A = np.linspace(-1.0, 1.0, 3)[:, None]
+    few = GPModel(1, 2, (0,)).fit(A, np.stack([_link(a) for a in A[:, 0]]))
+    full = GPModel(1, 2, (0,)).fit(np.linspace(-1.0, 1.0, 5)[:, None], np.stack([_link(a) for a in np.linspace(
+        -1.0, 1.0, 5)]))
+    static = StaticModel(1, 2).fit(np.zeros((1, 1)), np.eye(4)[None])
+    entry, done, other = pool.add_fitted([few, full, static], TREE, origin="test", last_used=0)
+    assert pool.resume_refining(entry) and not pool.resume_refining(done) and not pool.resume_refining(other)
+    assert entry.slot >= 0 and entry.model is None and pool.n_now(entry) == 3 and pool.n_learning == 1
+    np.testing.assert_allclose(pool.model_of(entry).predict([[0.4]]), few.predict([[0.4]]), atol=1e-12)
+    for t, a in enumerate([0.5, -0.5, 0.1]):
+        _step(pool, a, t)
+        pool.refresh_refining([entry.id])
+    assert entry.slot == -1 and entry.n_train == 5  # learned two more samples, then froze at refine_window
+
+
 def test_model_of_keeps_a_snapshot_only_when_asked():
     """Snapshots of learning models are cached in the entry with cache=True only; frozen models are returned."""
     pool = _pool()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import pathlib
 import sys
 import time
@@ -33,14 +32,9 @@ from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess
 
 from .robots import load_robot, robot_files
+from .sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
 
-__all__ = ["DemoResult", "run_live_demo", "main", "RENDERED_SIGMA_TRANS", "RENDERED_SIGMA_ROT"]
-
-#: The learner's noise sigmas with rendered perception: the tracker's accuracy on the sim's images (median 2-4 mm and
-#: 0.3-0.5 deg on the arm's markers, docs/sim.md). 3-sigma validity (30 mm) then rejects local models through a marker
-#: whose orientation is often mirrored, and the structure search routes around it (e.g. 1->3 instead of 1->2->3).
-RENDERED_SIGMA_TRANS = 0.01
-RENDERED_SIGMA_ROT = math.radians(5.0)
+__all__ = ["DemoResult", "run_live_demo", "main"]
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _LEVELS = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR",
@@ -83,6 +77,7 @@ class _Monitor:
         self.structure = None
         self.scheme_status = {}
         self.n_observations = 0
+        self.seen = {}             # stamp -> ids observed (tracker or noise model)
         node.create_subscription(MarkerPoses, "ground_truth/marker_poses", self._truth, 100)
         node.create_subscription(MarkerPoses, "predicted_poses", self._predicted, 100)
         node.create_subscription(MarkerPoses, "observations", self._observation, 100)
@@ -104,6 +99,8 @@ class _Monitor:
 
     def _observation(self, msg):
         self.n_observations += 1
+        stamp, poses, _ = conversions.observations_from_msg(msg)
+        self.seen[stamp] = set(poses)
 
     def _structure(self, msg):
         self.structure = msg
@@ -165,7 +162,8 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     sigma_trans, sigma_rot : float or None
         RMS 3D position (m) and orientation (rad) error of a marker: the noise model's (noise perception) and the
         learner's noise sigmas (so its 3-sigma validity thresholds). ``None``: the paper's 44 mm and 15 deg with noise
-        perception, :data:`RENDERED_SIGMA_TRANS` and :data:`RENDERED_SIGMA_ROT` with rendered perception.
+        perception, :data:`~body_scheme_sim.sessions.RENDERED_SIGMA_TRANS` and ``RENDERED_SIGMA_ROT`` with rendered
+        perception.
     n_targets : int
         IK targets: end-effector positions the healthy arm reached while babbling (reachable by construction).
     env : dict, optional
@@ -233,7 +231,11 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
         # IK: end-effector positions the arm reached after the last repair, so reachable by the healthy arm.
         last_fault = max([int(f.split(":")[0]) for f in faults] or [0])
         rng = np.random.default_rng(seed)
-        pool = [k for k in range(last_fault + 5, steps) if end_effector in monitor.truth[k][1]]
+        # Targets where the camera saw every marker: configurations the learned models had data for (IK stays in
+        # their trained range, so a target only reachable where a link was never seen may be refused).
+        pool = [k for k in range(last_fault + 5, steps)
+                if monitor.seen.get(monitor.truth[k][0], set()) >= set(ids)] or \
+            [k for k in range(last_fault + 5, steps) if end_effector in monitor.truth[k][1]]
         for k in rng.choice(pool, size=min(n_targets, len(pool)), replace=False):
             target = monitor.truth[k][1][end_effector][:3, 3]
             n_results, n_truth = len(monitor.ik_results), len(monitor.truth)

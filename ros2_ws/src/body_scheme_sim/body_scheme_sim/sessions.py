@@ -40,6 +40,8 @@ from .world import SimWorld
 __all__ = [
     "PERCEPTION_MODES",
     "PROTOCOLS",
+    "RENDERED_SIGMA_ROT",
+    "RENDERED_SIGMA_TRANS",
     "START_STAMP_NS",
     "IMAGE_DELAY_NS",
     "Session",
@@ -155,6 +157,13 @@ class Session:
             return self.marker_ids.index(int(marker_id))
         except ValueError:
             raise InvalidInputError(f"unknown marker id {marker_id!r}; markers: {list(self.marker_ids)}") from None
+
+
+#: The learner's noise sigmas for rendered perception: the tracker's accuracy on the sim's images (median 2-4 mm and
+#: 0.3-0.5 deg on the arm's markers, docs/sim.md). 3-sigma validity (30 mm) then rejects local models through a marker
+#: whose orientation is often mirrored, and the structure search routes around it (e.g. 1->3 instead of 1->2->3).
+RENDERED_SIGMA_TRANS = 0.01
+RENDERED_SIGMA_ROT = math.radians(5.0)
 
 
 def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perception="noise",

@@ -1,0 +1,11 @@
+"""The paper's experiments (Sec. IV), reproduced: ``python -m body_scheme_sim.experiments`` (``make experiments``).
+
+One module per experiment, each with ``run(seed, perception, quick) -> dict`` (one run's figures and curves),
+``FIGURES`` (definitions), ``PAPER`` (the paper's values), ``TARGETS`` and ``plot(runs, path_prefix)``:
+
+- :mod:`.fig7`: Fig. 7, the 2-DOF arm learning from scratch (prediction and control error vs samples).
+- :mod:`.table1`: Table I and Fig. 6, the 6-DOF arm's recovery after a blocked joint and a deformed limb.
+- :mod:`.control`: Sec. IV-D, the 4-DOF arm following a trajectory by IK with a deformed middle limb.
+
+:mod:`.runner` runs them in parallel over seeds and :mod:`.report` writes ``docs/results/`` and ``docs/RESULTS.md``.
+"""

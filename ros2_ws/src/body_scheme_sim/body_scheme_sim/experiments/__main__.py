@@ -1,0 +1,101 @@
+"""``python -m body_scheme_sim.experiments``: run the paper's experiments and write plots, results.json, RESULTS.md.
+
+``make experiments``: 20 noise-model runs and 1 rendered-camera run per experiment into ``docs/results/`` and
+``docs/RESULTS.md``. ``make experiments-quick`` (CI): 2 quick noise runs and 1 quick rendered run into
+``out/experiments-quick/``, then checks that every figure is finite and within loose sanity bounds (exit 1 if not).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one BLAS thread per process
+    os.environ.setdefault(_name, "1")
+
+from .report import write_results_json, write_results_md  # noqa: E402
+from .runner import EXPERIMENTS, Task, aggregate, experiment_module, run_tasks, sanity_problems  # noqa: E402
+
+
+def _commit():
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, check=True).stdout.strip()
+        return out.stdout.strip() + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv=None):
+    """Console entry point."""
+    parser = argparse.ArgumentParser(prog="python -m body_scheme_sim.experiments", description=__doc__.split("\n")[0])
+    parser.add_argument("--runs", type=int, default=20, help="noise-model runs per experiment (seeds seed..)")
+    parser.add_argument("--rendered-runs", type=int, default=1, help="rendered-camera runs per experiment")
+    parser.add_argument("--quick", action="store_true", help="the experiments' small CI versions")
+    parser.add_argument("--only", nargs="+", choices=EXPERIMENTS, default=list(EXPERIMENTS))
+    parser.add_argument("--seed", type=int, default=0, help="first seed")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: cores)")
+    parser.add_argument("--out", default="docs/results", help="directory for results.json and the plots")
+    parser.add_argument("--md", default="docs/RESULTS.md", help="the RESULTS.md to write ('' for none)")
+    parser.add_argument("--check", action="store_true", help="exit 1 unless all figures are finite and sane")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if args.runs < 1 or args.rendered_runs < 0:
+        parser.error("--runs must be >= 1 and --rendered-runs >= 0")
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    experiments = {name: experiment_module(name) for name in args.only}
+    tasks = [Task(name, args.seed + k, "noise", args.quick) for name in experiments for k in range(args.runs)]
+    tasks += [Task(name, args.seed + k, "rendered", args.quick) for name in experiments
+              for k in range(args.rendered_runs)]
+    start = time.monotonic()
+    outcomes = run_tasks(tasks, jobs=args.jobs, progress=not args.quiet)
+    seconds = time.monotonic() - start
+    failed = [o for o in outcomes if o.error]
+    for outcome in failed:
+        print(f"FAILED {outcome.task}: {outcome.error}", file=sys.stderr)
+
+    noise, rendered, plots, problems = {}, {}, {}, []
+    for name, module in experiments.items():
+        runs = [o.result for o in outcomes if o.task.experiment == name and o.task.perception == "noise" and o.result]
+        shown = [o.result for o in outcomes if o.task.experiment == name and o.task.perception == "rendered"
+                 and o.result]
+        if runs:
+            noise.update(aggregate(runs))
+            plots[name] = module.plot(runs, out / name)
+        if shown:
+            rendered.update(aggregate(shown))
+        bounds = getattr(module, "SANITY", {})
+        problems += [f"{name} (noise): {p}" for p in sanity_problems(aggregate(runs), bounds)] if runs else \
+            [f"{name}: no successful noise run"]
+        if args.rendered_runs:
+            problems += [f"{name} (rendered): {p}" for p in sanity_problems(aggregate(shown), bounds)] if shown \
+                else [f"{name}: no successful rendered run"]
+    meta = {"seed": args.seed, "commit": _commit(), "runs": args.runs, "rendered_runs": args.rendered_runs,
+            "quick": args.quick, "jobs": args.jobs, "seconds": round(seconds, 1),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+    write_results_json(out / "results.json", noise, rendered, meta)
+    command = "make experiments-quick" if args.quick else "make experiments"
+    if args.md:
+        write_results_md(pathlib.Path(args.md), experiments, noise, rendered, plots, meta, command)
+    print(f"{len(outcomes) - len(failed)}/{len(outcomes)} runs in {seconds:.0f} s; wrote {out / 'results.json'}"
+          + (f" and {args.md}" if args.md else ""))
+    for key, value in noise.items():
+        if not key.endswith("_std"):
+            shown = rendered.get(key, float("nan"))
+            print(f"  {key:32s} {value:10.2f} ± {noise[key + '_std']:.2f}   rendered {shown:.2f}")
+    if args.check and (problems or failed):
+        print("sanity check FAILED:\n  " + "\n  ".join(problems + [f"{o.task}: {o.error}" for o in failed]),
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

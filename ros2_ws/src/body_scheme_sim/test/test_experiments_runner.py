@@ -1,0 +1,68 @@
+"""Tests of the experiments' runner, report and command line."""
+
+import json
+import math
+import types
+
+import pytest
+
+from body_scheme_sim.experiments import runner
+from body_scheme_sim.experiments.__main__ import main
+from body_scheme_sim.experiments.report import met, write_results_md
+
+
+def test_aggregate_gives_nan_aware_mean_and_std_twins_and_skips_curves():
+    """Mean and std over runs per scalar key, NaN runs left out, curves and events not aggregated."""
+    runs = [{"a": 1.0, "b": math.nan, "curves": {}}, {"a": 3.0, "b": 2.0, "curves": {}}]
+    summary = runner.aggregate(runs)
+    assert summary == {"a": 2.0, "a_std": 1.0, "b": 2.0, "b_std": 0.0}
+
+
+def test_sanity_problems_flag_non_finite_and_out_of_bounds_figures():
+    """NaN and out-of-bounds figures are reported; _std twins and unbounded keys are not checked against bounds."""
+    problems = runner.sanity_problems({"a": math.nan, "b": 5.0, "b_std": math.nan, "c": 1e9},
+                                      {"b": (0.0, 1.0)})
+    assert problems == ["a is nan", "b = 5 outside the sanity bounds (0.0, 1.0)"]
+
+
+def test_a_failing_run_is_reported_with_its_task_and_the_others_go_on():
+    """An exception in one run becomes that outcome's error text; an unknown experiment is one such error."""
+    outcomes = runner.run_tasks([runner.Task("nope", 0, "noise"), runner.Task("table1", 0, "bad-mode")], jobs=1,
+                                progress=False)
+    assert "unknown experiment 'nope'" in outcomes[0].error
+    assert "perception must be" in outcomes[1].error and outcomes[1].result == {}
+
+
+def test_report_marks_missed_targets_plainly(tmp_path):
+    """RESULTS.md shows paper, target, ours and a bold 'no' for a missed target, listed again under 'Targets missed'."""
+    module = types.ModuleType("fake", "A title\n\nThe protocol.")
+    module.FIGURES = {"x_mm": "the x error", "y": "the y count"}
+    module.PAPER, module.TARGETS = {"x_mm": 50.0}, {"x_mm": 30.0, "y": 2.0}
+    noise = {"x_mm": 41.0, "x_mm_std": 3.0, "y": 1.0, "y_std": 0.0}
+    meta = {"commit": "abc", "seed": 0, "runs": 2, "rendered_runs": 0, "jobs": 1, "seconds": 1.0}
+    path = write_results_md(tmp_path / "R.md", {"fake": module}, noise, {}, {}, meta, "make experiments")
+    text = path.read_text()
+    assert "## A title" in text and "The protocol." in text
+    assert "| `x_mm` | 50.0 | <= 30.0 | 41.0 ± 3.0 | n/a | **no** |" in text
+    assert "| `y` | n/a | <= 2.00 | 1.00 ± 0.00 | n/a | yes |" in text
+    assert "- `x_mm`: 41.0 against the target 30.0 (paper 50.0)" in text
+    assert met("y", math.nan, module.TARGETS) is None
+
+
+def test_command_writes_results_json_with_seed_commit_and_std_twins(tmp_path, capsys):
+    """One quick Table I run end to end: results.json has the figures, _std twins, seed, commit and runs; --check
+    passes."""
+    code = main(["--only", "table1", "--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1", "--quiet",
+                 "--out", str(tmp_path), "--md", str(tmp_path / "RESULTS.md"), "--check"])
+    assert code == 0
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["seed"] == 0 and results["runs"] == 1 and results["commit"]
+    assert math.isfinite(results["blocked_recovery_failure"]) and "blocked_recovery_failure_std" in results
+    assert results["rendered"] == {}
+    assert (tmp_path / "table1_blocked.png").exists() and "Table I" in (tmp_path / "RESULTS.md").read_text()
+
+
+def test_command_rejects_bad_run_counts():
+    """--runs 0 is a usage error."""
+    with pytest.raises(SystemExit):
+        main(["--runs", "0"])
