@@ -64,6 +64,7 @@ class RootPoseEstimator:
     def __init__(self, window, root=None, samples=()):
         self.root = root
         self._samples = deque(maxlen=window)
+        self._cache = None  # (scheme, pose) of the last estimate
         for a, observations in samples:
             self.add(a, observations)
 
@@ -88,9 +89,8 @@ class RootPoseEstimator:
             own observations: coordinate-wise median of the positions and element-wise median of the rotation
             matrices projected onto SO(3). Identity while the root was never seen.
         """
-        cache = getattr(self, "_cache", None)
-        if cache is not None and cache[0] is scheme:
-            return cache[1]
+        if self._cache is not None and self._cache[0] is scheme:
+            return self._cache[1]
         pose = self._registered(scheme) if scheme is not None else None
         if pose is None:
             pose = self._root_mean()
