@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -46,6 +47,14 @@ class Collector:
     def _diagnostics(self, msg):
         for status in msg.status:
             self.diagnostics[status.name] = status
+
+    @property
+    def step(self):
+        """scheme_node's learner step from its last /diagnostics, or None."""
+        status = self.diagnostics.get("body_scheme: scheme")
+        if status is None:
+            return None
+        return int(next(kv.value for kv in status.values if kv.key == "step"))
 
 
 class Babbler:
@@ -171,9 +180,16 @@ def test_kill_and_restart_restores_the_checkpoint(start_node, ros_node, spin_unt
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
     babbler = Babbler(ros_node, session)
     assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), first.output()
+
+    def saved_step():
+        try:
+            return json.loads(checkpoint.read_text())["state"]["step"]
+        except (OSError, ValueError, KeyError):
+            return -1
+
+    # Queued samples may still change the tree (bootstrapping goes on): wait until the checkpoint holds every step.
+    assert spin_until(lambda: collector.step is not None and saved_step() == collector.step, timeout=20)
     learned = [(e.parent_id, e.child_id, e.description) for e in collector.structure.edges]
-    mtime = checkpoint.stat().st_mtime_ns if checkpoint.exists() else 0
-    assert spin_until(lambda: checkpoint.exists() and checkpoint.stat().st_mtime_ns > mtime, timeout=10)
     first.kill()  # SIGKILL: no clean shutdown, no final save
 
     collector.structure = None

@@ -1,19 +1,24 @@
 """Change detection, memory and repair of the body scheme's local models (paper Sec. III-E).
 
-After bootstrapping, every step:
+After bootstrapping, every step, against the chain-consistent targets of the calibrated body scheme
+(:mod:`~body_scheme_core.chain`):
 
-**Detection.** Each tree model and each remembered model whose two parts are observed records its prequential error
-(:meth:`~body_scheme_core.pool.ModelPool.evaluate_frozen`). A tree model is in *mismatch* when a one-sided CUSUM on
-its normalised per-sample error crosses ``cusum_threshold`` (per edge, so the failure is localised), its test
-window is invalid, or a remembered model of its pair clearly fits the samples since the CUSUM left zero better
-(the memory challenge).
+**Detection.** Each tree model and each remembered model that has a target records its prequential error
+(:meth:`~body_scheme_core.pool.ModelPool.evaluate`). A tree model is in *mismatch* when a one-sided CUSUM on its
+normalised per-sample error crosses ``cusum_threshold``, its test window is invalid, or a remembered model of its pair
+clearly fits the samples since the CUSUM left zero better (the memory challenge). A chain-consistent error rises for
+every edge below a changed one (their parent's predicted pose is wrong too), so an alarm is attributed to the edge
+nearest the root on its path whose CUSUM rose with it; the edges below wait (they get no targets while a part above
+them is in mismatch) and restart their detectors when it is repaired.
 
 **Repair**, for each edge in mismatch. First the memory is asked: a remembered model (of that pair, or of any pair
 that reconnects the two halves of the tree) whose mean errors since the estimated change point are valid is put
 back (``model_reinstated``). Otherwise replacement models are sampled for the pair, ordered by relative complexity
-to the failed model (Eq. 11), and trained *only* on data since the change point: the recent raw history is
-replayed to them prequentially at once. The cheapest valid one by ``C(M2|M1) + e`` replaces the failed model
-(``model_replaced``).
+to the failed model (Eq. 11) and class rank, and trained *only* on data since the change point: the recent raw
+history is replayed to them prequentially at once. If none is valid after ``bridge_patience`` steps, candidates of
+every other pair that reconnects the two halves are sampled too (a local re-bootstrap), so that a wrong edge is
+never permanent. The cheapest valid candidate by ``C(M2|M1)`` plus its error and class penalty replaces the failed model
+(``model_replaced``); a different pair also reports ``structure_changed``.
 
 **Memory.** A model that leaves the tree is retired to memory (``model_retired``): at most ``memory_size`` per pair,
 the least recently used forgotten first (:func:`least_recently_used`).
@@ -32,12 +37,11 @@ import numpy as np
 
 from .errors import ModelFileError
 from .events import Event
-from .pool import MEMORY, TREE, TrackedModel, finite_or_none, format_errors, nested_pairs
-from .quality import model_cost, relative_complexity
-from .structure import replacement_action_sets
-from .transforms import invert_transform
+from .pool import MEMORY, TREE, TrackedModel, finite_or_none, format_errors, nested_models
+from .quality import model_cost, nests, relative_complexity
+from .structure import action_subsets, kinds_for, replacement_candidates
 
-__all__ = ["Adaptation", "Mismatch", "least_recently_used", "tree_halves"]
+__all__ = ["Adaptation", "Mismatch", "Change", "least_recently_used", "tree_halves"]
 
 
 @dataclass
@@ -56,6 +60,8 @@ class Mismatch:
         First step of the replacements' training data.
     resamples : int
         How often replacements were sampled again after ``replacement_patience``.
+    bridged_at : int
+        Step at which candidates of other pairs across the cut were sampled; -1 before.
     """
 
     tau: int
@@ -63,6 +69,15 @@ class Mismatch:
     sampled_at: int = -1
     train_from: int = -1
     resamples: int = 0
+    bridged_at: int = -1
+
+
+class Change(NamedTuple):
+    """A tree edge that changed in this step: the new model, the one it replaced, and the change point."""
+
+    new: TrackedModel
+    old: TrackedModel
+    tau: int
 
 
 class Replacement(NamedTuple):
@@ -117,6 +132,13 @@ def tree_halves(part_ids, edges):
     return {part: k for k, parts in enumerate(nx.connected_components(graph)) for part in parts}
 
 
+def bridge_relative_complexity(entry, failed):
+    """C(M2|M1) of a candidate ``entry`` replacing ``failed`` (Eq. 11): differing actions, plus one for another
+    pair of parts (fewer shared nodes)."""
+    other_pair = {entry.parent, entry.child} != {failed.parent, failed.child}
+    return relative_complexity(entry.actions, failed.actions) + int(other_pair)
+
+
 class Adaptation:
     """Detects mismatching tree models and repairs them from memory or with newly learned replacements.
 
@@ -127,21 +149,29 @@ class Adaptation:
     history : collections.deque of (int, ndarray, dict)
         Recent raw steps ``(step, actions, {part: world2part})``, replayed to replacements (shared with the
         learner, which appends to it).
+    part_ids : tuple of int
+    root : int
     mismatch : dict of int to Mismatch, optional
         Edges in mismatch by tree-model id (a restored state).
+    refining : dict of int to tuple (int, int), optional
+        Installed replacements whose sibling candidates still learn: tree-model id -> (failed model id, tau).
 
     Attributes
     ----------
     mismatch : dict of int to Mismatch
+    refining : dict of int to tuple (int, int)
     """
 
-    def __init__(self, config, pool, history, mismatch=None):
+    def __init__(self, config, pool, history, part_ids, root, mismatch=None, refining=None):
         self.config = config
         self.pool = pool
         self.history = history
+        self.part_ids = tuple(part_ids)
+        self.root = root
         self.mismatch = {} if mismatch is None else mismatch
+        self.refining = {} if refining is None else dict(refining)
 
-    def step(self, tree, a, relative, step, events):
+    def step(self, tree, a, chain, chain_at, upstream, step, events):
         """One step after bootstrapping: evaluate and train, detect mismatches, repair the edges in mismatch.
 
         Parameters
@@ -149,43 +179,88 @@ class Adaptation:
         tree : list of int
             Ids of the tree's models; edges are replaced in place.
         a : ndarray, shape (m,)
-        relative : RelativeObservations
+        chain : ChainTargets
+            Targets of this step.
+        chain_at : callable
+            ``chain_at(a, observations)`` gives the :class:`ChainTargets` of a past step (history replay).
+        upstream : dict of int to list of int
+            Per tree model id, the ids of the tree models on the path from the root to it (root-most first).
         step : int
         events : list of Event
             Appended to.
 
         Returns
         -------
-        changed : bool
-            Whether the tree or one of its models changed.
+        changes : list of Change
+            Tree edges that were replaced or reinstated (the learner re-fits the body scheme).
         """
         pool = self.pool
-        ids, alarm_fixed = pool.evaluate_frozen(a, relative, step)
-        # Models still learning in the batch: replacement candidates and installed, not yet frozen replacements.
-        learn_ids, alarm_learn = pool.train_learning(a, relative, step)
-        changed = pool.refresh_refining(tree)
-        alarms = dict(zip(ids, alarm_fixed.tolist(), strict=True))
-        alarms.update(zip(learn_ids.tolist(), alarm_learn.tolist(), strict=True))
-        self._detect(tree, alarms, step, events)
+        edges = [pool.tracked[i] for i in tree]
+        index, e_t, e_r, theta = chain.tree_errors([chain.orient(e.parent, e.child) for e in edges])
+        evaluated = [edges[k] for k in index]
+        alarm = pool.monitor.record([e.row for e in evaluated], e_t, e_r, step,
+                                    n_train=[e.n_train for e in evaluated], cusum=True, theta_trans=theta)
+        alarms = {e.id: bool(x) for e, x in zip(evaluated, alarm, strict=True)}
+        memory = pool.with_role(MEMORY)
+        index, targets = chain.for_entries(memory)
+        pool.evaluate([memory[k] for k in index], a, targets, step, cusum=False)
+        learning = [e for e in pool.tracked.values() if e.slot >= 0]
+        if learning:
+            index, targets = chain.for_entries(learning, own=True)
+            pool.train([learning[k].id for k in index], a, targets, step)
+        changes = self._refine_choices(tree, step, events) + self._challenge(tree, step, events)
+        self._detect(tree, alarms, upstream, step, events)
         for edge_id in list(self.mismatch):
             if edge_id in self.mismatch:
-                changed |= self._repair(tree, pool.tracked[edge_id], step, events)
-        return changed
+                change = self._repair(tree, pool.tracked[edge_id], chain, chain_at, step, events)
+                if change is not None:
+                    changes.append(change)
+        return changes
 
     # ------------------------------------------------------------------ detection
-    def _detect(self, tree, alarms, step, events):
-        """Mismatch detection on the tree edges observed in this step (``alarms``: CUSUM alarm by model id)."""
+    def _detect(self, tree, alarms, upstream, step, events):
+        """Mismatch detection on the tree edges evaluated in this step (``alarms``: CUSUM alarm by model id)."""
         c = self.config
-        observed = [self.pool.tracked[i] for i in tree if i in alarms and i not in self.mismatch]
+        pool = self.pool
+        monitor = pool.monitor
+        observed = [pool.tracked[i] for i in tree if i in alarms and i not in self.mismatch]
         if not observed:
             return
-        st, valid = self.pool.window_stats([e.row for e in observed], [self.pool.n_now(e) for e in observed])
+        st, valid = pool.window_stats([e.row for e in observed], [pool.n_now(e) for e in observed])
         for k, e in enumerate(observed):
+            if e.id in self.mismatch:  # attributed from an edge below it earlier in this loop
+                continue
             window_bad = st.n[k] >= c.min_test_samples and not valid[k]
-            if alarms[e.id] or window_bad:
-                self._start_mismatch(e, step, events, bool(alarms[e.id]), st, k)
-            else:
+            if not (alarms[e.id] or window_bad):
                 self._challenge_from_memory(e, step, events, st, k)
+                continue
+            above = upstream.get(e.id, [])
+            if any(i in self.mismatch for i in above):
+                continue  # its errors follow from the edge above (it should not have had a target)
+            culprit = self._root_most_rising(above, e)
+            if culprit is None:
+                self._start_mismatch(e, step, events, bool(alarms[e.id]), st, k)
+                continue
+            f = pool.tracked[culprit]
+            st_f, _ = pool.window_stats([f.row], [pool.n_now(f)])
+            cause = (f"the errors of {e.describe()} below it rose with its own (CUSUM "
+                     f"{monitor.cusum[f.row][0]:.2f} / {monitor.cusum[f.row][1]:.2f} since step "
+                     f"{int(monitor.change_point([f.row])[0])})")
+            self._start_mismatch(f, step, events, False, st_f, 0, cause=cause)
+
+    def _root_most_rising(self, above, entry):
+        """The edge nearest the root among ``above`` whose CUSUM excursion started no later than ``entry``'s."""
+        monitor = self.pool.monitor
+        start = int(monitor.change_point([entry.row])[0])
+        start = math.inf if start < 0 else start
+        for i in above:
+            f = self.pool.tracked[i]
+            if not np.any(monitor.cusum[f.row] > 0.0):
+                continue
+            tau = int(monitor.change_point([f.row])[0])
+            if 0 <= tau <= start + 1:
+                return i
+        return None
 
     def _challenge_from_memory(self, entry, step, events, st, k):
         """Start a mismatch early when a remembered model of the same pair clearly fits the recent samples better.
@@ -236,60 +311,63 @@ class Adaptation:
                             trans_error=finite_or_none(mt), rot_error=finite_or_none(mr)))
 
     # ------------------------------------------------------------------ repair
-    def _repair(self, tree, failed, step, events):
-        """Memory first, then replacements (sampled once, resampled after ``replacement_patience``).
+    def _halves(self, tree, failed):
+        pool = self.pool
+        return tree_halves(self.part_ids, [(pool.tracked[i].parent, pool.tracked[i].child)
+                                                for i in tree if i != failed.id])
 
-        Returns whether the edge was repaired.
-        """
+    def _repair(self, tree, failed, chain, chain_at, step, events):
+        """Memory first, then replacements of the pair, then of pairs across the cut. Returns a Change or None."""
         c = self.config
         pool = self.pool
         mismatch = self.mismatch[failed.id]
-        if self._reinstate_from_memory(tree, failed, mismatch, step, events):
-            return True
+        halves = self._halves(tree, failed)
+        change = self._reinstate_from_memory(tree, failed, mismatch, halves, step, events)
+        if change is not None:
+            return change
         candidates = pool.candidates_of(failed.id)
         if not candidates and mismatch.sampled_at < 0:
-            self._sample_replacements(failed, mismatch, step, events, mismatch.tau, "no remembered model fits")
+            self._sample(failed, mismatch, chain, chain_at, halves, step, events, mismatch.tau, bridges=False,
+                         why="no remembered model fits")
             candidates = pool.candidates_of(failed.id)
-        if not candidates:
-            return False
-        choice = self._choose_replacement(failed, candidates)
-        if choice is not None:
-            self._install_replacement(tree, failed, choice, step, events)
-            return True
-        if step - mismatch.sampled_at >= c.replacement_patience:
+        if candidates:
+            choice = self._choose_replacement(failed, candidates)
+            if choice is not None:
+                return self._install_replacement(tree, failed, choice, step, events)
+        if mismatch.sampled_at >= 0 and mismatch.bridged_at < 0 and step - mismatch.sampled_at >= c.bridge_patience:
+            self._sample(failed, mismatch, chain, chain_at, halves, step, events, mismatch.train_from, bridges=True,
+                         why=f"no replacement of pair {failed.parent}-{failed.child} became valid within "
+                             f"{c.bridge_patience} steps")
+        elif candidates and step - mismatch.sampled_at >= c.replacement_patience:
             for e in candidates:
                 pool.remove(e)
             start = max(mismatch.train_from, step - c.test_window + 1)
             mismatch.resamples += 1
-            self._sample_replacements(
-                failed, mismatch, step, events, start,
-                f"none of the {len(candidates)} replacements became valid within {c.replacement_patience} steps")
-        return False
+            mismatch.bridged_at = -1
+            self._sample(failed, mismatch, chain, chain_at, halves, step, events, start, bridges=False,
+                         why=f"none of the {len(candidates)} replacements became valid within "
+                             f"{c.replacement_patience} steps")
+        return None
 
-    def _reinstate_from_memory(self, tree, failed, mismatch, step, events):
+    def _reinstate_from_memory(self, tree, failed, mismatch, halves, step, events):
         """Put back the cheapest remembered model that reconnects the tree and is valid since the change point."""
         c = self.config
         pool = self.pool
         monitor = pool.monitor
-        memory = pool.with_role(MEMORY)
-        if not memory:
-            return False
-        halves = tree_halves(pool.pairs.part_ids, [(pool.tracked[i].parent, pool.tracked[i].child)
-                                                   for i in tree if i != failed.id])
-        bridges = [e for e in memory if halves[e.parent] != halves[e.child]]
+        bridges = [e for e in pool.with_role(MEMORY) if halves[e.parent] != halves[e.child]]
         if not bridges:
-            return False
+            return None
         st = monitor.stats([e.row for e in bridges], since=mismatch.tau)
         n, mt, mr = st.n, st.trans_error, st.rot_error
         ok = monitor.valid(st, c.reinstate_min_samples)
         if not np.any(ok):
-            return False
+            return None
         layer = np.array([e.complexity for e in bridges])
-        cost = np.where(ok, model_cost(layer, st.trans_ratio, st.rot_ratio), np.inf)
+        rank = np.array([e.rank for e in bridges])
+        cost = np.where(ok, model_cost(layer, st.trans_ratio, st.rot_ratio, rank), np.inf)
         best = int(np.argmin(cost))
         back = bridges[best]
         pool.assign(back, TREE, step)
-        pool.resume_refining(back)
         monitor.forget_before([back.row], mismatch.tau)
         self._take_over(tree, failed, back)
         events.append(Event(step, "model_reinstated",
@@ -303,95 +381,273 @@ class Adaptation:
             events.append(Event(step, "structure_changed",
                                 f"edge {failed.parent}-{failed.child} replaced by {back.parent}-{back.child} "
                                 f"({back.describe()}) from memory"))
-        self._retire(failed, step, events, f"replaced by remembered {back.describe()}", mismatch.tau)
-        return True
+        self._retire(failed, step, events, f"replaced by remembered {back.describe()}")
+        return Change(back, failed, mismatch.tau)
 
-    def _sample_replacements(self, failed, mismatch, step, events, start, why):
-        """Start replacements for ``failed`` learning on the history of its pair since step ``start``."""
+    def _orient(self, failed, halves):
+        """The failed edge's pair ordered from the root's half (``u``) to the other (``v``)."""
+        root_half = halves[self.root]
+        return (failed.parent, failed.child) if halves[failed.parent] == root_half else (failed.child, failed.parent)
+
+    def _sample(self, failed, mismatch, chain, chain_at, halves, step, events, start, bridges, why):
+        """Start candidates for ``failed`` learning on the chain-consistent history since step ``start``.
+
+        Without ``bridges``: one per (action set, class) of relative complexity at most ``replacement_max_relative``
+        for the failed pair. With ``bridges``: every (action set, class) for every other pair across the cut.
+        Candidates are oriented from the root's half to the other, the direction of their targets.
+        """
         c = self.config
         pool = self.pool
-        sets = [(r, acts) for r, acts in replacement_action_sets(failed.actions, pool.n_actions, c.max_complexity,
-                                                                 c.replacement_max_relative)
-                if len(acts) <= pool.batch.max_dim]
-        entries = pool.add_learning([(failed.parent, failed.child, acts) for _, acts in sets], origin="replacement",
-                                    created=step, target=failed.id)
+        u, v = self._orient(failed, halves)
+        if bridges:
+            root_half = halves[self.root]
+            near = [p for p in self.part_ids if halves[p] == root_half]
+            far = [p for p in self.part_ids if halves[p] != root_half]
+            subsets = action_subsets(pool.n_actions, c.max_complexity)
+            specs = [(p, q, acts, kind) for p in near for q in far if {p, q} != {u, v}
+                     for acts in subsets for kind in kinds_for(acts, c.candidate_kinds)]
+            origin = "bridge"
+        else:
+            specs = [(u, v, acts, kind)
+                     for _, acts, kind in replacement_candidates(failed.actions, pool.n_actions, c.max_complexity,
+                                                                 c.replacement_max_relative, c.candidate_kinds)]
+            specs = [spec for spec in specs if len(spec[2]) <= max(pool.gp_batch.max_dim, 1)]
+            origin = "replacement"
+        if not specs:
+            return
+        entries = pool.add_learning(specs, origin=origin, created=step, target=failed.id)
         # Replay the raw history since the change point, test-then-train, so they need not wait for new data.
-        k = len(entries)
-        slots = np.array([e.slot for e in entries], dtype=np.intp)
-        rows = np.array([e.row for e in entries], dtype=np.intp)
-        limit = np.full(k, c.train_window)
-        no_cusum = np.zeros(k, dtype=bool)
-        used = 0
-        for rec_step, a, obs in self.history:
-            if rec_step < start or failed.parent not in obs or failed.child not in obs:
-                continue
-            Z = invert_transform(obs[failed.parent]) @ obs[failed.child]
-            pool.prequential(slots, rows, a, np.broadcast_to(Z, (k, 4, 4)), rec_step,
-                             np.full(k, pool.pairs.threshold(Z)), no_cusum, limit)
-            used += 1
-        mismatch.sampled_at = step
-        mismatch.train_from = start
-        listing = ", ".join(f"{e.describe()} [C={r}]" for (r, _), e in zip(sets, entries, strict=True))
+        used = self._replay(entries, chain_at, start)
+        if bridges:
+            mismatch.bridged_at = step
+        else:
+            mismatch.sampled_at = step
+            mismatch.train_from = start
+        n_pairs = len({(e.parent, e.child) for e in entries})
+        listing = ", ".join(e.describe() for e in entries[:12]) + (", ..." if len(entries) > 12 else "")
+        what = (f"{len(entries)} candidate(s) of {n_pairs} other pair(s) across the cut" if bridges
+                else f"{len(entries)} replacement(s) of pair {u}-{v}, ordered by relative complexity and class")
         events.append(Event(step, "model_sampled",
-                            f"{why}: sampled {len(entries)} replacement(s) for {failed.describe()}, ordered by "
-                            f"relative complexity C(M2|M1) = |actions sym-diff|: {listing}; trained on the "
-                            f"{used} samples of this pair since step {start} (replayed from history)",
+                            f"{why}: sampled {what} for {failed.describe()}: {listing}; trained on the {used} "
+                            f"samples since step {start} (replayed from history)",
                             parent=failed.parent, child=failed.child, model=failed.describe()))
 
     def _choose_replacement(self, failed, candidates):
-        """The valid, not dominated candidate of least cost ``C(M2|M1) + e(M2)`` (Eq. 11), or None."""
+        """The valid, not dominated candidate of least cost ``C(M2|M1)`` + error and class penalty (Eq. 11), or None."""
         pool = self.pool
         rows = [e.row for e in candidates]
         n_now = [pool.n_now(e) for e in candidates]
         st, valid = pool.window_stats(rows, n_now)
-        valid &= ~pool.dominated(rows, n_now, *nested_pairs(candidates), valid)
+        valid &= ~pool.dominated(rows, n_now, *nested_models(candidates), valid)
         if not np.any(valid):
             return None
-        rel = np.array([relative_complexity(e.actions, failed.actions) for e in candidates])
-        cost = np.where(valid, model_cost(rel, st.trans_ratio, st.rot_ratio), np.inf)
+        rel = np.array([bridge_relative_complexity(e, failed) for e in candidates])
+        rank = np.array([e.rank for e in candidates])
+        cost = np.where(valid, model_cost(rel, st.trans_ratio, st.rot_ratio, rank), np.inf)
         best = int(np.argmin(cost))
         return Replacement(candidates[best], int(st.n[best]), float(st.trans_error[best]),
                            float(st.rot_error[best]), int(rel[best]), float(cost[best]), int(valid.sum()),
                            len(candidates))
 
-    def _take_over(self, tree, failed, new):
-        """``new`` takes ``failed``'s place in the tree: fresh CUSUM, mismatch closed, pending replacements dropped.
-
-        Returns the closed :class:`Mismatch`.
-        """
+    def _take_over(self, tree, failed, new, keep_candidates=False):
+        """``new`` takes ``failed``'s place in the tree: fresh CUSUM, mismatch closed, pending candidates dropped
+        (unless ``keep_candidates``: they keep learning, see :meth:`_refine_choices`)."""
         tree[tree.index(failed.id)] = new.id
         self.pool.monitor.reset_cusum([new.row])
-        for e in self.pool.candidates_of(failed.id):
-            self.pool.remove(e)
+        if not keep_candidates:
+            for e in self.pool.candidates_of(failed.id):
+                self.pool.remove(e)
         return self.mismatch.pop(failed.id)
 
+    def _refine_choices(self, tree, step, events):
+        """A replacement is installed as soon as one candidate is valid; a simpler sibling (lower relative complexity,
+        then class rank) may need a few more samples to be judged (a revolute joint predicts from its third sample,
+        a GP from its first). Siblings keep learning until they are frozen, and a simpler one that becomes valid
+        takes over (``model_replaced``) unless the installed model predicts the same samples clearly better (the
+        dominance margin); the first choice is dropped, not remembered (it never described another body). Returns
+        the changes."""
+        pool = self.pool
+        changes = []
+        for new_id, (failed_id, tau) in list(self.refining.items()):
+            candidates = pool.candidates_of(failed_id)
+            current = pool.tracked.get(new_id)
+            failed = pool.tracked.get(failed_id)
+            if current is None or current.role != TREE or failed is None or not candidates:
+                for e in candidates:
+                    pool.remove(e)
+                del self.refining[new_id]
+                continue
+            if current.id in self.mismatch:
+                continue  # its repair decides
+            choice = self._choose_replacement(failed, candidates)
+            simpler = (choice is not None
+                       and ((bridge_relative_complexity(choice.entry, failed), choice.entry.rank)
+                            < (bridge_relative_complexity(current, failed), current.rank))
+                       and not self._clearly_better(current, choice.entry))
+            if not simpler:
+                dominating = self._dominating(current, candidates)
+                choice = None if dominating is None else Replacement(dominating[0], *dominating[1:4], 0, 0.0, 1,
+                                                                     len(candidates))
+            if choice is not None and (simpler or dominating is not None):
+                new = choice.entry
+                pool.materialize(new)
+                pool.assign(new, TREE, step)
+                tree[tree.index(current.id)] = new.id
+                pool.monitor.reset_cusum([new.row])
+                why = ("the simpler candidate became valid" if simpler
+                       else "a candidate that nests it predicts the same samples clearly better")
+                events.append(Event(step, "model_replaced",
+                                    f"{new.describe()} replaces {current.describe()}, the replacement of "
+                                    f"{failed.describe()} installed first: {why}, with mean error "
+                                    f"{format_errors(choice.trans_error, choice.rot_error)} over "
+                                    f"{choice.n_test} test samples after {new.n_train} training samples",
+                                    parent=new.parent, child=new.child, model=new.describe(),
+                                    trans_error=choice.trans_error, rot_error=choice.rot_error))
+                pool.remove(current)
+                del self.refining[new_id]
+                self.refining[new.id] = (failed_id, tau)
+                changes.append(Change(new, current, tau))
+            elif all(pool.n_now(e) >= self.config.train_window for e in candidates):
+                for e in candidates:
+                    pool.remove(e)
+                del self.refining[new_id]
+        return changes
+
     def _install_replacement(self, tree, failed, choice, step, events):
-        """The chosen replacement becomes the tree model (still refining); the failed one goes to memory."""
+        """The chosen candidate becomes a fitted tree model; the failed one goes to memory."""
         pool = self.pool
         new = choice.entry
+        pool.materialize(new)
         pool.assign(new, TREE, step)
-        new.n_train = int(pool.batch.size([new.slot])[0])
-        new.model = None  # keeps learning up to refine_window samples as a tree model; snapshot on demand
-        if new.n_train >= pool.refine_window:
-            pool.materialize(new)
-        mismatch = self._take_over(tree, failed, new)
+        mismatch = self._take_over(tree, failed, new, keep_candidates=True)
+        self.refining[new.id] = (failed.id, mismatch.tau)
         events.append(Event(step, "model_replaced",
                             f"{new.describe()} replaces {failed.describe()}: valid with mean error "
                             f"{format_errors(choice.trans_error, choice.rot_error)} over {choice.n_test} test samples "
                             f"after {new.n_train} training samples since step {mismatch.train_from}; cost "
-                            f"C(M2|M1) + e = {choice.cost:.2f} (relative complexity {choice.relative}), cheapest of "
-                            f"{choice.n_valid} valid among {choice.n_sampled} sampled; mismatch lasted "
+                            f"C(M2|M1) + error and class penalty = {choice.cost:.2f} (relative complexity "
+                            f"{choice.relative}), "
+                            f"cheapest of {choice.n_valid} valid among {choice.n_sampled} sampled; mismatch lasted "
                             f"{step - mismatch.detected} steps",
                             parent=new.parent, child=new.child, model=new.describe(),
                             trans_error=choice.trans_error, rot_error=choice.rot_error))
-        self._retire(failed, step, events, f"replaced by {new.describe()}", mismatch.tau)
+        if {new.parent, new.child} != {failed.parent, failed.child}:
+            events.append(Event(step, "structure_changed",
+                                f"edge {failed.parent}-{failed.child} replaced by {new.parent}-{new.child} "
+                                f"({new.describe()}): no model of pair {failed.parent}-{failed.child} fits"))
+        self._retire(failed, step, events, f"replaced by {new.describe()}")
+        return Change(new, failed, mismatch.tau)
+
+    def _clearly_better(self, entry, other):
+        """Whether ``entry`` predicts the samples both were tested on clearly better than ``other``: by more than
+        ``dominance_margin`` thresholds on average in either channel, over at least ``min_test_samples``."""
+        n, diff = self.pool.monitor.paired_difference([entry.row], [other.row])
+        return bool(n[0] >= self.config.min_test_samples and -diff[0].min() > self.config.dominance_margin)
+
+    def _dominating(self, current, candidates):
+        """The valid candidate that nests ``current`` and beats it most clearly in a paired comparison (more than
+        ``dominance_margin`` thresholds on average in either channel, over at least ``min_test_samples`` common
+        samples), as ``(entry, n, trans_error, rot_error)``; None if there is none. The dominance rule of the
+        structure search, applied to a model already in the tree."""
+        c = self.config
+        pool = self.pool
+        nesting = [e for e in candidates if nests(e.kind, e.actions, current.kind, current.actions)]
+        if not nesting:
+            return None
+        rows = [e.row for e in nesting]
+        st, valid = pool.window_stats(rows, [pool.n_now(e) for e in nesting])
+        n, diff = pool.monitor.paired_difference(rows, [current.row] * len(rows))
+        gain = -diff.min(axis=1)
+        ok = valid & (n >= c.min_test_samples) & (gain > c.dominance_margin)
+        if not np.any(ok):
+            return None
+        best = int(np.argmax(np.where(ok, gain, -np.inf)))
+        return nesting[best], int(st.n[best]), float(st.trans_error[best]), float(st.rot_error[best])
+
+    def sample_challengers(self, tree, chain, chain_at, step, events):
+        """A GP challenger for every rigid-joint tree model, trained on the chain-consistent history.
+
+        Relative observations cannot tell a rigid joint from a smooth nonlinear relation (a transmission, a flexing
+        tool) at the paper's noise; chain-consistent targets can. ``chain`` (this step's targets) orients each
+        challenger from the root's side; ``chain_at`` gives the targets of past steps. Each challenger learns like a
+        replacement candidate and takes the edge if it dominates the joint (:meth:`_challenge`); it is dropped once
+        frozen and tested for a window without doing so.
+        """
+        pool = self.pool
+        edges = [pool.tracked[i] for i in tree if pool.tracked[i].kind in ("static", "prismatic", "revolute")
+                 and pool.tracked[i].actions]
+        if "gp" not in self.config.candidate_kinds or not edges:
+            return
+        challengers = []
+        for e in edges:
+            u, v = chain.orient(e.parent, e.child)  # from the root's side, the direction of their targets
+            challengers += pool.add_learning([(u, v, e.actions, "gp")], origin="challenger", created=step,
+                                             target=e.id)
+        used = self._replay(challengers, chain_at, start=-1)
+        events.append(Event(step, "model_sampled",
+                            f"sampled a GP challenger for each of the {len(edges)} rigid joints of the tree "
+                            f"({', '.join(e.describe() for e in challengers)}), trained on the {used} "
+                            f"chain-consistent samples of the history: a relation no rigid form explains would "
+                            f"show here"))
+
+    def _challenge(self, tree, step, events):
+        """Challengers that dominate their tree model take the edge; the others are dropped once they have been
+        frozen and tested for a window. Returns the changes."""
+        pool = self.pool
+        c = self.config
+        changes = []
+        for current_id in [i for i in tree]:
+            challengers = [e for e in pool.candidates_of(current_id) if e.origin == "challenger"]
+            if not challengers:
+                continue
+            current = pool.tracked[current_id]
+            if current_id in self.mismatch:
+                continue
+            found = self._dominating(current, challengers)
+            if found is not None:
+                new, n, mt, mr = found
+                pool.materialize(new)
+                pool.assign(new, TREE, step)
+                new.since = current.since
+                tree[tree.index(current_id)] = new.id
+                pool.monitor.reset_cusum([new.row])
+                for e in pool.candidates_of(current_id):
+                    if e is not new:
+                        pool.remove(e)
+                events.append(Event(step, "model_replaced",
+                                    f"{new.describe()} replaces {current.describe()}: it predicts the same "
+                                    f"chain-consistent samples clearly better (mean error {format_errors(mt, mr)} "
+                                    f"over {n} test samples): no rigid form explains this relation",
+                                    parent=new.parent, child=new.child, model=new.describe(),
+                                    trans_error=mt, rot_error=mr))
+                pool.remove(current)
+                changes.append(Change(new, current, new.since))
+                continue
+            done = [e for e in challengers if pool.n_now(e) >= c.train_window
+                    and pool.monitor.count[e.row] >= c.train_window + c.test_window]
+            for e in done:
+                pool.remove(e)
+        return changes
+
+    def _replay(self, entries, chain_at, start):
+        """Replay the history since step ``start`` to learning ``entries`` (test-then-train); returns the number of
+        steps that gave at least one of them a target."""
+        pool = self.pool
+        used = 0
+        for rec_step, a, obs in self.history:
+            if rec_step < start:
+                continue
+            past = chain_at(a, obs)
+            index, targets = past.for_entries(entries, own=True)
+            if index.size:
+                pool.train([entries[k].id for k in index], a, targets, rec_step)
+                used += 1
+        return used
 
     # ------------------------------------------------------------------ memory
-    def _retire(self, entry, step, events, why, tau=None):
+    def _retire(self, entry, step, events, why):
         """Move a model that left the tree to memory; forget the least recently used beyond ``memory_size``."""
         pool = self.pool
-        if entry.slot >= 0:
-            pool.materialize(entry, before=tau)
         pool.assign(entry, MEMORY, step)
         pool.monitor.reset_cusum([entry.row])
         same = pool.memory_of_pair(entry.parent, entry.child)
@@ -415,6 +671,20 @@ class Adaptation:
         """The edges in mismatch as JSON-serialisable dicts ``{"edge": id, "tau": ..., ...}``."""
         return [{"edge": k, **asdict(v)} for k, v in self.mismatch.items()]
 
+    def refining_state(self):
+        """:attr:`refining` as JSON-serialisable ``[[tree model id, failed model id, tau], ...]``."""
+        return [[k, f, t] for k, (f, t) in self.refining.items()]
+
+    @staticmethod
+    def refining_from_state(items, tracked):
+        """Rebuild :attr:`refining` from :meth:`refining_state` output; the installed model must be tracked."""
+        refining = {}
+        for new_id, failed_id, tau in items:
+            if int(new_id) not in tracked:
+                raise ModelFileError(f"refining refers to unknown model id {new_id}")
+            refining[int(new_id)] = (int(failed_id), int(tau))
+        return refining
+
     @staticmethod
     def mismatch_from_state(items, tracked):
         """Rebuild :attr:`mismatch` from :meth:`mismatch_state` output; edges must be ids in ``tracked``."""
@@ -425,5 +695,5 @@ class Adaptation:
             if edge not in tracked:
                 raise ModelFileError(f"mismatch refers to unknown model id {edge}")
             mismatch[edge] = Mismatch(**{k: int(item[k]) for k in ("tau", "detected", "sampled_at", "train_from",
-                                                                     "resamples")})
+                                                                     "resamples", "bridged_at")})
         return mismatch

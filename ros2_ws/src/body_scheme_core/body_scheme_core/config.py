@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 from .errors import InvalidInputError
+from .structure import CANDIDATE_KINDS
 
 __all__ = ["BodySchemeConfig"]
 
@@ -35,12 +36,15 @@ class BodySchemeConfig:
     test_window : int
         |D_test|: number of latest samples a local model's prediction error is averaged over.
     train_window : int
-        |D_train|: number of samples a local model is trained on after it is instantiated; then it is frozen.
-    refine_window : int
-        Models of the body scheme (the selected tree) keep learning, prequentially tested, until they hold this
-        many samples; candidates are frozen at ``train_window`` as in the paper. The structure decision needs no
-        more than ``train_window`` samples, the accuracy of long chains does. Values up to ``train_window`` turn
-        refinement off.
+        |D_train|: number of samples a candidate local model is trained on after it is instantiated; then it is
+        frozen. The models of the body scheme keep learning from every observation through the joint fit.
+    candidate_kinds : tuple of str
+        Local-model classes instantiated as candidates (bootstrapping and replacements): any of ``"static"``,
+        ``"prismatic"``, ``"revolute"``, ``"gp"``. ``("gp",)`` is the paper's learner.
+    fit_joint_scale : bool
+        Whether rigid joint models fit the scale between an action and the joint's motion (rad or m per action
+        unit). False (default): actions are joint positions (rad, m), as in the paper, and the models assume it: one
+        parameter fewer per joint and better accuracy from few samples. Set True when commands are in other units.
     max_complexity : int
         Largest number of actions a local model may depend on (number of complexity layers searched - 1).
     min_test_samples : int
@@ -51,6 +55,10 @@ class BodySchemeConfig:
         Length scale of the squared-exponential kernel over actions, in rad.
     gp_signal_std_trans, gp_signal_std_rot : float
         Prior standard deviation of the translational (m) and rotation-matrix components around the training mean.
+    gp_optimize : bool
+        GP edges of the body scheme, refitted by the joint fit, choose their length scale and noise ratio by
+        marginal likelihood; candidates keep the fixed ``gp_length_scale`` and the noise ratio of the sigmas (one
+        factorisation for hundreds of them).
     stale_fraction : float
         While a model is still learning (n training samples), errors of its predictions made with fewer than
         ``floor(stale_fraction * n)`` samples are ignored when judging its validity (0 disables the rule).
@@ -74,13 +82,26 @@ class BodySchemeConfig:
     memory_size : int
         Retired models remembered per pair of parts (least recently used dropped first); 0 disables memory.
     history_length : int
-        Raw steps (actions and observations) kept to replay to replacement models from the change point on.
+        Raw steps (actions and observations) kept: the window of the joint fit of the body scheme, and what is
+        replayed to replacement models from the change point on.
+    calibration_period : int
+        Largest number of steps between joint fits of the body scheme (root pose and every tree model against the
+        absolute observations of the history). A fit runs at once after every change of the tree, and once the
+        observations usable by the newest edge grew by a tenth since the last fit (so every step early on and right
+        after a change).
+    f_scale : float
+        Huber threshold of the robust loss of the rigid-joint fits and the joint fit, in sigmas of one residual
+        component.
     replacement_max_relative : int
         Replacements are sampled for every action set whose relative complexity (size of the symmetric
         difference with the failed model's actions, paper Eq. 11) is at most this.
     replacement_patience : int
         If no replacement of a mismatching model is valid this many steps after sampling, new ones are sampled
         from the most recent ``test_window`` steps of the history.
+    bridge_patience : int
+        If no replacement of the failed pair is valid this many steps after sampling, candidates of every other
+        pair that reconnects the two halves of the tree are sampled too (a local re-bootstrap), so that a wrong edge
+        can be replaced by a right one.
     root_window : int
         Number of recent root observations whose robust mean (coordinate-wise median) gives the root pose in the
         world for :meth:`BodySchemeLearner.predict`.
@@ -93,13 +114,15 @@ class BodySchemeConfig:
     validity_sigmas: float = 3.0
     test_window: int = 15
     train_window: int = 30
-    refine_window: int = 120
+    candidate_kinds: tuple = ("static", "prismatic", "revolute", "gp")
+    fit_joint_scale: bool = False
     max_complexity: int = 2
     min_test_samples: int = 3
     root: int | None = None
     gp_length_scale: float = 1.0
     gp_signal_std_trans: float = 0.3
     gp_signal_std_rot: float = 0.7
+    gp_optimize: bool = True
     stale_fraction: float = 0.5
     bootstrap_patience: int = 30
     cusum_drift: float = 0.75
@@ -109,14 +132,17 @@ class BodySchemeConfig:
     challenge_margin: float = 0.25
     reinstate_min_samples: int = 2
     memory_size: int = 4
-    history_length: int = 60
+    history_length: int = 200
+    calibration_period: int = 100
+    f_scale: float = 3.0
     replacement_max_relative: int = 2
     replacement_patience: int = 60
+    bridge_patience: int = 15
     root_window: int = 50
 
     def __post_init__(self):
         positive = ["sigma_trans", "sigma_rot", "validity_sigmas", "gp_length_scale", "gp_signal_std_trans",
-                    "gp_signal_std_rot"]
+                    "gp_signal_std_rot", "f_scale"]
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -125,8 +151,8 @@ class BodySchemeConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
-        for name in ["refine_window", "bootstrap_patience", "reinstate_min_samples", "history_length",
-                     "replacement_patience", "root_window"]:
+        for name in ["bootstrap_patience", "reinstate_min_samples", "history_length", "replacement_patience",
+                     "bridge_patience", "root_window", "calibration_period"]:
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
@@ -146,6 +172,17 @@ class BodySchemeConfig:
             raise InvalidInputError(
                 f"need finite cusum_clip > cusum_drift > 0 and cusum_threshold > 0, got clip {self.cusum_clip!r}, "
                 f"drift {self.cusum_drift!r}, threshold {self.cusum_threshold!r}")
+        for name in ("fit_joint_scale", "gp_optimize"):
+            if not isinstance(getattr(self, name), bool):
+                raise InvalidInputError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        kinds = self.candidate_kinds
+        if isinstance(kinds, str) or not isinstance(kinds, (tuple, list)):
+            raise InvalidInputError(f"candidate_kinds must be a list of model classes, got {kinds!r}")
+        kinds = tuple(kinds)
+        if not kinds or len(set(kinds)) != len(kinds) or any(k not in CANDIDATE_KINDS for k in kinds):
+            raise InvalidInputError(f"candidate_kinds must be distinct classes of {list(CANDIDATE_KINDS)}, got "
+                                    f"{list(kinds)}")
+        object.__setattr__(self, "candidate_kinds", kinds)
         if not (isinstance(self.max_complexity, int) and self.max_complexity >= 0):
             raise InvalidInputError(f"max_complexity must be an integer >= 0, got {self.max_complexity!r}")
         if self.min_test_samples > self.test_window:
@@ -159,8 +196,10 @@ class BodySchemeConfig:
                 raise InvalidInputError(f"{name} must be a finite number > 0 or None, got {value!r}")
 
     def to_dict(self):
-        """Plain dict of all fields (JSON-serialisable)."""
-        return dataclasses.asdict(self)
+        """Plain dict of all fields (JSON-serialisable; tuples as lists)."""
+        data = dataclasses.asdict(self)
+        data["candidate_kinds"] = list(self.candidate_kinds)
+        return data
 
     @classmethod
     def from_dict(cls, data):

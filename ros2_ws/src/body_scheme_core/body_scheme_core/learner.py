@@ -1,52 +1,56 @@
-"""The online lifelong body-scheme learner: bootstrapping, change detection, memory and repair (paper III-C, III-E).
+"""The online lifelong body-scheme learner: bootstrapping, joint fit, change detection, memory and repair.
 
 One :meth:`BodySchemeLearner.update` call per time step, with the commanded action vector and the marker poses
-observed after it. The learner goes through three phases:
+observed after it (paper Sec. III-C, III-E). The learner goes through three phases:
 
 ``bootstrapping``
-    Without a given body scheme, a candidate local model is instantiated for every pair of parts and every action
-    subset of at most ``max_complexity`` actions (the fully connected network of Fig. 4). All of them are GPs in one
-    :class:`~body_scheme_core.models.gp.GPBatch`. Each is a *temporal* local model: it learns from the first
-    ``train_window`` observations of its pair and is then frozen. Evaluation is prequential (test-then-train): a
-    candidate predicts every new observation before that observation may join its training set, so validity is
-    never judged on training data. After every step the minimum spanning tree over the valid candidates is
-    searched layer by layer (:func:`~body_scheme_core.structure.select_spanning_tree`), over the valid candidates
-    that no candidate with more actions clearly beats (dominance rule). Bootstrapping ends when a valid tree
+    Without a given body scheme, a candidate local model is instantiated for every pair of parts, every action
+    subset of at most ``max_complexity`` actions and every model class that fits it (static, prismatic, revolute,
+    GP: the fully connected network of Fig. 4). Each is a *temporal* local model: it learns from the first
+    ``train_window`` relative observations ``Y_i^-1 Y_j`` of its pair and is then frozen. Evaluation is prequential
+    (test-then-train), so validity is never judged on training data. After every step the minimum spanning tree
+    over the valid candidates is searched layer by layer, classes of a layer by rank (rigid joints before GPs), over
+    the candidates that no nesting candidate clearly beats (dominance rule). Bootstrapping ends when a valid tree
     exists, its models are frozen and every candidate is frozen (or the tree has been stable for
-    ``bootstrap_patience`` steps): all other candidates are dropped; the tree's models keep learning up to
-    ``refine_window`` samples and then become plain :class:`GPModel` objects.
+    ``bootstrap_patience`` steps); the other candidates are dropped.
 ``steady``
-    Every step, each model of the tree and each remembered model whose two parts are observed records its
-    prequential error. A tree model is in *mismatch* when its test window is invalid, a one-sided CUSUM on its
-    normalised per-sample error crosses ``cusum_threshold`` (per edge, so the failure is localised), or a
+    The tree's models keep learning through the **joint fit** (:mod:`~body_scheme_core.calibration`): the root pose
+    and every rigid-joint model refined together against the absolute observations of the last ``history_length``
+    steps, after every change of the tree and every ``calibration_period`` steps; the predictions come from that
+    calibrated body scheme. Every step, each tree model and each remembered model is tested against its
+    *chain-consistent* target (:mod:`~body_scheme_core.chain`: the child's observation relative to the parent's
+    predicted pose). A tree model is in *mismatch* when its test window is invalid, its CUSUM alarms, or a
     remembered model of its pair clearly fits the samples since the CUSUM left zero better.
 ``adapting``
-    At least one tree edge is in mismatch. First the memory is asked: a remembered model (of that pair, or of any
-    pair that reconnects the two halves of the tree) whose mean errors since the estimated change point are valid
-    is put back (``model_reinstated``). Otherwise replacement models are sampled for the pair, ordered by relative
-    complexity to the failed model (Eq. 11), and trained *only* on data since the change point: the recent raw
-    history is replayed to them prequentially at once, so they need not wait for new data. The cheapest valid one
-    by ``C(M2|M1) + e`` replaces the failed model (``model_replaced``), which goes to memory (``model_retired``).
+    At least one tree edge is in mismatch. First the memory is asked (a remembered model of that pair, or of any
+    pair across the cut, valid since the change point: ``model_reinstated``); otherwise replacement models of the
+    pair are sampled, ordered by relative complexity (Eq. 11) and class, trained only on data since the change point
+    (replayed from the history); if none becomes valid, candidates of the other pairs across the cut too. The
+    cheapest valid one replaces the failed model (``model_replaced``), which goes to memory (``model_retired``).
 
 Every decision is returned as an :class:`~body_scheme_core.events.Event` whose reason string carries the numbers.
 This module orchestrates the time step; the pieces live in :mod:`~body_scheme_core.inputs` (validation),
-:mod:`~body_scheme_core.relative` (relative observations), :mod:`~body_scheme_core.pool` (tracked models and their
-prequential evaluation), :mod:`~body_scheme_core.bootstrap`, :mod:`~body_scheme_core.adaptation` (change detection,
-memory, repair) and :mod:`~body_scheme_core.root_pose`. ``docs/core/learning-and-adaptation.md`` describes every
-rule and default and how they differ from the paper.
+:mod:`~body_scheme_core.relative` and :mod:`~body_scheme_core.chain` (targets), :mod:`~body_scheme_core.pool`
+(tracked models and their prequential evaluation), :mod:`~body_scheme_core.bootstrap`,
+:mod:`~body_scheme_core.adaptation` (change detection, memory, repair), :mod:`~body_scheme_core.calibration` (the
+joint fit) and :mod:`~body_scheme_core.root_pose` (the root pose before the first fit).
+``docs/core/learning-and-adaptation.md`` describes every rule and default and how they differ from the paper.
 """
 
 from __future__ import annotations
 
 import math
 from collections import Counter, deque
+from typing import NamedTuple
 
 import numpy as np
 
 from .adaptation import Adaptation
 from .bootstrap import Bootstrap
+from .calibration import calibrate
+from .chain import ChainTargets
 from .config import BodySchemeConfig
-from .errors import InvalidInputError, ModelFileError, NotFittedError
+from .errors import BodySchemeError, InvalidInputError, ModelFileError, NotFittedError
 from .events import Event
 from .inputs import (
     check_action_bounds,
@@ -60,7 +64,9 @@ from .inputs import (
     filter_observations,
     root_part,
 )
-from .pool import MEMORY, TREE, ModelPool, new_batch, new_monitor, refine_window
+from .models import GPModel
+from .models.rigid import RigidJointModel
+from .pool import MEMORY, TREE, ModelPool
 from .relative import PartPairs
 from .root_pose import RootPoseEstimator
 from .scheme import BodyScheme
@@ -70,7 +76,31 @@ __all__ = ["BodySchemeLearner", "PHASES", "STATE_VERSION"]
 #: Phases reported by :attr:`BodySchemeLearner.phase`.
 PHASES = ("bootstrapping", "steady", "adapting")
 #: Version of the dict layout of :meth:`BodySchemeLearner.to_state`.
-STATE_VERSION = 2  # 2: root_samples (actions + all observations) replace root_observations
+STATE_VERSION = 3  # 3: rigid-joint models, two candidate batches, the joint fit; 2: GP-only learner
+#: A joint fit also runs once the steps usable by the newest edge of the tree grew by this fraction since the last fit
+#: (every step early on and right after a change, every ``calibration_period`` steps at most), times the fit's free
+#: parameters per ``_GROWTH_PARAMS`` when more: a fit costs in proportion to its parameters, so larger trees are
+#: refitted after proportionally more new data (the 2-DOF arm every 10 %, the 6-DOF arm every 20 %).
+_CALIBRATION_GROWTH = 0.1
+_GROWTH_PARAMS = 30
+#: Edges tried when the calibrated scheme leaves a part unexplained while bootstrapping, and the iterations of each
+#: trial fit (:meth:`BodySchemeLearner._veto_inconsistent_edges`).
+_SUSPECTS = 3
+_TRIAL_ITERATIONS = 6
+
+
+class Calibrated(NamedTuple):
+    """The last joint fit: the calibrated body scheme, the root pose, what it was computed from, and per part
+    ``(n, trans ratio, rot ratio)`` of its observations (:meth:`Calibration.part_ratios`)."""
+
+    scheme: BodyScheme
+    world2root: np.ndarray
+    step: int
+    n_steps: int
+    tree: tuple
+    rms: float
+    part_ratios: dict
+    part_std: dict
 
 
 class BodySchemeLearner:
@@ -113,37 +143,39 @@ class BodySchemeLearner:
         self._history = deque(maxlen=config.history_length)
         self._root_pose = RootPoseEstimator(config.root_window, self.root)
         if initial_models is None:
-            # Candidates learn up to train_window samples.
-            batch = new_batch(config, self.n_actions, config.train_window, config.max_complexity)
-            pool = ModelPool(config, self.n_actions, self._pairs, batch, new_monitor(config))
-            Bootstrap.add_candidates(pool, self.part_ids, self.n_actions, config.max_complexity)
-            tree = [] if len(self.part_ids) == 1 else None
+            max_dim = config.max_complexity
         else:
             models = check_initial_models(initial_models, self.part_ids, self.root, self.n_actions)
-            # Replacements of the given models learn up to train_window samples, and then as tree models up to
-            # refine_window; the batch must also hold a replacement with the given models' action sets.
+            # A replacement may keep the given models' action sets.
             max_dim = max([config.max_complexity] + [model.complexity for model in models])
-            batch = new_batch(config, self.n_actions, refine_window(config), max_dim)
-            pool = ModelPool(config, self.n_actions, self._pairs, batch, new_monitor(config))
+        pool = ModelPool(config, self.n_actions)
+        pool.gp_batch = pool.new_gp_batch(max_dim)
+        if initial_models is None:
+            Bootstrap.add_candidates(pool, self.part_ids, self.n_actions, config)
+            tree = [] if len(self.part_ids) == 1 else None
+        else:
             tree = [entry.id for entry in pool.add_fitted(models, TREE, origin="initial", last_used=0)]
         self._set_models(pool, tree, bootstrapping=initial_models is None, found=initial_models is not None,
-                         tree_since=0, mismatch=None)
+                         tree_since=0, mismatch=None, calibrated=None)
 
     def _set_parts(self, config, parts, n_actions):
         self.config = config
         self.part_ids = parts
         self.n_actions = n_actions
         self.root = root_part(parts, config.root)
-        self._pairs = PartPairs(parts, config.theta_trans, config.theta_rot)
+        self._pairs = PartPairs(parts, config.theta_trans, config.theta_rot, config.sigma_trans, config.sigma_rot)
 
-    def _set_models(self, pool, tree, bootstrapping, found, tree_since, mismatch):
+    def _set_models(self, pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed=None,
+                    refining=None):
         """Install the tracked models and the phase objects working on them (shared by construction and restore)."""
         self._pool = pool
         self._tree = tree
         self._bootstrapping = bootstrapping
-        self._bootstrap = Bootstrap(self.config, pool, found, tree_since)
-        self._adaptation = Adaptation(self.config, pool, self._history, mismatch)
-        self._scheme = None
+        self._bootstrap = Bootstrap(self.config, pool, self._pairs, found, tree_since, vetoed)
+        self._adaptation = Adaptation(self.config, pool, self._history, self.part_ids, self.root, mismatch, refining)
+        self._calibrated = calibrated
+        self._upstream_of = None  # (scheme, upstream map) cache
+        self._just_finished = False
 
     # ------------------------------------------------------------------ queries
     @property
@@ -155,36 +187,38 @@ class BodySchemeLearner:
 
     @property
     def n_candidates(self):
-        """Number of models currently learning in the GP batch (bootstrap candidates or replacements)."""
+        """Number of models currently learning in the batches (bootstrap candidates or replacements)."""
         return self._pool.n_learning
 
     @property
     def memory(self):
         """Remembered (retired) local models, oldest first."""
-        return [self._model_of(e) for e in self._pool.with_role(MEMORY)]
+        return [e.model for e in self._pool.with_role(MEMORY)]
 
     @property
     def body_scheme(self):
-        """The current body scheme (:class:`BodyScheme`), or ``None`` while no valid spanning tree exists."""
+        """The current body scheme (:class:`BodyScheme`), calibrated by the last joint fit; ``None`` while no valid
+        spanning tree exists."""
         if self._tree is None:
             return None
-        if self._scheme is None:
-            models = [self._model_of(self._pool.tracked[i]) for i in self._tree]
-            self._scheme = BodyScheme(self.part_ids, self.root, models)
-        return self._scheme
+        cal = self._calibrated
+        if cal is not None and cal.tree == tuple(self._tree):
+            return cal.scheme
+        return self._raw_scheme()
 
-    def _model_of(self, entry):
-        # Bootstrap candidates change every step and nothing refreshes their snapshots: do not keep them.
-        return self._pool.model_of(entry, cache=not self._bootstrapping)
+    def _raw_scheme(self):
+        """The tree's models as tracked (candidate snapshots while bootstrapping), not yet jointly refitted."""
+        return BodyScheme(self.part_ids, self.root, [self._pool.model_of(self._pool.tracked[i]) for i in self._tree])
 
     @property
     def root_pose(self):
-        """Estimated ``world2root`` (4, 4) from the last ``root_window`` samples (:mod:`~body_scheme_core.root_pose`).
+        """Estimated ``world2root`` (4, 4): from the last joint fit, else :mod:`~body_scheme_core.root_pose`.
 
-        With a body scheme: the rigid transform that best maps its predicted marker positions onto the observed ones
-        (all markers, outliers dropped). Before: the robust mean of the root's own observations. Identity while
-        nothing was seen.
+        Before a joint fit: the rigid transform that best maps the body scheme's predicted marker positions onto the
+        observed ones, or the robust mean of the root's own observations; identity while nothing was seen.
         """
+        if self._calibrated is not None:
+            return self._calibrated.world2root
         return self._root_pose.pose(self.body_scheme)
 
     def predict(self, a, return_std=False):
@@ -218,6 +252,11 @@ class BodySchemeLearner:
             root2part, std = scheme.predict(a), None
         world2part = {part: world2root @ T for part, T in root2part.items()}
         return (world2part, std) if return_std else world2part
+
+    @property
+    def calibration_rms(self):
+        """Root mean square normalised residual of the last joint fit (about 1 when the noise model holds), or NaN."""
+        return math.nan if self._calibrated is None else self._calibrated.rms
 
     def edge_status(self):
         """Status of every tree edge, in breadth-first order from the root.
@@ -281,13 +320,17 @@ class BodySchemeLearner:
         self.last_stamp = stamp
         self._root_pose.add(a, obs)
         self._history.append((step, a, obs))
-        relative = self._pairs.observe(obs)
         if self._bootstrapping:
-            changed = self._bootstrap_step(a, relative, step, events)
+            tree_changed = self._bootstrap_step(a, obs, step, events)
         else:
-            changed = self._adaptation.step(self._tree, a, relative, step, events)
-        if changed:
-            self._scheme = None
+            tree_changed = self._adapt_step(a, obs, step, events)
+        if self._tree is not None and (tree_changed or self._calibration_due(step)):
+            self._calibrate(step)
+            if self._bootstrapping:
+                self._veto_inconsistent_edges(step, events)
+            elif self._just_finished:
+                self._sample_challengers(step, events)
+        self._just_finished = False
         self.step = step + 1
         return events
 
@@ -299,22 +342,277 @@ class BodySchemeLearner:
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))
         return valid
 
-    def _bootstrap_step(self, a, relative, step, events):
-        """Search the tree over the candidates, then end bootstrapping if it is ready; returns whether the scheme
-        may have changed."""
-        self._tree, learned = self._bootstrap.step(self._tree, a, relative, step, events)
+    def _bootstrap_step(self, a, obs, step, events):
+        """Search the tree over the candidates, then end bootstrapping if it is ready; returns whether the tree
+        changed (the joint fit then runs at once)."""
+        before = self._tree
+        self._tree, _ = self._bootstrap.step(self._tree, a, self._pairs.observe(obs), step, events)
         if self._bootstrap.finish_if_ready(self._tree, step, events):
             self._bootstrapping = False
+            self._just_finished = True
+            for entry in (self._pool.tracked[i] for i in self._tree):
+                entry.since = 0
             return True
-        return learned
+        return self._tree is not None and (before is None or set(before) != set(self._tree))
+
+    def _adapt_step(self, a, obs, step, events):
+        """Evaluate, detect and repair against the chain-consistent targets; returns whether the tree changed."""
+        if self._calibrated is None or self._calibrated.tree != tuple(self._tree):
+            self._calibrate(step)  # a given scheme: its first joint fit (the root pose) before anything is tested
+        scheme, world2root = self._calibrated.scheme, self._calibrated.world2root
+        untrusted = self._untrusted_parts(scheme)
+        config = self.config
+
+        part_std = self._calibrated.part_std
+
+        def chain_at(a_past, obs_past):
+            return ChainTargets(scheme, world2root, a_past, obs_past, config, untrusted, part_std)
+
+        if self._upstream_of is None or self._upstream_of[0] is not scheme:
+            self._upstream_of = (scheme, self._upstream(scheme))
+        changes = self._adaptation.step(self._tree, a, chain_at(a, obs), chain_at, self._upstream_of[1], step,
+                                        events)
+        for change in changes:
+            self._after_change(change)
+        return bool(changes)
+
+    def _chain_at(self):
+        """``chain_at(a, observations)``: the chain-consistent targets of a step from the current joint fit."""
+        cal = self._calibrated
+        untrusted = self._untrusted_parts(cal.scheme)
+        config = self.config
+
+        def chain_at(a, obs):
+            return ChainTargets(cal.scheme, cal.world2root, a, obs, config, untrusted, cal.part_std)
+        return chain_at
+
+    def _sample_challengers(self, step, events):
+        """After bootstrapping: GP challengers of the tree's rigid joints (:meth:`Adaptation.sample_challengers`)."""
+        if self._calibrated is None or self._calibrated.tree != tuple(self._tree):
+            return
+        chain_at = self._chain_at()
+        _, a, obs = self._history[-1]
+        self._adaptation.sample_challengers(self._tree, chain_at(a, obs), chain_at, step, events)
+
+    def _untrusted_parts(self, scheme):
+        """Parts whose predicted pose passes through an edge in mismatch (the subtree below it)."""
+        parts = set()
+        for edge_id in self._adaptation.mismatch:
+            entry = self._pool.tracked[edge_id]
+            far = entry.child if len(scheme.path(entry.child)) > len(scheme.path(entry.parent)) else entry.parent
+            parts.update(p for p in scheme.parts if far in scheme.path(p))
+        return parts
+
+    def _upstream(self, scheme):
+        """Per tree model id, the ids of the tree models on the path from the root to its near part."""
+        id_of = {id(model): i for model, i in zip(scheme.models, self._tree, strict=True)}
+        out = {}
+        for i, model in zip(self._tree, scheme.models, strict=True):
+            near = model.parent if len(scheme.path(model.parent)) < len(scheme.path(model.child)) else model.child
+            out[i] = [id_of[id(scheme.edge_into(p)[2])] for p in scheme.path(near)[1:]]
+        return out
+
+    def _after_change(self, change):
+        """Book-keeping of a replaced or reinstated edge: change point, priors below it, cleaned memory."""
+        pool = self._pool
+        new, old, tau = change
+        reinstated = new.origin not in ("replacement", "bridge") or new.n_train == 0 or new.last_used != self.step
+        new.since = tau
+        if isinstance(new.model, RigidJointModel) and reinstated and new.prior is None:
+            new.prior = (new.model.params_.copy(), new.model.param_cov_.copy())
+        scheme = self._raw_scheme()
+        far = new.child if len(scheme.path(new.child)) > len(scheme.path(new.parent)) else new.parent
+        for i in self._tree:
+            entry = pool.tracked[i]
+            if entry is new:
+                continue
+            near = entry.parent if len(scheme.path(entry.parent)) < len(scheme.path(entry.child)) else entry.child
+            if far in scheme.path(near):
+                # Below the changed edge: its observations before tau followed the old body; keep what they taught
+                # as a prior, and restart its detector.
+                if isinstance(entry.model, RigidJointModel) and entry.prior is None:
+                    entry.prior = (entry.model.params_.copy(), entry.model.param_cov_.copy())
+                pool.monitor.forget_since([entry.row], tau)
+                pool.monitor.reset_cusum([entry.row])
+        if old.id in pool.tracked:
+            self._clean_retired(old, tau)
+
+    def _clean_retired(self, entry, tau):
+        """Refit a retired model on its own chain-consistent data before the change point (none after it)."""
+        cal = self._calibrated
+        if cal is None or not isinstance(entry.model, (RigidJointModel, GPModel)):
+            return
+        steps = [(s, a, obs) for s, a, obs in self._history if entry.since <= s < tau]
+        if not steps:
+            return
+        scheme = cal.scheme
+        u, v = ((entry.parent, entry.child) if len(scheme.path(entry.parent)) <= len(scheme.path(entry.child))
+                else (entry.child, entry.parent))
+        A, Z, S = [], [], []
+        for _, a, obs in steps:
+            chain = ChainTargets(scheme, cal.world2root, a, obs, self.config, std=cal.part_std)
+            if v in obs:
+                Zk, _, sk = chain.pair_target(u, v)
+                A.append(a)
+                Z.append(Zk if u == entry.parent else np.linalg.inv(Zk))
+                S.append(sk)
+        model = entry.model
+        try:
+            if isinstance(model, RigidJointModel) and len(A) >= max(model.form.MIN_SAMPLES, model.n_params // 2):
+                entry.model = type(model)(model.parent, model.child, model.actions,
+                                          **model._hyperparameters()).fit(np.array(A), np.array(Z), np.array(S))
+                entry.prior = None
+            elif isinstance(model, GPModel) and len(A) >= self.config.train_window // 2:
+                entry.model = GPModel(model.parent, model.child, model.actions,
+                                      **model.hyperparameters.to_dict()).fit(np.array(A), np.array(Z))
+        except (BodySchemeError, np.linalg.LinAlgError):
+            pass  # keep the model as it was
+
+    def _veto_inconsistent_edges(self, step, events, rounds=3):
+        """While bootstrapping: when the calibrated body scheme does not explain a part's absolute observations,
+        one edge on that part's path is vetoed and the tree searched again (at most ``rounds`` times per step).
+
+        Relative observations carry the parent's orientation noise times the link length, so with few samples a
+        candidate that ignores an action (or has the wrong form) can pass the paper's validity test on them; the
+        child's chain-consistent errors after the joint fit have no such lever arm. A wrong edge can absorb its own
+        child's errors (it has parameters to spare) and push them onto the parts below, so the edges on the path of
+        the first unexplained part are tried, nearest it first (at most ``_SUSPECTS``): the tree without one is
+        searched and calibrated, and the edge whose removal explains the observations best (the first that explains
+        them all) is vetoed.
+        """
+        for _ in range(rounds):
+            cal = self._calibrated
+            if self._tree is None or cal is None or cal.tree != tuple(self._tree):
+                return
+            bad = self._inconsistent_edges(cal)
+            if not bad:
+                return
+            first = bad[0]
+            far = cal.scheme.models[first]
+            far_part = far.child if len(cal.scheme.path(far.child)) > len(cal.scheme.path(far.parent)) else far.parent
+            position = {id(m): k for k, m in enumerate(cal.scheme.models)}
+            # Nearest the unexplained part first (most often the culprit), at most _SUSPECTS of them.
+            path = cal.scheme.path(far_part)[1:]
+            suspects = [position[id(cal.scheme.edge_into(p)[2])] for p in reversed(path)][:_SUSPECTS]
+            best = None
+            for k in suspects:
+                trial = self._bootstrap.search(self._tree, step, None, exclude=[self._tree[k]])
+                if trial is None:
+                    continue
+                trial_cal = self._fit(trial, step, max_iterations=_TRIAL_ITERATIONS)
+                if trial_cal is None:
+                    continue
+                score = (len(self._inconsistent_edges(trial_cal)), trial_cal.rms)
+                if best is None or score < best[0]:
+                    best = (score, k, trial_cal)
+                if score[0] == 0:
+                    break  # this tree explains every observation: no need to try the others
+            k = suspects[-1] if best is None else best[1]
+            entry = self._pool.tracked[self._tree[k]]
+            self._bootstrap.veto(entry.id)
+            why = (f" (vetoed {entry.describe()}: without it the calibrated body scheme explains the absolute "
+                   f"observations best)")
+            self._tree = self._bootstrap.search(self._tree, step, events, why)
+            if self._tree is None:
+                return
+            if best is not None and best[2].tree == tuple(self._tree):
+                self._calibrated = best[2]
+            else:
+                self._calibrate(step)
+
+    def _inconsistent_edges(self, cal):
+        """Positions (in ``cal.scheme.models``, breadth-first) of the edges whose child the calibrated scheme does
+        not explain: its observations' mean error of at least one threshold in either channel."""
+        position = {id(m): k for k, m in enumerate(cal.scheme.models)}
+        bad = []
+        for _, child, model, _ in cal.scheme.edges:
+            n, ratio_t, ratio_r = cal.part_ratios.get(child, (0, 0.0, 0.0))
+            if n >= self.config.min_test_samples and max(ratio_t, ratio_r) >= 1.0:
+                bad.append(position[id(model)])
+        return bad
+
+    # ------------------------------------------------------------------ the joint fit
+    def _calibration_due(self, step):
+        cal = self._calibrated
+        if cal is None or cal.tree != tuple(self._tree):
+            return True
+        if step - cal.step >= self.config.calibration_period:
+            return True
+        # Early on (and right after a change) the usable window grows: fit again once it grew by a tenth.
+        n_params = sum(m.n_params for m in cal.scheme.models if isinstance(m, RigidJointModel))
+        growth = _CALIBRATION_GROWTH * max(1.0, n_params / _GROWTH_PARAMS)
+        if step - cal.step < max(1, math.ceil(growth * cal.n_steps)):
+            return False
+        since = max(self._pool.tracked[i].since for i in self._tree)
+        if self._history[0][0] >= since:
+            usable = len(self._history)
+        else:
+            usable = next(k for k, (s, _, _) in enumerate(reversed(self._history)) if s < since)
+        return usable > cal.n_steps
+
+    def _fit(self, tree, step, warm=True, max_iterations=20):
+        """Joint fit of the root pose and the models of ``tree`` on the history (:func:`calibrate`); a
+        :class:`Calibrated`, or None if the fit failed. Changes nothing."""
+        pool = self._pool
+        entries = [pool.tracked[i] for i in tree]
+        cal = self._calibrated
+        if warm and cal is not None and self._bootstrapping:
+            # Warm start: the last fit's version of every model that is still in the tree.
+            fitted = dict(zip(cal.tree, cal.scheme.models, strict=True))
+            models = [fitted[i] if i in fitted else pool.model_of(e) for i, e in zip(tree, entries, strict=True)]
+        else:
+            models = [pool.model_of(e) for e in entries]
+        scheme = BodyScheme(self.part_ids, self.root, models)
+        history = list(self._history)
+        steps = np.array([s for s, _, _ in history])
+        A = np.stack([a for _, a, _ in history])
+        observations = [obs for _, _, obs in history]
+        since = [int(np.searchsorted(steps, e.since)) for e in entries]
+        priors = {k: e.prior for k, e in enumerate(entries)
+                  if e.prior is not None and isinstance(models[k], RigidJointModel)}
+        world2root = cal.world2root if cal is not None else self._root_pose.pose(scheme)
+        try:
+            result = calibrate(scheme, world2root, A, observations, self.config.sigma_trans, self.config.sigma_rot,
+                               since=since, priors=priors, f_scale=self.config.f_scale,
+                               gp_optimize=self.config.gp_optimize, max_iterations=max_iterations)
+        except (np.linalg.LinAlgError, BodySchemeError):
+            return None
+        c = self.config
+        # The parts' predictive std, averaged over (at most 10 of) the window's action vectors: the chain targets'
+        # thresholds use it every step without propagating every model's uncertainty each time.
+        pick = np.linspace(0, len(A) - 1, min(len(A), 10)).round().astype(int)
+        _, std = result.scheme.predict_batch(A[pick], return_std=True)
+        part_std = {p: std[:, k].mean(axis=0) for k, p in enumerate(result.scheme.parts)}
+        usable = int(np.sum(steps >= max(e.since for e in entries)))
+        return Calibrated(result.scheme, result.world2root, step, usable, tuple(tree), result.rms,
+                          result.part_ratios(c.theta_trans, c.theta_rot, c.cusum_clip), part_std)
+
+    def _calibrate(self, step):
+        """Joint fit of the current tree; after bootstrapping its models replace the tree's models."""
+        result = self._fit(self._tree, step)
+        if result is None:
+            return  # keep the previous estimate; the next step tries again
+        self._calibrated = result
+        if not self._bootstrapping:
+            pool = self._pool
+            entries = [pool.tracked[i] for i in self._tree]
+            for entry, model in zip(entries, result.scheme.models, strict=True):
+                entry.model = model
+            history_full = len(self._history) == self._history.maxlen
+            oldest = self._history[0][0]
+            for entry in entries:
+                if entry.prior is not None and history_full and entry.since <= oldest:
+                    entry.prior = None  # every observation in the window is usable: the window alone decides
 
     # ------------------------------------------------------------------ state
     def to_state(self):
         """Everything needed to continue bit-identically, as a JSON-serialisable dict.
 
         Covers the configuration, parts, step, all tracked models (tree, memory, candidates) with their test
-        windows and CUSUMs, the GP batch, the raw history, the root observations and the counters.
+        windows and CUSUMs, both candidate batches, the last joint fit, the raw history, the root samples and the
+        counters.
         """
+        cal = self._calibrated
         return {
             "version": STATE_VERSION,
             "config": self.config.to_dict(),
@@ -332,8 +630,16 @@ class BodySchemeLearner:
             "next_id": self._pool.next_id,
             "entries": self._pool.tracked_state(),
             "mismatch": self._adaptation.mismatch_state(),
+            "refining": self._adaptation.refining_state(),
+            "vetoed": [[k, v] for k, v in self._bootstrap.vetoed.items()],
             "monitor": self._pool.monitor.to_dict(),
-            "batch": self._pool.batch.state_dict(),
+            "gp_batch": self._pool.gp_batch.state_dict(),
+            "rigid_batch": self._pool.rigid_batch.state_dict(),
+            "calibration": None if cal is None else {
+                "scheme": cal.scheme.to_dict(), "world2root": cal.world2root.tolist(), "step": cal.step,
+                "n_steps": cal.n_steps, "tree": list(cal.tree), "rms": cal.rms,
+                "part_ratios": [[p, n, t, r] for p, (n, t, r) in cal.part_ratios.items()],
+                "part_std": [[p, float(v[0]), float(v[1])] for p, v in cal.part_std.items()]},
             "history": [{"step": s, "actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
                         for s, a, obs in self._history],
             "root_samples": [{"actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
@@ -347,13 +653,17 @@ class BodySchemeLearner:
         Raises
         ------
         ModelFileError
-            If keys are missing, values have the wrong type or shape, or arrays contain NaN or inf.
+            If the version is not this one's, keys are missing, values have the wrong type or shape, or arrays
+            contain NaN or inf.
         """
         if not isinstance(state, dict):
             raise ModelFileError(f"learner state must be a dict, got {type(state).__name__}")
-        if state.get("version") != STATE_VERSION:
-            raise ModelFileError(f"unsupported learner state version {state.get('version')!r}; this reads "
-                                 f"{STATE_VERSION}")
+        version = state.get("version")
+        if version != STATE_VERSION:
+            hint = (" (version 2 is the GP-only learner before rigid-joint models and the joint fit: its models cannot "
+                    "be carried over; learn again from scratch, or start from the robot's specification)"
+                    if version == 2 else "")
+            raise ModelFileError(f"unsupported learner state version {version!r}; this reads {STATE_VERSION}{hint}")
         try:
             config = BodySchemeConfig.from_dict(state["config"])
             self = cls.__new__(cls)
@@ -366,11 +676,13 @@ class BodySchemeLearner:
             bootstrapping, found = bool(state["bootstrapping"]), bool(state["found"])
             tree = None if state["tree"] is None else [int(i) for i in state["tree"]]
             tree_since = int(state["tree_since"])
-            pool = ModelPool.from_state(config, self.n_actions, self._pairs, state["entries"], state["next_id"],
-                                        state["monitor"], state["batch"])
+            pool = ModelPool.from_state(config, self.n_actions, set(self.part_ids), state["entries"],
+                                        state["next_id"], state["monitor"], state["gp_batch"], state["rigid_batch"])
             if tree is not None and any(i not in pool.tracked for i in tree):
                 raise ModelFileError(f"tree refers to unknown model ids {tree}")
             mismatch = Adaptation.mismatch_from_state(state["mismatch"], pool.tracked)
+            refining = Adaptation.refining_from_state(state["refining"], pool.tracked)
+            vetoed = {int(k): int(v) for k, v in state["vetoed"]}
             self._history = deque(maxlen=config.history_length)
             for rec in state["history"]:
                 a = _finite_array(rec["actions"], (self.n_actions,), "history actions")
@@ -384,7 +696,8 @@ class BodySchemeLearner:
                 (_finite_array(rec["actions"], (self.n_actions,), "root sample actions"),
                  {int(part): _finite_array(Y, (4, 4), "root sample observation") for part, Y in rec["observations"]})
                 for rec in state["root_samples"]))
-            self._set_models(pool, tree, bootstrapping, found, tree_since, mismatch)
+            calibrated = _calibrated_from_state(state["calibration"])
+            self._set_models(pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed, refining)
             if self._tree is not None:
                 self.body_scheme  # noqa: B018 - validates that the stored tree is a spanning tree of fitted models
         except ModelFileError:
@@ -397,6 +710,17 @@ class BodySchemeLearner:
     def __repr__(self):
         return (f"<BodySchemeLearner parts={self.part_ids} actions={self.n_actions} phase={self.phase} "
                 f"step={self.step}>")
+
+
+def _calibrated_from_state(data):
+    if data is None:
+        return None
+    scheme = BodyScheme.from_dict(data["scheme"])
+    world2root = _finite_array(data["world2root"], (4, 4), "calibration world2root")
+    ratios = {int(p): (int(n), float(t), float(r)) for p, n, t, r in data["part_ratios"]}
+    std = {int(p): _finite_array([t, r], (2,), "calibration part std") for p, t, r in data["part_std"]}
+    return Calibrated(scheme, world2root, int(data["step"]), int(data["n_steps"]), tuple(int(i) for i in data["tree"]),
+                      float(data["rms"]), ratios, std)
 
 
 def _finite_array(value, shape, name):

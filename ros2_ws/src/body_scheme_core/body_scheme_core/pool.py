@@ -4,15 +4,18 @@ A :class:`TrackedModel` is a local model in one of three roles: ``tree`` (an edg
 (retired, remembered for reuse) or ``candidate`` (still learning: a bootstrap candidate or a replacement for a
 failed tree model). :class:`ModelPool` holds all of them with their storage:
 
-- models still learning live in one :class:`~body_scheme_core.models.gp.GPBatch` (one *slot* each), frozen ones as
-  fitted :class:`~body_scheme_core.models.base.LocalModel` objects;
+- candidates learn in one of two batches: GP candidates in a :class:`~body_scheme_core.models.gp.GPBatch`, rigid-joint
+  candidates (static, prismatic, revolute) in a :class:`~body_scheme_core.models.rigid_batch.RigidBatch` (one *slot*
+  each); tree and memory models are fitted :class:`~body_scheme_core.models.base.LocalModel` objects (the tree's are
+  refined by the joint fit, :mod:`~body_scheme_core.calibration`);
 - every tracked model has one *row* in an :class:`~body_scheme_core.quality.ErrorMonitor` (test window and CUSUM).
 
-Each step every tracked model whose pair is observed first predicts the relative observation, its error enters its
-test window, and only then may a learning model add the sample to its training set
-(:meth:`ModelPool.evaluate_frozen`, :meth:`ModelPool.train_learning`). The decisions built on top (structure
-search, change detection, repair) live in :mod:`~body_scheme_core.bootstrap` and
-:mod:`~body_scheme_core.adaptation`.
+Every step each tracked model whose *target* is available first predicts it, its error enters its test window, and
+only then may a learning model add the sample to its training set (:meth:`ModelPool.evaluate`,
+:meth:`ModelPool.train`). The targets come from the caller as a :class:`Targets`: the relative observations
+``Y_i^-1 Y_j`` while bootstrapping (:mod:`~body_scheme_core.relative`), the chain-consistent observations of the
+calibrated body scheme afterwards (:mod:`~body_scheme_core.chain`). The decisions built on top (structure search,
+change detection, repair) live in :mod:`~body_scheme_core.bootstrap` and :mod:`~body_scheme_core.adaptation`.
 """
 
 from __future__ import annotations
@@ -25,19 +28,19 @@ import numpy as np
 from .errors import ModelFileError
 from .models import GPBatch, GPModel, model_from_dict
 from .models.gp import GPHyperparameters
-from .quality import ErrorMonitor, prediction_errors
-from .transforms import transform_from_vector12
+from .models.rigid_batch import RIGID_CLASSES, RigidBatch
+from .quality import ErrorMonitor, class_rank, nests, prediction_errors
+from .transforms import invert_transform, transform_from_vector12
 
 __all__ = [
     "TREE",
     "MEMORY",
     "CANDIDATE",
+    "Targets",
     "TrackedModel",
     "LearningSlots",
     "ModelPool",
-    "nested_pairs",
-    "refine_window",
-    "new_batch",
+    "nested_models",
     "new_monitor",
     "format_errors",
     "finite_or_none",
@@ -45,6 +48,14 @@ __all__ = [
 
 #: Roles of a tracked model.
 TREE, MEMORY, CANDIDATE = "tree", "memory", "candidate"
+#: Rigid candidates are refitted with every sample only while they are among the ``_PROMISING`` best of their pair
+#: and class (by mean error over the test window) or not yet judged; the others every ``_SLOW_REFIT`` samples. A
+#: slightly stale fit still tests a candidate fairly (prequentially), at a fraction of the cost.
+_PROMISING = 2
+_SLOW_REFIT = 8
+#: Training-set sizes at which promising rigid candidates are refitted: every sample while few, then ever more
+#: sparsely (the body scheme's accuracy comes from the joint fit; candidate fits only rank and validate).
+_REFIT_SIZES = frozenset((1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 15, 19, 24, 30))
 
 
 def format_errors(trans, rot):
@@ -60,24 +71,40 @@ def finite_or_none(value):
     return value if math.isfinite(value) else None
 
 
-def refine_window(config):
-    """Training samples after which a tree model is frozen: ``refine_window``, at least ``train_window``."""
-    return max(config.refine_window, config.train_window)
-
-
-def new_batch(config, n_actions, capacity, max_dim):
-    """An empty :class:`GPBatch` with the GP hyperparameters of ``config``."""
-    return GPBatch(n_actions, capacity, max_dim, **GPHyperparameters.from_config(config).to_dict())
-
-
 def new_monitor(config):
     """An empty :class:`ErrorMonitor` with the test window, thresholds and CUSUM settings of ``config``."""
     c = config
     return ErrorMonitor(c.test_window, 0, c.theta_trans, c.theta_rot, c.cusum_drift, c.cusum_threshold, c.cusum_clip)
 
 
+class Targets(NamedTuple):
+    """What tracked models are tested against (and candidates learn from) in one step.
+
+    Attributes
+    ----------
+    Z : ndarray, shape (k, 4, 4)
+        Observed ``parent2child`` per model, oriented as the model predicts.
+    theta_trans : ndarray, shape (k,)
+        Translational validity threshold of each sample (m).
+    sigma : ndarray, shape (k, 2)
+        Per-axis noise std of each sample (trans m, rot rad), for the rigid candidates' weighting.
+    flip : ndarray of bool, shape (k,)
+        Where ``Z`` is the *inverse* of what the model predicts: the prediction is inverted before the comparison,
+        so the error is measured in the direction whose translation carries no parent-orientation lever arm.
+    """
+
+    Z: np.ndarray
+    theta_trans: np.ndarray
+    sigma: np.ndarray
+    flip: np.ndarray
+
+    def select(self, index):
+        """The rows ``index``."""
+        return Targets(self.Z[index], self.theta_trans[index], self.sigma[index], self.flip[index])
+
+
 class TrackedModel:
-    """A local model the learner tracks: in the tree, in memory, or a candidate still learning in the batch.
+    """A local model the learner tracks: in the tree, in memory, or a candidate still learning in a batch.
 
     Attributes
     ----------
@@ -86,12 +113,14 @@ class TrackedModel:
     parent, child : int
         Part ids; the model predicts ``parent2child``.
     actions : tuple of int
+    kind : str
+        Model class (``"static"``, ``"prismatic"``, ``"revolute"``, ``"gp"``, ``"engineered"``).
     role : str
         ``"tree"``, ``"memory"`` or ``"candidate"``.
     model : LocalModel or None
-        The fitted model; for a tree model still learning, a snapshot of its slot (None until asked for).
+        The fitted model; None while a candidate learns (its batch slot holds it).
     slot : int
-        GPBatch slot while the model learns, -1 when frozen.
+        Batch slot while the model learns, -1 when frozen.
     row : int
         Row in the error monitor.
     n_train : int
@@ -99,22 +128,28 @@ class TrackedModel:
     created : int
         Step at which a replacement was sampled (0 otherwise).
     origin : str
-        ``"bootstrap"``, ``"replacement"`` or ``"initial"``.
+        ``"bootstrap"``, ``"replacement"``, ``"bridge"`` or ``"initial"``.
     last_used : int
         Last step at which the model entered the tree or memory (-1 never); memory forgets the least recent.
     target : int
         For a replacement candidate, the id of the tree model it is meant to replace; -1 otherwise.
+    since : int
+        First step at which the model describes the body (its change point), for the joint fit.
+    prior : tuple (params, cov) or None
+        A Gaussian prior on a rigid model's parameters in the joint fit, for knowledge from data the fit does not
+        use (a reinstated model's earlier life, or observations cut by a change above it in the tree).
     """
 
-    __slots__ = ("id", "parent", "child", "actions", "role", "model", "slot", "row", "n_train", "created", "origin",
-                 "last_used", "target")
+    __slots__ = ("id", "parent", "child", "actions", "kind", "role", "model", "slot", "row", "n_train", "created",
+                 "origin", "last_used", "target", "since", "prior")
 
-    def __init__(self, id, parent, child, actions, role, row, slot=-1, model=None, n_train=0, created=0,
-                 origin="", last_used=-1, target=-1):
+    def __init__(self, id, parent, child, actions, kind, role, row, slot=-1, model=None, n_train=0, created=0,
+                 origin="", last_used=-1, target=-1, since=0, prior=None):
         self.id = int(id)
         self.parent = int(parent)
         self.child = int(child)
         self.actions = tuple(int(a) for a in actions)
+        self.kind = str(kind)
         self.role = role
         self.model = model
         self.slot = int(slot)
@@ -124,73 +159,82 @@ class TrackedModel:
         self.origin = origin
         self.last_used = int(last_used)
         self.target = int(target)
+        self.since = int(since)
+        self.prior = prior
 
     @property
     def complexity(self):
         """Number of actions the model depends on."""
         return len(self.actions)
 
+    @property
+    def rank(self):
+        """Rank of the model class within its complexity layer (:func:`~body_scheme_core.quality.class_rank`)."""
+        return class_rank(self.kind)
+
     def describe(self):
         """``kind(parent->child | actions)#id``: the id tells apart models with equal structure (in events)."""
-        kind = self.model.kind if self.model is not None else "gp"
         acts = ",".join(f"a{a}" for a in self.actions) or "-"
-        return f"{kind}({self.parent}->{self.child} | {acts})#{self.id}"
+        return f"{self.kind}({self.parent}->{self.child} | {acts})#{self.id}"
 
     def to_dict(self, with_model):
         """JSON-serialisable dict; the model itself only ``with_model``."""
+        prior = None if self.prior is None else [np.asarray(self.prior[0]).tolist(), np.asarray(self.prior[1]).tolist()]
         return {"id": self.id, "parent": self.parent, "child": self.child, "actions": list(self.actions),
-                "role": self.role, "slot": self.slot, "row": self.row, "n_train": self.n_train,
+                "kind": self.kind, "role": self.role, "slot": self.slot, "row": self.row, "n_train": self.n_train,
                 "created": self.created, "origin": self.origin, "last_used": self.last_used, "target": self.target,
+                "since": self.since, "prior": prior,
                 "model": self.model.to_dict() if (with_model and self.model is not None) else None}
 
     @classmethod
     def from_dict(cls, data):
-        """Rebuild from :meth:`to_dict` output; raises ModelFileError on an unknown role."""
+        """Rebuild from :meth:`to_dict` output; raises ModelFileError on an unknown role or a bad prior."""
         model = model_from_dict(data["model"]) if data["model"] is not None else None
         if data["role"] not in (TREE, MEMORY, CANDIDATE):
             raise ModelFileError(f"unknown entry role {data['role']!r}")
-        return cls(data["id"], data["parent"], data["child"], data["actions"], data["role"], data["row"],
-                   data["slot"], model, data["n_train"], data["created"], data["origin"], data["last_used"],
-                   data["target"])
+        prior = data["prior"]
+        if prior is not None:
+            params, cov = (np.asarray(v, dtype=float) for v in prior)
+            if cov.ndim != 2 or cov.shape[0] != cov.shape[1] or not (np.all(np.isfinite(params))
+                                                                      and np.all(np.isfinite(cov))):
+                raise ModelFileError(f"bad prior of model {data['id']!r}")
+            prior = (params, cov)
+        return cls(data["id"], data["parent"], data["child"], data["actions"], data["kind"], data["role"],
+                   data["row"], data["slot"], model, data["n_train"], data["created"], data["origin"],
+                   data["last_used"], data["target"], data["since"], prior)
 
 
 class LearningSlots(NamedTuple):
-    """Arrays over the tracked models that are learning in the batch, in pool order (shape (k,) each).
+    """Arrays over the tracked models that are learning in a batch, in pool order (shape (k,) each).
 
     Attributes
     ----------
     ids, slots, rows : ndarray of int
         Model ids, batch slots and monitor rows.
-    pair : ndarray of int
-        Pair index (:meth:`PartPairs.index`).
-    flip : ndarray of bool
-        Whether the model predicts the reverse of its pair's canonical direction.
-    is_tree : ndarray of bool
-        Tree models (only they run a CUSUM).
+    rigid : ndarray of bool
+        Whether the slot is in the rigid batch (else the GP batch).
     nested : tuple (sub, sup) of ndarray of int
-        Positions of nested candidates for the dominance rule (:func:`nested_pairs`).
+        Positions of nested candidates for the dominance rule (:func:`nested_models`).
     layer : ndarray of float
         Complexity (number of actions).
-    limit : ndarray of int
-        Training samples after which the model stops learning: ``refine_window`` for tree models, else
-        ``train_window``.
+    rank : ndarray of int
+        Class rank within the layer.
     """
 
     ids: np.ndarray
     slots: np.ndarray
     rows: np.ndarray
-    pair: np.ndarray
-    flip: np.ndarray
-    is_tree: np.ndarray
+    rigid: np.ndarray
     nested: tuple
     layer: np.ndarray
-    limit: np.ndarray
+    rank: np.ndarray
 
 
-def nested_pairs(models):
-    """Positions ``(sub, sup)`` of models of the same pair (and target) whose actions strictly contain others'.
+def nested_models(models):
+    """Positions ``(sub, sup)`` of models of the same pair (and target) where ``sup`` nests ``sub``.
 
-    These are the nested pairs the dominance rule compares.
+    ``sup`` nests ``sub`` when it can represent everything ``sub`` can (:func:`~body_scheme_core.quality.nests`): a
+    model class at least as flexible and a superset of the actions. These are the pairs the dominance rule compares.
 
     Parameters
     ----------
@@ -199,32 +243,31 @@ def nested_pairs(models):
     Returns
     -------
     sub, sup : ndarray of int
-        ``models[sup[k]].actions`` strictly contains ``models[sub[k]].actions``.
     """
     groups = {}
     for k, e in enumerate(models):
         groups.setdefault((e.parent, e.child, e.target), []).append(k)
     sub, sup = [], []
     for members in groups.values():
-        sets = [(k, frozenset(models[k].actions)) for k in members]
-        for k, a in sets:
-            for q, b in sets:
-                if a < b:
+        for k in members:
+            for q in members:
+                if k != q and nests(models[q].kind, models[q].actions, models[k].kind, models[k].actions):
                     sub.append(k)
                     sup.append(q)
     return np.array(sub, dtype=np.intp), np.array(sup, dtype=np.intp)
 
 
 class ModelPool:
-    """Every local model a learner tracks, with its GP-batch slot and its error-monitor row.
+    """Every local model a learner tracks, with its batch slot and its error-monitor row.
 
     Parameters
     ----------
     config : BodySchemeConfig
     n_actions : int
-    pairs : PartPairs
-    batch : GPBatch
-        Storage of the models still learning.
+    gp_batch : GPBatch
+        Storage of the GP candidates.
+    rigid_batch : RigidBatch
+        Storage of the rigid-joint candidates.
     monitor : ErrorMonitor
         Test windows and CUSUMs, one row per tracked model.
     next_id : int
@@ -234,55 +277,70 @@ class ModelPool:
     ----------
     tracked : dict of int to TrackedModel
         By id, in the order they were added (the order of evaluation and of the state file).
-    batch, monitor, next_id
+    gp_batch, rigid_batch, monitor, next_id
     """
 
-    def __init__(self, config, n_actions, pairs, batch, monitor, next_id=0):
+    def __init__(self, config, n_actions, gp_batch=None, rigid_batch=None, monitor=None, next_id=0):
         self.config = config
         self.n_actions = n_actions
-        self.pairs = pairs
-        self.batch = batch
-        self.monitor = monitor
+        self.gp_batch = gp_batch if gp_batch is not None else self.new_gp_batch()
+        self.rigid_batch = rigid_batch if rigid_batch is not None else self.new_rigid_batch()
+        self.monitor = monitor if monitor is not None else new_monitor(config)
         self.next_id = int(next_id)
         self.tracked = {}
         self._changed()
 
-    @property
-    def refine_window(self):
-        """Training samples after which a tree model is frozen (see :func:`refine_window`)."""
-        return refine_window(self.config)
+    def new_gp_batch(self, max_dim=None):
+        """An empty GP batch of ``train_window`` capacity with the configuration's hyperparameters."""
+        c = self.config
+        max_dim = c.max_complexity if max_dim is None else max_dim
+        return GPBatch(self.n_actions, c.train_window, max_dim, **GPHyperparameters.from_config(c).to_dict())
+
+    def new_rigid_batch(self):
+        """An empty rigid-joint batch of ``train_window`` capacity with the configuration's loss and scale option."""
+        c = self.config
+        return RigidBatch(self.n_actions, c.train_window, c.f_scale, c.fit_joint_scale)
 
     def _changed(self):
         """Forget what is derived from the set of tracked models, their roles and slots (rebuilt on demand)."""
         self._learning = None
-        self._frozen = None
 
     # ------------------------------------------------------------------ membership
-    def _add(self, parent, child, actions, role, row, **kwargs):
-        entry = TrackedModel(self.next_id, parent, child, actions, role, row, **kwargs)
+    def _add(self, parent, child, actions, kind, role, row, **kwargs):
+        entry = TrackedModel(self.next_id, parent, child, actions, kind, role, row, **kwargs)
         self.next_id += 1
         self.tracked[entry.id] = entry
         self._changed()
         return entry
 
-    def add_fitted(self, models, role, origin, last_used):
+    def add_fitted(self, models, role, origin, last_used, since=0):
         """Track fitted local models (e.g. a given body scheme); returns their TrackedModels."""
         rows = self.monitor.allocate(len(models))
-        return [self._add(m.parent, m.child, m.actions, role, row, model=m, origin=origin, last_used=last_used)
+        return [self._add(m.parent, m.child, m.actions, m.kind, role, row, model=m, origin=origin,
+                          last_used=last_used, since=since, n_train=getattr(m, "n_samples_", 0))
                 for m, row in zip(models, rows, strict=True)]
 
     def add_learning(self, specs, origin, created=0, target=-1):
-        """Start new candidates learning in the batch, one per ``(parent, child, actions)`` of ``specs``."""
+        """Start new candidates learning, one per ``(parent, child, actions, kind)`` of ``specs``."""
         rows = self.monitor.allocate(len(specs))
-        slots = self.batch.allocate([acts for _, _, acts in specs])
-        return [self._add(parent, child, acts, CANDIDATE, row, slot=slot, created=created, origin=origin,
-                          target=target)
-                for (parent, child, acts), row, slot in zip(specs, rows, slots, strict=True)]
+        rigid = [k for k, spec in enumerate(specs) if spec[3] in RIGID_CLASSES]
+        gp = [k for k, spec in enumerate(specs) if spec[3] not in RIGID_CLASSES]
+        slots = np.empty(len(specs), dtype=np.intp)
+        if gp:
+            slots[gp] = self.gp_batch.allocate([specs[k][2] for k in gp])
+        if rigid:
+            slots[rigid] = self.rigid_batch.allocate([(specs[k][3], specs[k][2]) for k in rigid])
+        return [self._add(parent, child, acts, kind, CANDIDATE, row, slot=slot, created=created, origin=origin,
+                          target=target, since=created)
+                for (parent, child, acts, kind), row, slot in zip(specs, rows, slots, strict=True)]
+
+    def _batch(self, entry):
+        return self.rigid_batch if entry.kind in RIGID_CLASSES else self.gp_batch
 
     def remove(self, entry):
         """Stop tracking ``entry``: free its slot and row."""
         if entry.slot >= 0:
-            self.batch.release([entry.slot])
+            self._batch(entry).release([entry.slot])
         self.monitor.release([entry.row])
         del self.tracked[entry.id]
         self._changed()
@@ -309,26 +367,19 @@ class ModelPool:
 
     @property
     def n_learning(self):
-        """Number of models learning in the batch."""
+        """Number of models learning in the batches."""
         return sum(1 for e in self.tracked.values() if e.slot >= 0)
 
     # ------------------------------------------------------------------ models and statistics
     def n_now(self, entry):
         """Current number of training samples of ``entry``."""
-        return int(self.batch.size([entry.slot])[0]) if entry.slot >= 0 else entry.n_train
+        return int(self._batch(entry).size([entry.slot])[0]) if entry.slot >= 0 else entry.n_train
 
-    def model_of(self, entry, cache=True):
-        """The entry's fitted model; for a model still learning, a snapshot of its current training data.
-
-        With ``cache`` the snapshot is kept in ``entry.model`` until the entry learns again (see
-        :meth:`refresh_refining`); while bootstrapping nothing refreshes candidates, so their snapshots are not kept.
-        """
-        if entry.slot < 0 or (cache and entry.model is not None):
+    def model_of(self, entry):
+        """The entry's fitted model; for a candidate still learning, a snapshot of its batch slot (not kept)."""
+        if entry.slot < 0:
             return entry.model
-        model = self.batch.to_model(entry.slot, entry.parent, entry.child)
-        if cache:
-            entry.model = model
-        return model
+        return self._batch(entry).to_model(entry.slot, entry.parent, entry.child)
 
     def window_stats(self, rows, n_now):
         """Test-window statistics under the staleness rule, and validity.
@@ -350,14 +401,14 @@ class ModelPool:
         return stats, self.monitor.valid(stats, c.min_test_samples)
 
     def dominated(self, rows, n_now, sub, sup, valid=None):
-        """Mask over models beaten by a model with more actions by more than ``dominance_margin`` (see config).
+        """Mask over models beaten by a model that nests them by more than ``dominance_margin`` (see config).
 
         Parameters
         ----------
         rows, n_now : array-like of int, shape (k,)
             Monitor rows and training-set sizes of the models compared.
         sub, sup : ndarray of int
-            Nested positions (:func:`nested_pairs`).
+            Nested positions (:func:`nested_models`).
         valid : array-like of bool, shape (k,), optional
             Only valid models are examined (the others are out of the tree search anyway).
 
@@ -380,234 +431,168 @@ class ModelPool:
         return dominated
 
     def learning(self):
-        """:class:`LearningSlots` of the models learning in the batch; rebuilt only when that set changes."""
+        """:class:`LearningSlots` of the models learning in the batches; rebuilt only when that set changes."""
         if self._learning is None:
             learning = [e for e in self.tracked.values() if e.slot >= 0]
             self._learning = LearningSlots(
                 np.array([e.id for e in learning], dtype=np.int64),
                 np.array([e.slot for e in learning], dtype=np.intp),
                 np.array([e.row for e in learning], dtype=np.int64),
-                np.array([self.pairs.index(e.parent, e.child) for e in learning], dtype=np.intp),
-                np.array([self.pairs.flip(e.parent, e.child) for e in learning], dtype=bool),
-                np.array([e.role == TREE for e in learning], dtype=bool),
-                nested_pairs(learning),
+                np.array([e.kind in RIGID_CLASSES for e in learning], dtype=bool),
+                nested_models(learning),
                 np.array([e.complexity for e in learning], dtype=float),
-                np.array([self.refine_window if e.role == TREE else self.config.train_window for e in learning],
-                         dtype=np.int64),
+                np.array([e.rank for e in learning], dtype=np.int64),
             )
         return self._learning
 
-    def frozen(self):
-        """Frozen tree and memory models as ``(entry, pair index, flip)``, in pool order (cached like ``learning``)."""
-        if self._frozen is None:
-            self._frozen = [(e, self.pairs.index(e.parent, e.child), self.pairs.flip(e.parent, e.child))
-                            for e in self.tracked.values() if e.slot < 0 and e.role in (TREE, MEMORY)]
-        return self._frozen
+    def sizes(self, ls=None):
+        """Training-set sizes of the learning models (:meth:`learning` order), shape (k,)."""
+        ls = self.learning() if ls is None else ls
+        n = np.zeros(ls.ids.size, dtype=np.int64)
+        if np.any(ls.rigid):
+            n[ls.rigid] = self.rigid_batch.size(ls.slots[ls.rigid])
+        if np.any(~ls.rigid):
+            n[~ls.rigid] = self.gp_batch.size(ls.slots[~ls.rigid])
+        return n
 
     # ------------------------------------------------------------------ prequential evaluation
-    def evaluate_frozen(self, a, relative, step):
-        """Frozen models (tree and memory) whose pair is observed predict it; their errors are recorded.
-
-        Only tree models run their CUSUM.
+    def evaluate(self, entries, a, targets, step, cusum):
+        """Fitted models (tree and memory) predict their targets; the errors are recorded.
 
         Parameters
         ----------
+        entries : list of TrackedModel
+            Frozen models, one per row of ``targets``.
         a : ndarray, shape (m,)
-        relative : RelativeObservations
+        targets : Targets
         step : int
+        cusum : array-like of bool, shape (k,)
+            Which rows run their CUSUM (tree models).
 
         Returns
         -------
-        ids : list of int
-            Models that were evaluated.
-        alarm : ndarray of bool
+        alarm : ndarray of bool, shape (k,)
             CUSUM alarm of each.
         """
+        if not entries:
+            return np.zeros(0, dtype=bool)
         A = a[None, :]
-        ids, rows, n_train, use_cusum, pairs, flips = [], [], [], [], [], []
         preds, vectors = [], []  # GP means are projected onto SE(3) together: one batched SVD, not one per model
-        for e, k, flip in self.frozen():
-            if relative.row[k] < 0:
-                continue
+        for e in entries:
             if isinstance(e.model, GPModel):
                 vectors.append(len(preds))
                 preds.append(e.model.predict_components(A)[0])
             else:
                 preds.append(e.model.predict(A)[0])
-            pairs.append(k)
-            flips.append(flip)
-            ids.append(e.id)
-            rows.append(e.row)
-            n_train.append(e.n_train)
-            use_cusum.append(e.role == TREE)
-        if not preds:
-            return ids, np.zeros(0, dtype=bool)
         Zp = np.empty((len(preds), 4, 4))
         if vectors:
             Zp[vectors] = transform_from_vector12(np.asarray([preds[i] for i in vectors]))
         for i, P in enumerate(preds):
             if P.shape == (4, 4):
                 Zp[i] = P
-        Z = relative.of_pairs(np.array(pairs, dtype=np.intp), np.array(flips, dtype=bool))
-        e_t, e_r = prediction_errors(Zp, Z)
-        alarm = self.monitor.record(rows, e_t, e_r, step, n_train=n_train, cusum=use_cusum,
-                                    theta_trans=relative.theta_trans[relative.row[pairs]])
-        return ids, alarm
+        if np.any(targets.flip):
+            Zp[targets.flip] = invert_transform(Zp[targets.flip])
+        e_t, e_r = prediction_errors(Zp, targets.Z)
+        return self.monitor.record([e.row for e in entries], e_t, e_r, step, n_train=[e.n_train for e in entries],
+                                   cusum=cusum, theta_trans=targets.theta_trans)
 
-    def train_learning(self, a, relative, step):
-        """Prequential step of every learning model whose pair is observed: predict, record the error, train.
-
-        Returns
-        -------
-        ids : ndarray of int
-            Models that were evaluated.
-        alarm : ndarray of bool
-            CUSUM alarms (only tree models run a CUSUM).
-        """
-        ls = self.learning()
-        sel = np.flatnonzero(relative.row[ls.pair] >= 0)
-        if sel.size == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
-        Z = relative.of_pairs(ls.pair[sel], ls.flip[sel])
-        alarm = self.prequential(ls.slots[sel], ls.rows[sel], a, Z, step,
-                                 relative.theta_trans[relative.row[ls.pair[sel]]], ls.is_tree[sel], ls.limit[sel])
-        return ls.ids[sel], alarm
-
-    def prequential(self, slots, rows, a, Z, step, theta_trans, cusum, limit):
-        """Test-then-train for batch slots: predict ``Z``, record the errors, then add the sample where not full.
-
-        Slots are processed in groups of equal training-set size. GPBatch pads a group's arrays to its largest
-        slot, and that padding changes the last bits of the results; equal-size groups are exactly the groups
-        :meth:`GPBatch.from_state_dict` replays, so a restored learner continues bit-identically.
+    def train(self, ids, a, targets, step):
+        """Prequential step of learning candidates: predict, record the error, then learn (until full).
 
         Parameters
         ----------
-        slots, rows : ndarray of int, shape (k,)
+        ids : array-like of int
+            Learning models, one per row of ``targets``.
         a : ndarray, shape (m,)
-        Z : ndarray, shape (k, 4, 4)
-            Observed ``parent2child`` per slot.
+        targets : Targets
+            Oriented as the candidates predict (``flip`` all False: candidates are created in the direction of their
+            targets).
         step : int
-        theta_trans : ndarray, shape (k,)
-            Translational threshold of each sample.
-        cusum : ndarray of bool, shape (k,)
-            Which rows run their CUSUM.
-        limit : ndarray of int, shape (k,)
-            Training-set size at which each slot stops learning.
 
-        Returns
-        -------
-        alarm : ndarray of bool, shape (k,)
+        Notes
+        -----
+        Slots are processed per batch in groups of equal training-set size. GPBatch pads a group's arrays to its
+        largest slot, and that padding changes the last bits of the results; equal-size groups are exactly the
+        groups :meth:`GPBatch.from_state_dict` replays, so a restored learner continues bit-identically. Rigid
+        candidates far from valid are refitted only every few samples (see ``_PROMISING_RATIO``).
         """
-        n = self.batch.size(slots)
-        alarm = np.zeros(slots.size, dtype=bool)
-        for size in np.unique(n):
-            group = np.flatnonzero(n == size)
-            Zp = self.batch.predict(slots[group], a)
-            if size > 0:  # an empty GP predicts the identity: its error says nothing about the model
-                e_t, e_r = prediction_errors(Zp, Z[group])
-                alarm[group] = self.monitor.record(rows[group], e_t, e_r, step, n_train=size, cusum=cusum[group],
-                                                   theta_trans=theta_trans[group])
-            open_ = group[size < limit[group]]
-            if open_.size:
-                self.batch.add_samples(slots[open_], a, Z[open_])
-        return alarm
+        ids = np.asarray(ids, dtype=np.int64)
+        if ids.size == 0:
+            return
+        entries = [self.tracked[int(i)] for i in ids]
+        rigid = np.array([e.kind in RIGID_CLASSES for e in entries], dtype=bool)
+        slots = np.array([e.slot for e in entries], dtype=np.intp)
+        rows = np.array([e.row for e in entries], dtype=np.int64)
+        limit = self.config.train_window
+        if np.any(~rigid):
+            g = np.flatnonzero(~rigid)
+            n = self.gp_batch.size(slots[g])
+            for size in np.unique(n):
+                group = g[n == size]
+                Zp = self.gp_batch.predict(slots[group], a)
+                if size > 0:  # an empty GP predicts the identity: its error says nothing about the model
+                    e_t, e_r = prediction_errors(Zp, targets.Z[group])
+                    self.monitor.record(rows[group], e_t, e_r, step, n_train=size, cusum=False,
+                                        theta_trans=targets.theta_trans[group])
+                if size < limit:
+                    self.gp_batch.add_samples(slots[group], a, targets.Z[group])
+        if np.any(rigid):
+            r = np.flatnonzero(rigid)
+            batch = self.rigid_batch
+            n = batch.size(slots[r])
+            Zp, ready = batch.predict(slots[r], a)
+            if np.any(ready):
+                seen = r[ready]
+                e_t, e_r = prediction_errors(Zp[ready], targets.Z[seen])
+                self.monitor.record(rows[seen], e_t, e_r, step, n_train=n[ready], cusum=False,
+                                    theta_trans=targets.theta_trans[seen])
+            open_ = n < limit
+            if np.any(open_):
+                learn = r[open_]
+                size = n[open_] + 1
+                refit = self._promising([entries[k] for k in learn], rows[learn]) & np.isin(size, list(_REFIT_SIZES))
+                refit |= (size % _SLOW_REFIT == 0) | (size >= limit)
+                batch.add_samples(slots[learn], a, targets.Z[learn], targets.sigma[learn], refit=refit)
+
+    def _promising(self, entries, rows):
+        """Mask: not yet judged (fewer than ``min_test_samples``), or among the ``_PROMISING`` lowest mean errors of
+        its pair, target and class."""
+        st = self.monitor.stats(rows)
+        unjudged = st.n < self.config.min_test_samples
+        score = np.where(unjudged, -np.inf, 0.5 * (st.trans_ratio + st.rot_ratio))
+        keys = {}
+        group = np.array([keys.setdefault((e.parent, e.child, e.target, e.kind), len(keys)) for e in entries])
+        order = np.lexsort((score, group))  # by group, then score
+        sorted_group = group[order]
+        start = np.searchsorted(sorted_group, sorted_group, side="left")
+        rank = np.arange(order.size) - start  # position within its group
+        promising = np.zeros(len(entries), dtype=bool)
+        promising[order[rank < _PROMISING]] = True
+        return promising | unjudged
 
     # ------------------------------------------------------------------ freezing
-    def refresh_refining(self, ids):
-        """Tree models still learning (``ids``): their snapshot is dropped after each new sample (rebuilt only when
-        the body scheme is asked for); at ``refine_window`` samples they are frozen and leave the batch.
-
-        Returns
-        -------
-        changed : bool
-            Whether any of these models changed.
-        """
-        changed = False
-        for i in ids:
-            e = self.tracked[i]
-            if e.slot < 0:
-                continue
-            n = int(self.batch.size([e.slot])[0])
-            if n != e.n_train:
-                e.model = None
-                e.n_train = n
-                changed = True
-            if n >= self.refine_window:
-                self.materialize(e)
-                changed = True
-        return changed
-
-    def materialize(self, entry, before=None):
-        """Turn a learning entry into a fitted model and free its slot.
-
-        With ``before`` (a change-point step), only the samples the model had learned before that step are kept,
-        so a model that kept refining after a change goes to memory uncontaminated.
-        """
-        model = self.batch.to_model(entry.slot, entry.parent, entry.child)
-        n = model.n_samples
-        if before is not None and n:
-            steps = self.monitor.steps[entry.row]
-            after = (steps >= before)
-            if np.any(after):
-                # Predictions are made before training: the training size at the first prediction after the
-                # change point counts the samples learned before it.
-                keep = int(self.monitor.n_train[entry.row][after].min())
-                if 0 < keep < n:
-                    data = model.to_dict()
-                    data["X"], data["Y"] = data["X"][:keep], data["Y"][:keep]
-                    model = GPModel.from_dict(data)
-                    n = keep
-        self.batch.release([entry.slot])
+    def materialize(self, entry):
+        """Turn a learning entry into a fitted model (rigid candidates re-weighted robustly) and free its slot."""
+        batch = self._batch(entry)
+        model = batch.to_model(entry.slot, entry.parent, entry.child)
+        entry.n_train = int(batch.size([entry.slot])[0])
+        batch.release([entry.slot])
         entry.slot = -1
         entry.model = model
-        entry.n_train = n
         self._changed()
-
-    def resume_refining(self, entry):
-        """Put a frozen GP with fewer than ``refine_window`` samples back into the batch to keep learning.
-
-        For a model that returns to the tree from memory: it was retired while still refining, so it holds fewer
-        samples than a tree model should (a replacement retired soon after its installation may hold only a handful);
-        like every tree model it refines up to ``refine_window``. Other models are left alone.
-
-        Returns
-        -------
-        resumed : bool
-        """
-        model = entry.model
-        if (entry.slot >= 0 or not isinstance(model, GPModel) or model.n_samples >= self.refine_window
-                or self.batch.capacity < self.refine_window or len(entry.actions) > self.batch.max_dim):
-            return False
-        entry.slot = int(self.batch.allocate([entry.actions])[0])
-        self._replay_training_data(entry.slot, model)
-        entry.n_train = model.n_samples
-        entry.model = None  # a snapshot of the batch slot on demand, like every refining tree model
-        self._changed()
-        return True
+        return model
 
     def keep_only(self, keep):
-        """Drop every other model and move ``keep`` into a fresh, compact batch and monitor.
+        """Drop every other model, freeze ``keep`` and move them into fresh, compact storage.
 
-        The new batch can hold ``refine_window`` samples: kept models below that keep learning (their samples are
-        replayed in order), the others are frozen. Test windows are kept, CUSUMs reset.
-
-        Returns
-        -------
-        refining : list of TrackedModel
-            The kept models that keep learning.
+        Test windows are kept, CUSUMs reset.
         """
-        old_batch, old_monitor = self.batch, self.monitor
-        self.batch = new_batch(self.config, self.n_actions, self.refine_window, old_batch.max_dim)
-        refining = []
         for entry in keep:
-            model = old_batch.to_model(entry.slot, entry.parent, entry.child)
-            entry.n_train = int(old_batch.size([entry.slot])[0])
-            entry.model = model
-            entry.slot = -1
-            if entry.n_train < self.refine_window:
-                entry.slot = int(self.batch.allocate([entry.actions])[0])
-                self._replay_training_data(entry.slot, model)
-                refining.append(entry)
+            if entry.slot >= 0:
+                self.materialize(entry)
+        old_monitor = self.monitor
+        self.gp_batch = self.new_gp_batch(self.gp_batch.max_dim)
+        self.rigid_batch = self.new_rigid_batch()
         self.monitor = new_monitor(self.config)
         rows = self.monitor.allocate(len(keep))
         self.monitor.copy_rows(old_monitor, [e.row for e in keep], rows)
@@ -616,51 +601,42 @@ class ModelPool:
             entry.row = int(row)
         self.tracked = {e.id: e for e in keep}
         self._changed()
-        return refining
-
-    def _replay_training_data(self, slot, model):
-        """Add a fitted GP model's training samples, in order, to an empty batch slot."""
-        X = model.X_train_
-        Z = transform_from_vector12(model.Y_train_)
-        a = np.zeros(self.n_actions)
-        cols = list(model.actions)
-        for k in range(X.shape[0]):
-            a[cols] = X[k]
-            self.batch.add_samples([slot], a, Z[k:k + 1])
 
     # ------------------------------------------------------------------ state
     def tracked_state(self):
-        """The tracked models as dicts; learning models are rebuilt from the batch, so their snapshot is not saved."""
+        """The tracked models as dicts; learning models are in the batches, so no snapshot is saved."""
         return [e.to_dict(with_model=e.slot < 0) for e in self.tracked.values()]
 
     @classmethod
-    def from_state(cls, config, n_actions, pairs, tracked, next_id, monitor, batch):
-        """Rebuild from :meth:`tracked_state`, ``next_id``, ``ErrorMonitor.to_dict`` and ``GPBatch.state_dict``.
+    def from_state(cls, config, n_actions, part_ids, tracked, next_id, monitor, gp_batch, rigid_batch):
+        """Rebuild from :meth:`tracked_state`, ``next_id``, ``ErrorMonitor.to_dict`` and the batches' state dicts.
 
         Raises
         ------
         ModelFileError
-            If the monitor or batch do not fit the configuration, or a model refers to an unknown part, a free
-            monitor row or GP slot, or is frozen without a stored model.
+            If the monitor or batches do not fit the configuration, or a model refers to an unknown part, a free
+            monitor row or batch slot, or is frozen without a stored model.
         """
         monitor = ErrorMonitor.from_dict(monitor)
         if monitor.window != config.test_window:
             raise ModelFileError(f"monitor window {monitor.window} != test_window {config.test_window}")
-        batch = GPBatch.from_state_dict(batch)
-        if batch.n_actions != n_actions:
-            raise ModelFileError(f"GP batch has {batch.n_actions} actions, learner {n_actions}")
-        pool = cls(config, n_actions, pairs, batch, monitor, int(next_id))
-        allocated = set(batch.allocated_slots.tolist())
+        gp = GPBatch.from_state_dict(gp_batch)
+        rigid = RigidBatch.from_state_dict(rigid_batch)
+        for name, batch in (("GP", gp), ("rigid", rigid)):
+            if batch.n_actions != n_actions:
+                raise ModelFileError(f"{name} batch has {batch.n_actions} actions, learner {n_actions}")
+        pool = cls(config, n_actions, gp, rigid, monitor, int(next_id))
+        allocated = {"gp": set(gp.allocated_slots.tolist()), "rigid": set(rigid.allocated_slots.tolist())}
         for data in tracked:
             entry = TrackedModel.from_dict(data)
             for part in (entry.parent, entry.child):
-                if part not in pairs.part_index:
+                if part not in part_ids:
                     raise ModelFileError(f"model {entry.describe()} refers to unknown part {part}")
             if not (0 <= entry.row < monitor.capacity and monitor.in_use[entry.row]):
                 raise ModelFileError(f"model {entry.describe()} has no monitor row {entry.row}")
             if entry.slot >= 0:
-                if entry.slot not in allocated:
-                    raise ModelFileError(f"model {entry.describe()} refers to free GP slot {entry.slot}")
+                if entry.slot not in allocated["rigid" if entry.kind in RIGID_CLASSES else "gp"]:
+                    raise ModelFileError(f"model {entry.describe()} refers to free batch slot {entry.slot}")
             elif entry.model is None:
                 raise ModelFileError(f"frozen model entry {entry.id} has no stored model")
             pool.tracked[entry.id] = entry

@@ -9,14 +9,21 @@ and noise levels; the paper's single norm ``||Z - Z'||`` (Eq. 6) mixes them. A m
 ``theta = 3 sigma``) when its mean errors over the test window are below both thresholds.
 
 Costs for the minimum spanning tree (lower is better) keep the paper's key property that complexity layers never
-overlap (Eq. 7 and 12)::
+overlap (Eq. 7 and 12), and order the model classes within a layer by their own complexity (fewer parameters
+first, in the spirit of Sturm's articulation models and BIC)::
 
-    cost(M)      = C(M)      + e(M)      with e(M) = clip(mean(e_t / theta_t, e_r / theta_r), 0, 1)
-    cost(M2|M1)  = C(M2|M1)  + e(M2)     with C(M2|M1) = |A(M2) symmetric-difference A(M1)|
+    cost(M)      = C(M)      + (e(M)  + p rank(M))  / (1 + p (N_RANKS - 1))
+    cost(M2|M1)  = C(M2|M1)  + (e(M2) + p rank(M2)) / (1 + p (N_RANKS - 1))
 
-For a valid model both ratios are below 1, so ``e`` lies in ``[0, 1)`` and a model of a lower (relative) complexity
-is always cheaper than any model of a higher one, whatever the data. See ``docs/core/learning-and-adaptation.md``
-for why this orders models exactly like the paper's ``log q``.
+with ``e(M) = clip(mean(e_t / theta_t, e_r / theta_r), 0, 1)``, ``C(M2|M1) = |A(M2) symmetric-difference A(M1)|``,
+``rank`` 0 for static and prismatic models, 1 for revolute and 2 for GP models (:data:`CLASS_RANKS`) and the rank
+penalty ``p`` = :data:`RANK_PENALTY` thresholds. For a valid model both ratios are below 1, so the fraction lies in
+``[0, 1)``: a model of a lower (relative) complexity is always cheaper than any model of a higher one, whatever the
+data (the paper's non-overlapping layers). Within a layer the classes are ordered BIC-style, by error plus a penalty
+per rank: a revolute joint takes the edge from a prismatic one only when it predicts better by more than ``p``
+thresholds, a GP from a revolute joint likewise. Validity on relative observations is loose at the paper's noise, so a
+strict class order would let a valid but wrong simple model (a prismatic joint where a revolute one is valid and far
+better) win. See ``docs/core/learning-and-adaptation.md`` for why this orders models like the paper's ``log q``.
 
 All containers here are *batched*: one object holds the windows of hundreds of candidate models in ``(rows, W)``
 arrays, with ``allocate``/``release`` row management like :class:`~body_scheme_core.models.gp.GPBatch`, so one
@@ -34,6 +41,11 @@ from .errors import InvalidInputError, ModelFileError
 from .transforms import rotational_error, translational_error
 
 __all__ = [
+    "CLASS_RANKS",
+    "N_RANKS",
+    "RANK_PENALTY",
+    "class_rank",
+    "nests",
     "prediction_errors",
     "translation_threshold",
     "model_cost",
@@ -45,6 +57,36 @@ __all__ = [
 
 #: Largest normalised error entering a cost, so that ``C + e < C + 1`` holds in floating point.
 _E_MAX = math.nextafter(1.0, 0.0)
+#: Penalty per class rank, in mean threshold ratios (see the module docstring).
+RANK_PENALTY = 0.1
+#: Rank of each local-model class within its complexity layer: fewer parameters first (static 6, prismatic 9,
+#: revolute 11, a GP one per training sample and output). Engineered models are a specification, not a candidate.
+CLASS_RANKS = {"static": 0, "prismatic": 0, "revolute": 1, "gp": 2, "engineered": 0}
+N_RANKS = 3
+#: What a class can represent, for one set of actions: static < prismatic, revolute < GP (prismatic and revolute
+#: are different forms, neither nests the other). Engineered models nest nothing and are nested by nothing.
+_FLEXIBILITY = {"static": 0, "prismatic": 1, "revolute": 1, "gp": 2}
+
+
+def class_rank(kind):
+    """Rank of a model class within its layer (:data:`CLASS_RANKS`); unknown classes rank last."""
+    return CLASS_RANKS.get(kind, N_RANKS - 1)
+
+
+def nests(kind_a, actions_a, kind_b, actions_b):
+    """Whether model class ``kind_a`` on ``actions_a`` can represent every relation ``kind_b`` on ``actions_b`` can.
+
+    True when the actions of ``b`` are a subset of ``a``'s and ``a``'s class is more flexible, or the class is the
+    same and the subset strict (e.g. a GP on ``(a1, a2)`` nests a revolute joint on ``a1`` and a GP on ``a1``).
+    """
+    if kind_a not in _FLEXIBILITY or kind_b not in _FLEXIBILITY:
+        return False
+    sa, sb = set(actions_a), set(actions_b)
+    if not sb <= sa:
+        return False
+    if kind_a == kind_b:
+        return sb != sa
+    return _FLEXIBILITY[kind_a] > _FLEXIBILITY[kind_b]
 
 
 def prediction_errors(Z_pred, Z_obs):
@@ -96,7 +138,7 @@ def translation_threshold(theta_trans, theta_rot, distance):
     return float(theta) if theta.ndim == 0 else theta
 
 
-def model_cost(complexity, trans_ratio, rot_ratio):
+def model_cost(complexity, trans_ratio, rot_ratio, rank=0):
     """Cost of a valid local model for the minimum spanning tree (lower is better; paper Eq. 4 and 7).
 
     Parameters
@@ -105,16 +147,21 @@ def model_cost(complexity, trans_ratio, rot_ratio):
         C(M), the number of actions the model depends on (or C(M2|M1) for a replacement).
     trans_ratio, rot_ratio : float or array-like
         Mean test-window errors in units of their thresholds (below 1 for a valid model).
+    rank : int or array-like of int
+        Class rank within the layer (:func:`class_rank`), 0 to ``N_RANKS - 1``: adds ``RANK_PENALTY`` thresholds
+        per rank to the error.
 
     Returns
     -------
     cost : float or ndarray
-        ``complexity + clip((trans_ratio + rot_ratio) / 2, 0, 1 - ulp)``: layers never overlap.
+        ``complexity + (e + RANK_PENALTY rank) / (1 + RANK_PENALTY (N_RANKS - 1))`` with
+        ``e = clip((trans_ratio + rot_ratio) / 2, 0, 1 - ulp)``: layers never overlap.
     """
     e = np.clip(0.5 * (np.asarray(trans_ratio, dtype=float) + np.asarray(rot_ratio, dtype=float)), 0.0, _E_MAX)
     layer = np.asarray(complexity, dtype=float)
-    # C + e can round up to C + 1 in floating point; keep it strictly inside its layer.
-    cost = np.minimum(layer + e, np.nextafter(layer + 1.0, layer))
+    cost = layer + (e + RANK_PENALTY * np.asarray(rank, dtype=float)) / (1.0 + RANK_PENALTY * (N_RANKS - 1))
+    # The sum can round up to C + 1 in floating point; keep it strictly inside its layer.
+    cost = np.minimum(cost, np.nextafter(layer + 1.0, layer))
     return float(cost) if cost.ndim == 0 else cost
 
 
@@ -128,9 +175,9 @@ def relative_complexity(actions_new, actions_old):
     return len(set(actions_new) ^ set(actions_old))
 
 
-def replacement_cost(actions_new, actions_old, trans_ratio, rot_ratio):
-    """Cost of a valid replacement ``M2`` for a failed model ``M1`` (paper Eq. 11): ``C(M2|M1) + e(M2)``."""
-    return model_cost(relative_complexity(actions_new, actions_old), trans_ratio, rot_ratio)
+def replacement_cost(actions_new, actions_old, trans_ratio, rot_ratio, rank=0):
+    """Cost of a valid replacement ``M2`` for a failed model ``M1`` (paper Eq. 11), see :func:`model_cost`."""
+    return model_cost(relative_complexity(actions_new, actions_old), trans_ratio, rot_ratio, rank)
 
 
 class WindowStats(NamedTuple):
@@ -336,6 +383,13 @@ class ErrorMonitor:
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         steps = self.steps[rows]
         steps[steps < step] = -1
+        self.steps[rows] = steps
+
+    def forget_since(self, rows, step):
+        """Drop window samples observed at or after ``step`` (errors that followed from a change elsewhere)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        steps = self.steps[rows]
+        steps[steps >= step] = -1
         self.steps[rows] = steps
 
     def reset_cusum(self, rows):

@@ -10,6 +10,7 @@ predicts the inverse of the canonical transform (:meth:`PartPairs.flip`).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -31,11 +32,22 @@ class RelativeObservations(NamedTuple):
         Row of each pair in ``Z``; -1 where the pair is not observed.
     theta_trans : ndarray, shape (k,)
         Translational validity threshold of each row of ``Z`` (m).
+    sigma : ndarray, shape (k, 2)
+        Per-axis noise std of each row (trans m, rot rad): two markers' noise, and the parent's orientation noise
+        times the distance (the lever arm) in translation.
     """
 
     Z: np.ndarray
     row: np.ndarray
     theta_trans: np.ndarray
+    sigma: np.ndarray
+
+    def targets(self, pair):
+        """:class:`~body_scheme_core.pool.Targets` of models in canonical direction with pair indices ``pair``."""
+        from .pool import Targets
+
+        rows = self.row[pair]
+        return Targets(self.Z[rows], self.theta_trans[rows], self.sigma[rows], np.zeros(len(rows), dtype=bool))
 
     def of_pairs(self, pair, flip):
         """Observed transforms of models with pair indices ``pair`` (all observed), inverted where ``flip``.
@@ -65,6 +77,8 @@ class PartPairs:
         Unique part ids; their order defines the canonical direction of each pair.
     theta_trans, theta_rot : float
         Validity thresholds (m, rad) behind :meth:`threshold`.
+    sigma_trans, sigma_rot : float, optional
+        3D RMS noise of one marker (m, rad); default a third of the thresholds.
 
     Attributes
     ----------
@@ -73,10 +87,12 @@ class PartPairs:
         Position of each part id in ``part_ids``.
     """
 
-    def __init__(self, part_ids, theta_trans, theta_rot):
+    def __init__(self, part_ids, theta_trans, theta_rot, sigma_trans=None, sigma_rot=None):
         self.part_ids = tuple(part_ids)
         self.theta_trans = theta_trans
         self.theta_rot = theta_rot
+        self.sigma_trans = theta_trans / 3.0 if sigma_trans is None else sigma_trans
+        self.sigma_rot = theta_rot / 3.0 if sigma_rot is None else sigma_rot
         self.part_index = {p: k for k, p in enumerate(self.part_ids)}
         n = len(self.part_ids)
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
@@ -127,8 +143,11 @@ class PartPairs:
         row = np.full(self._first.size, -1, dtype=np.intp)
         row[both] = np.arange(both.size)
         if both.size == 0:
-            return RelativeObservations(np.zeros((0, 4, 4)), row, np.zeros(0))
+            return RelativeObservations(np.zeros((0, 4, 4)), row, np.zeros(0), np.ones((0, 2)))
         Yinv = invert_transform(Y[seen])
         inv_index = np.cumsum(seen) - 1
         Z = Yinv[inv_index[self._first[both]]] @ Y[self._second[both]]
-        return RelativeObservations(Z, row, self.threshold(Z))
+        d2 = np.sum(Z[:, :3, 3] ** 2, axis=1)
+        sigma = np.stack([np.sqrt((2.0 * self.sigma_trans**2 + (2.0 / 3.0) * self.sigma_rot**2 * d2) / 3.0),
+                          np.full(d2.shape, self.sigma_rot * math.sqrt(2.0 / 3.0))], axis=1)
+        return RelativeObservations(Z, row, self.threshold(Z), sigma)

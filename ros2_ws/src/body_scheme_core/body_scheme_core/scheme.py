@@ -159,6 +159,10 @@ class BodyScheme:
             raise InvalidInputError(f"part {part} is not in the body scheme (parts {self.parts})")
         return part
 
+    def edge_into(self, part):
+        """The tree edge ``(parent, child, model, inverted)`` ending at ``part``; None for the root."""
+        return self._edge_into.get(self._check_part(part))
+
     def path(self, part):
         """Part ids from the root to ``part``, both included.
 
@@ -267,7 +271,8 @@ class BodyScheme:
                 v_t, v_r = var[parent]
                 var[child] = np.array([v_t + lever2 * v_r + s_t2, v_r + s_r2])
             else:
-                T = self._local(model, inverted, A)[0]
+                T = model.predict_one(a)
+                T = invert_transform(T) if inverted else T
             root2part[child] = root2part[parent] @ T
         if return_std:
             return root2part, {p: np.sqrt(np.maximum(v, 0.0)) for p, v in var.items()}

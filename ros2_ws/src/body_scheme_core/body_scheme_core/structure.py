@@ -21,15 +21,35 @@ import math
 import networkx as nx
 
 from .errors import InvalidInputError
-from .quality import relative_complexity
+from .quality import class_rank, relative_complexity
 
 __all__ = [
+    "CANDIDATE_KINDS",
     "action_subsets",
+    "kinds_for",
     "enumerate_candidates",
     "n_candidates",
     "replacement_action_sets",
+    "replacement_candidates",
     "select_spanning_tree",
 ]
+
+#: The local-model classes a learner can instantiate as candidates.
+CANDIDATE_KINDS = ("static", "prismatic", "revolute", "gp")
+
+
+def kinds_for(actions, kinds=CANDIDATE_KINDS):
+    """Model classes instantiated for one action set, by class rank: static for no action, prismatic, revolute and
+    GP for one, GP for more (no rigid form spans several actions). A GP on no action stands in for ``static`` when
+    static models are not among ``kinds``."""
+    n = len(actions)
+    if n == 0:
+        out = ["static"] if "static" in kinds else (["gp"] if "gp" in kinds else [])
+    elif n == 1:
+        out = [k for k in ("prismatic", "revolute", "gp") if k in kinds]
+    else:
+        out = ["gp"] if "gp" in kinds else []
+    return sorted(out, key=class_rank)
 
 
 def action_subsets(n_actions, max_complexity):
@@ -45,7 +65,7 @@ def action_subsets(n_actions, max_complexity):
     return [c for k in range(min(max_complexity, n_actions) + 1) for c in itertools.combinations(range(n_actions), k)]
 
 
-def enumerate_candidates(part_ids, n_actions, max_complexity):
+def enumerate_candidates(part_ids, n_actions, max_complexity, kinds=CANDIDATE_KINDS):
     """Every candidate local model of the fully connected network (paper Sec. III-C1, Fig. 4).
 
     Parameters
@@ -56,23 +76,28 @@ def enumerate_candidates(part_ids, n_actions, max_complexity):
     n_actions : int
     max_complexity : int
         Largest number of actions a candidate depends on.
+    kinds : iterable of str
+        Model classes to instantiate (:func:`kinds_for` gives the classes per action set).
 
     Returns
     -------
-    candidates : list of tuple (parent, child, actions)
-        Ordered by complexity layer, then pair, then action indices: ``n_pairs * sum_k C(m, k)`` entries.
+    candidates : list of tuple (parent, child, actions, kind)
+        Ordered by complexity layer, then class rank, then pair, then action indices.
     """
     parts = [int(p) for p in part_ids]
     if len(set(parts)) != len(parts):
         raise InvalidInputError(f"part ids must be unique, got {parts}")
     pairs = list(itertools.combinations(parts, 2))
     subsets = action_subsets(n_actions, max_complexity)
-    return sorted(((i, j, acts) for acts in subsets for i, j in pairs), key=lambda c: len(c[2]))
+    out = [(i, j, acts, kind) for acts in subsets for kind in kinds_for(acts, kinds) for i, j in pairs]
+    return sorted(out, key=lambda c: (len(c[2]), class_rank(c[3])))
 
 
-def n_candidates(n_parts, n_actions, max_complexity):
-    """Number of candidates: ``C(n, 2) * sum_{k <= max_complexity} C(m, k)`` (the paper's bootstrap count)."""
-    return math.comb(n_parts, 2) * sum(math.comb(n_actions, k) for k in range(min(max_complexity, n_actions) + 1))
+def n_candidates(n_parts, n_actions, max_complexity, kinds=CANDIDATE_KINDS):
+    """Number of candidates: ``C(n, 2)`` times the (action set, class) combinations of :func:`kinds_for`."""
+    per_pair = sum(math.comb(n_actions, k) * len(kinds_for(tuple(range(k)), kinds))
+                   for k in range(min(max_complexity, n_actions) + 1))
+    return math.comb(n_parts, 2) * per_pair
 
 
 def replacement_action_sets(failed_actions, n_actions, max_complexity, max_relative=None):
@@ -101,6 +126,18 @@ def replacement_action_sets(failed_actions, n_actions, max_complexity, max_relat
         if max_relative is None or rel <= max_relative:
             out.append((rel, acts))
     return sorted(out, key=lambda item: (item[0], len(item[1]), item[1]))
+
+
+def replacement_candidates(failed_actions, n_actions, max_complexity, max_relative=None, kinds=CANDIDATE_KINDS):
+    """``(relative_complexity, actions, kind)`` of the replacements of a failed model (paper Eq. 11).
+
+    Every action set of :func:`replacement_action_sets` with each class of :func:`kinds_for`, ordered by relative
+    complexity, then class rank.
+    """
+    out = [(rel, acts, kind) for rel, acts in replacement_action_sets(failed_actions, n_actions, max_complexity,
+                                                                       max_relative)
+           for kind in kinds_for(acts, kinds)]
+    return sorted(out, key=lambda item: (item[0], class_rank(item[2]), len(item[1]), item[1]))
 
 
 def select_spanning_tree(part_ids, models, layered=True):

@@ -160,7 +160,7 @@ def powercube_6dof():
     return KinematicTree(joints, markers)
 
 
-def branching_tree(seed=None):
+def branching_tree(seed=None, second_torso_marker=False, dummy_action=False):
     """A torso on a yaw joint with two 2-DOF arms: a kinematic tree with a fork.
 
     Actions: 0 torso yaw, 1-2 left shoulder and elbow, 3-4 right shoulder and elbow. Markers: 1 base, 2 torso,
@@ -170,6 +170,10 @@ def branching_tree(seed=None):
     ----------
     seed : int or None
         ``None``: nominal lengths (0.3 m). Otherwise arm segment lengths are drawn uniformly from [0.2, 0.4] m.
+    second_torso_marker : bool
+        Add marker 7 on the torso's back (two markers on one link: trees that connect either are equivalent).
+    dummy_action : bool
+        Add action 5, a joint turning a link that carries no marker: an action that moves nothing observed.
 
     Returns
     -------
@@ -188,6 +192,10 @@ def branching_tree(seed=None):
                                 first_action + 1))
         markers.append(_marker(first_marker, f"{side}_upper_arm", (0.06, 0.0, 0.5 * upper)))
         markers.append(_marker(first_marker + 1, f"{side}_forearm", (0.06, 0.0, fore)))
+    if second_torso_marker:
+        markers.append(_marker(7, "torso", (-0.08, 0.0, 0.15), rpy=(0.0, -math.pi / 2.0, 0.0)))
+    if dummy_action:
+        joints.append(_revolute("antenna_joint", "torso", "antenna", (0.0, 0.0, 0.35), (0.0, 0.0, 1.0), 1.5, 5))
     return KinematicTree(joints, markers)
 
 

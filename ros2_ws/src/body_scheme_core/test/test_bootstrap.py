@@ -4,7 +4,7 @@ import numpy as np
 
 from body_scheme_core.bootstrap import Bootstrap
 from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.pool import CANDIDATE, TREE, ModelPool, new_batch, new_monitor
+from body_scheme_core.pool import CANDIDATE, TREE, ModelPool
 from body_scheme_core.relative import PartPairs
 from body_scheme_core.structure import n_candidates
 from body_scheme_core.synthetic import Fault, make_session, planar_2dof
@@ -12,12 +12,10 @@ from body_scheme_core.transforms import transform_from_rotvec
 
 
 def _bootstrap(robot, config):
-    pairs = PartPairs(robot.marker_ids, config.theta_trans, config.theta_rot)
-    pool = ModelPool(config, robot.n_actions, pairs,
-                     new_batch(config, robot.n_actions, config.train_window, config.max_complexity),
-                     new_monitor(config))
-    Bootstrap.add_candidates(pool, robot.marker_ids, robot.n_actions, config.max_complexity)
-    return Bootstrap(config, pool)
+    pairs = PartPairs(robot.marker_ids, config.theta_trans, config.theta_rot, config.sigma_trans, config.sigma_rot)
+    pool = ModelPool(config, robot.n_actions)
+    Bootstrap.add_candidates(pool, robot.marker_ids, robot.n_actions, config)
+    return Bootstrap(config, pool, pairs)
 
 
 def _run(boot, session, observations=None, stop_when_finished=True):
@@ -25,7 +23,7 @@ def _run(boot, session, observations=None, stop_when_finished=True):
     observations = session.observations if observations is None else observations
     tree, trees, events = None, [], []
     for t in range(session.n_steps):
-        relative = boot.pool.pairs.observe(observations[t])
+        relative = boot.pairs.observe(observations[t])
         tree, _ = boot.step(tree, session.actions[t], relative, t, events)
         trees.append(tree)
         if boot.finish_if_ready(tree, t, events):
@@ -35,10 +33,10 @@ def _run(boot, session, observations=None, stop_when_finished=True):
 
 
 def test_every_pair_and_action_subset_is_a_candidate():
-    """The fully connected network: C(3, 2) pairs times the 4 action subsets of at most 2 of 2 actions."""
+    """The fully connected network: C(3, 2) pairs times (1 static, 2 x (prismatic, revolute, GP), 1 two-action GP)."""
     robot = planar_2dof()
     boot = _bootstrap(robot, BodySchemeConfig())
-    assert len(boot.pool.tracked) == n_candidates(3, 2, 2) == 12
+    assert len(boot.pool.tracked) == n_candidates(3, 2, 2) == 24
     assert all(e.role == CANDIDATE and e.slot >= 0 and e.origin == "bootstrap" for e in boot.pool.tracked.values())
 
 
@@ -51,12 +49,13 @@ def test_the_true_tree_is_found_and_kept_after_bootstrapping():
     trees, events, finished = _run(boot, session)
     assert finished is not None and events[0].kind == "structure_found"
     assert [e.kind for e in events].count("bootstrap_finished") == 1 and events[-1].kind == "bootstrap_finished"
-    assert "all candidates are frozen" in events[-1].reason and "dropped 10 other candidates" in events[-1].reason
+    assert "all candidates are frozen" in events[-1].reason and "dropped 22 other candidates" in events[-1].reason
     tree = trees[-1]
     edges = {frozenset((boot.pool.tracked[i].parent, boot.pool.tracked[i].child)) for i in tree}
     assert edges == {frozenset(e) for e in robot.marker_tree_edges()}
     assert set(boot.pool.tracked) == set(tree)
-    assert all(e.role == TREE and e.last_used == finished for e in boot.pool.tracked.values())
+    assert all(e.role == TREE and e.last_used == finished and e.slot == -1 for e in boot.pool.tracked.values())
+    assert {e.kind for e in boot.pool.tracked.values()} == {"revolute"}  # rigid joints where they fit
     # The tree was found long before its models had learned train_window samples: it waited for them.
     first = next(t for t, tree in enumerate(trees) if tree is not None)
     assert first < config.train_window <= finished
@@ -73,7 +72,7 @@ def test_a_stable_tree_ends_bootstrapping_although_some_pair_is_rarely_seen():
     _, events, finished = _run(boot, session, observations)
     assert finished is not None
     assert "the tree was stable for" in events[-1].reason
-    assert boot.pool.batch.n_allocated == 2  # the two tree models keep refining; the 1-3 candidates are gone
+    assert boot.pool.n_learning == 0 and len(boot.pool.tracked) == 2  # the 1-3 candidates are gone
 
 
 def test_losing_every_valid_tree_is_reported():
@@ -88,3 +87,28 @@ def test_losing_every_valid_tree_is_reported():
     assert trees[lost[0].step] is None and trees[lost[0].step - 1] is not None
     assert boot.tree_since >= lost[0].step
     assert np.all([e.kind != "structure_found" for e in events[1:]])
+
+
+def test_a_vetoed_candidate_is_left_out_until_it_has_learned_more():
+    """veto() removes a tree model from the search; the tree changes; the veto lapses after 50 % more samples."""
+    robot = planar_2dof()
+    session = make_session(robot, 60, seed=0, visibility=1.0)
+    boot = _bootstrap(robot, BodySchemeConfig())
+    tree, events = None, []
+    for t in range(12):
+        tree, _ = boot.step(tree, session.actions[t], boot.pairs.observe(session.observations[t]), t, events)
+    vetoed = tree[0]
+    boot.veto(vetoed)
+    n_at_veto = boot.vetoed[vetoed]
+    trial = boot.search(tree, 12, None, exclude=[tree[1]])  # a trial search changes nothing
+    assert trial is None or tree[1] not in trial
+    new = boot.search(tree, 12, events, " (test)")
+    assert new is None or vetoed not in new
+    assert " (test)" in events[-1].reason
+    tree = new
+    t = 12
+    while boot.pool.n_now(boot.pool.tracked[vetoed]) < 1.5 * n_at_veto + 1:
+        t += 1
+        tree, _ = boot.step(tree, session.actions[t], boot.pairs.observe(session.observations[t]), t, events)
+    tree, _ = boot.step(tree, session.actions[t + 1], boot.pairs.observe(session.observations[t + 1]), t + 1, events)
+    assert vetoed not in boot.vetoed

@@ -129,7 +129,7 @@ def test_missing_keys(trained, tmp_path):
     path.write_text(json.dumps({k: v for k, v in doc.items() if k != "state"}))
     with pytest.raises(ModelFileError, match="no 'state'"):
         load_state(path)
-    for key in ["entries", "monitor", "batch", "history", "config"]:
+    for key in ["entries", "monitor", "gp_batch", "rigid_batch", "calibration", "history", "config"]:
         state = {k: v for k, v in doc["state"].items() if k != key}
         path.write_text(json.dumps(dict(doc, state=state)))
         with pytest.raises(ModelFileError, match=key):

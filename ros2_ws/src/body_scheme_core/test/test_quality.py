@@ -9,8 +9,11 @@ import pytest
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError, ModelFileError
 from body_scheme_core.quality import (
+    RANK_PENALTY,
     ErrorMonitor,
+    class_rank,
     model_cost,
+    nests,
     prediction_errors,
     relative_complexity,
     replacement_cost,
@@ -60,8 +63,30 @@ def test_relative_complexity_is_symmetric_difference():
     assert relative_complexity((1, 2), (1, 2)) == 0
     assert relative_complexity((), (5,)) == 1
     assert relative_complexity((1, 3), (1, 2)) == 2
-    assert replacement_cost((5,), (5,), 0.2, 0.4) == pytest.approx(0.3)
+    assert replacement_cost((5,), (5,), 0.2, 0.4) == pytest.approx(0.3 / (1.0 + 2 * RANK_PENALTY))
     assert replacement_cost((), (5,), 0.0, 0.0) == pytest.approx(1.0)
+
+
+def test_classes_are_ordered_within_a_layer_by_error_plus_a_rank_penalty():
+    """Rigid joints before GPs unless the GP predicts clearly better; layers never overlap (paper Eq. 7)."""
+    revolute, gp = class_rank("revolute"), class_rank("gp")
+    assert model_cost(1, 0.5, 0.5, revolute) < model_cost(1, 0.45, 0.45, gp)  # GP better, but not by the penalty
+    assert model_cost(1, 0.5, 0.5, revolute) > model_cost(1, 0.2, 0.2, gp)  # GP far better
+    assert model_cost(1, 0.99, 0.99, gp) < model_cost(2, 0.0, 0.0, class_rank("static")) == 2.0
+    assert model_cost(1, 1.0, 1.0, gp) < 2.0
+    assert class_rank("static") == class_rank("prismatic") < revolute < gp
+
+
+def test_nesting_follows_flexibility_and_actions():
+    """A GP on (a1, a2) nests a revolute joint on a1; a revolute joint never nests a prismatic one."""
+    assert nests("gp", (1, 2), "revolute", (1,))
+    assert nests("gp", (1,), "revolute", (1,))
+    assert nests("revolute", (1,), "static", ())
+    assert nests("gp", (1, 2), "gp", (1,))
+    assert not nests("gp", (1,), "gp", (1,))
+    assert not nests("revolute", (1,), "prismatic", (1,))
+    assert not nests("gp", (2,), "revolute", (1,))
+    assert not nests("engineered", (1,), "static", ())
 
 
 def test_window_keeps_only_the_last_samples():

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.quality import class_rank
 from body_scheme_core.structure import (
     action_subsets,
     enumerate_candidates,
@@ -17,19 +18,24 @@ from body_scheme_core.structure import (
 
 
 def test_candidate_count_matches_the_paper_formula():
-    """7 parts, 6 actions, at most 2 actions: C(7,2) * (1 + 6 + 15) = 462 candidates, ordered by layer."""
+    """7 parts, 6 actions, at most 2 actions: the paper's C(7,2) * (1 + 6 + 15) = 462 GPs; with rigid joints each pair
+    has 1 static + 6 x (prismatic, revolute, GP) + 15 GPs = 34 candidates; ordered by layer, then class rank."""
+    paper = enumerate_candidates([1, 2, 3, 4, 5, 6, 7], 6, 2, kinds=("gp",))
+    assert len(paper) == n_candidates(7, 6, 2, ("gp",)) == 462
     candidates = enumerate_candidates([1, 2, 3, 4, 5, 6, 7], 6, 2)
-    assert len(candidates) == n_candidates(7, 6, 2) == 21 * 22 == 462
-    layers = [len(acts) for _, _, acts in candidates]
-    assert layers == sorted(layers)
+    assert len(candidates) == n_candidates(7, 6, 2) == 21 * 34 == 714
+    order = [(len(acts), class_rank(kind)) for _, _, acts, kind in candidates]
+    assert order == sorted(order)
     assert len(set(candidates)) == len(candidates)
+    assert {kind for _, _, acts, kind in candidates if not acts} == {"static"}
+    assert {kind for _, _, acts, kind in candidates if len(acts) == 2} == {"gp"}
     assert action_subsets(3, 5) == [(), (0,), (1,), (2,), (0, 1), (0, 2), (1, 2), (0, 1, 2)]
 
 
 def test_candidates_follow_the_given_part_order():
     """Each pair appears once, parent before child in the given (arbitrary) id order."""
     candidates = enumerate_candidates([42, 7, 13], 1, 1)
-    pairs = {(i, j) for i, j, _ in candidates}
+    pairs = {(i, j) for i, j, _, _ in candidates}
     assert pairs == {(42, 7), (42, 13), (7, 13)}
     with pytest.raises(InvalidInputError):
         enumerate_candidates([1, 1], 1, 1)

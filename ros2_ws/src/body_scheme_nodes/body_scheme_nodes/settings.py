@@ -44,7 +44,7 @@ def parameter_defaults(n_joints=1):
         value = getattr(config, field.name)
         if field.name in NONE_SENTINELS:
             value = NONE_SENTINELS[field.name]
-        defaults[LEARNER_PREFIX + field.name] = value
+        defaults[LEARNER_PREFIX + field.name] = list(value) if isinstance(value, tuple) else value
     return defaults
 
 

@@ -45,8 +45,21 @@ def test_report_marks_missed_targets_plainly(tmp_path):
     assert "## A title" in text and "The protocol." in text
     assert "| `x_mm` | 50.0 | <= 30.0 | 41.0 ± 3.0 | n/a | **no** |" in text
     assert "| `y` | n/a | <= 2.00 | 1.00 ± 0.00 | n/a | yes |" in text
-    assert "- `x_mm`: 41.0 against the target 30.0 (paper 50.0)" in text
+    assert "- `x_mm`: 41.0 against the target <= 30.0 (paper 50.0)" in text
     assert met("y", math.nan, module.TARGETS) is None
+
+
+def test_a_figure_where_higher_is_better_has_a_minimum_target(tmp_path):
+    """MIN_TARGETS are shown as '>=' and met when the value reaches them."""
+    module = types.ModuleType("fake", "A title\n\nThe protocol.")
+    module.FIGURES, module.PAPER, module.TARGETS = {"fraction": "the fraction"}, {}, {}
+    module.MIN_TARGETS = {"fraction": 0.96}
+    meta = {"commit": "abc", "seed": 0, "runs": 2, "rendered_runs": 0, "jobs": 1, "seconds": 1.0,
+            "runs_per_experiment": {"fake": 30}}
+    text = write_results_md(tmp_path / "R.md", {"fake": module}, {"fraction": 0.9, "fraction_std": 0.3}, {}, {},
+                            meta, "make experiments").read_text()
+    assert "| `fraction` | n/a | >= 0.96 | 0.90 ± 0.30 | n/a | **no** |" in text and "30 noise-model runs." in text
+    assert met("fraction", 0.97, {}, module.MIN_TARGETS) and not met("fraction", 0.5, {}, module.MIN_TARGETS)
 
 
 def test_command_writes_results_json_with_seed_commit_and_std_twins(tmp_path, capsys):

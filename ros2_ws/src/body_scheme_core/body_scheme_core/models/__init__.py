@@ -1,4 +1,9 @@
-"""Local model classes p(Z_ij | A_ij), one module each, and the registry used by persistence."""
+"""Local model classes p(Z_ij | A_ij), one module each, and the registry used by persistence.
+
+Rigid joints (:class:`StaticModel`, :class:`PrismaticModel`, :class:`RevoluteModel` on the shared
+:class:`RigidJointModel`), Gaussian processes (:class:`GPModel`), the robot's specification (:class:`EngineeredModel`),
+and the two batches that let hundreds of candidates learn at once (:class:`GPBatch`, :class:`RigidBatch`).
+"""
 
 from __future__ import annotations
 
@@ -6,6 +11,10 @@ from ..errors import ModelFileError
 from .base import LocalModel, check_actions, check_observations
 from .engineered import EngineeredModel
 from .gp import GPBatch, GPModel
+from .prismatic import PrismaticModel
+from .revolute import RevoluteModel
+from .rigid import RigidJointModel
+from .rigid_batch import RigidBatch
 from .static import StaticModel
 
 __all__ = [
@@ -13,6 +22,10 @@ __all__ = [
     "check_actions",
     "check_observations",
     "StaticModel",
+    "PrismaticModel",
+    "RevoluteModel",
+    "RigidJointModel",
+    "RigidBatch",
     "EngineeredModel",
     "GPModel",
     "GPBatch",
@@ -21,7 +34,8 @@ __all__ = [
 ]
 
 #: Local model classes by their ``kind``, the key written into saved files.
-MODEL_CLASSES: dict[str, type[LocalModel]] = {cls.kind: cls for cls in (StaticModel, EngineeredModel, GPModel)}
+MODEL_CLASSES: dict[str, type[LocalModel]] = {
+    cls.kind: cls for cls in (StaticModel, PrismaticModel, RevoluteModel, EngineeredModel, GPModel)}
 
 
 def model_from_dict(data):

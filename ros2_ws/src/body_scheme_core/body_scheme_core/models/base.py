@@ -125,6 +125,11 @@ class LocalModel(ABC):
     def predict(self, A, return_std=False):
         """Predict ``parent2child`` (k, 4, 4) for action vectors ``A`` (k, m) [and std (k, 2): trans m, rot rad]."""
 
+    def predict_one(self, a):
+        """``parent2child`` (4, 4) for one full action vector ``a`` (m,) that the caller has checked (finite, long
+        enough): the per-step path of :meth:`BodyScheme.predict`."""
+        return self.predict(a[None])[0]
+
     def training_range(self):
         """``(low, high)`` per action of :attr:`actions` that the model saw in training, or ``None``.
 

@@ -43,6 +43,8 @@ __all__ = [
     "polar_derivative",
     "summarise_std",
     "GPHyperparameters",
+    "log_marginal_likelihood",
+    "marginal_likelihood_hyperparameters",
     "GPModel",
     "GPBatch",
 ]
@@ -309,6 +311,71 @@ class GPHyperparameters:
         return std
 
 
+#: Search box of :func:`marginal_likelihood_hyperparameters`: length scale (rad) and noise-to-signal ratio.
+LENGTH_SCALE_BOUNDS = (0.2, 5.0)
+RATIO_BOUNDS = (0.01, 2.0)
+
+
+def log_marginal_likelihood(X, Y, length_scale, ratio):
+    """Profile log marginal likelihood of 12 outputs sharing one kernel (up to a constant).
+
+    Each centred output ``y_o ~ N(0, s_o^2 (K + r^2 I))`` with the unit-amplitude kernel ``K`` of ``length_scale``; its
+    signal variance ``s_o^2`` is profiled out at its maximum ``y_o^T (K + r^2 I)^-1 y_o / n``, leaving
+    ``-sum_o n/2 log(s_o^2) - 12/2 log|K + r^2 I|``.
+
+    Parameters
+    ----------
+    X : ndarray, shape (n, d)
+    Y : ndarray, shape (n, 12)
+    length_scale, ratio : float
+    """
+    n = X.shape[0]
+    C = squared_exponential(X, X, length_scale) + ratio**2 * np.eye(n)
+    try:
+        L = np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return -np.inf
+    Yc = Y - Y.mean(axis=0)
+    quad = np.sum(Yc * cho_solve((L, True), Yc), axis=0) / n
+    return float(-0.5 * n * np.sum(np.log(np.maximum(quad, 1e-300))) - Y.shape[1] * np.sum(np.log(np.diag(L))))
+
+
+def marginal_likelihood_hyperparameters(X, Y, current):
+    """Hyperparameters with the length scale and one noise-to-signal ratio of maximum marginal likelihood.
+
+    A coarse log-spaced grid over :data:`LENGTH_SCALE_BOUNDS` x :data:`RATIO_BOUNDS`, then a bounded Nelder-Mead
+    refinement in log space. The signal stds keep ``current``'s (only the ratio enters the posterior mean); the
+    noise stds follow from the ratio.
+
+    Parameters
+    ----------
+    X : ndarray, shape (n, d)
+    Y : ndarray, shape (n, 12)
+    current : GPHyperparameters
+
+    Returns
+    -------
+    GPHyperparameters
+    """
+    from scipy.optimize import minimize
+
+    lo = np.log([LENGTH_SCALE_BOUNDS[0], RATIO_BOUNDS[0]])
+    hi = np.log([LENGTH_SCALE_BOUNDS[1], RATIO_BOUNDS[1]])
+
+    def cost(z):
+        z = np.clip(z, lo, hi)
+        return -log_marginal_likelihood(X, Y, math.exp(z[0]), math.exp(z[1]))
+
+    grid = [np.array([a, b]) for a in np.linspace(lo[0], hi[0], 6) for b in np.linspace(lo[1], hi[1], 6)]
+    start = min(grid, key=cost)
+    result = minimize(cost, start, method="Nelder-Mead", options={"xatol": 0.02, "fatol": 1e-3, "maxiter": 80})
+    length_scale, ratio = np.exp(np.clip(result.x, lo, hi))
+    return GPHyperparameters(length_scale=float(length_scale), signal_std_trans=current.signal_std_trans,
+                             signal_std_rot=current.signal_std_rot,
+                             noise_std_trans=float(ratio) * current.signal_std_trans,
+                             noise_std_rot=float(ratio) * current.signal_std_rot)
+
+
 def _training_arrays(X, Y, d):
     """Saved training inputs and targets as float arrays (n, d) and (n, 12); empty lists give n = 0."""
     X = np.asarray(X, dtype=float)
@@ -380,10 +447,17 @@ class GPModel(LocalModel):
         """Number of training samples (0 before ``fit``)."""
         return self.X_train_.shape[0] if self.is_fitted else 0
 
-    def fit(self, A, Z):
-        """Fit on full action vectors ``A`` (n, m) and relative observations ``Z`` (n, 4, 4); returns ``self``."""
+    def fit(self, A, Z, optimize=False):
+        """Fit on full action vectors ``A`` (n, m) and relative observations ``Z`` (n, 4, 4); returns ``self``.
+
+        With ``optimize`` the length scale and the noise-to-signal ratio are first chosen by maximising the marginal
+        likelihood (:func:`marginal_likelihood_hyperparameters`); otherwise the given hyperparameters are used.
+        """
         A, Z = check_observations(A, Z)
-        return self._fit_components(self._select(A), vector12_from_transform(Z))
+        X, Y = self._select(A), vector12_from_transform(Z)
+        if optimize and self.actions and X.shape[0] >= 3:
+            self.hyperparameters = marginal_likelihood_hyperparameters(X, Y, self.hyperparameters)
+        return self._fit_components(X, Y)
 
     def _fit_components(self, X, Y):
         """Fit on the model's own inputs ``X`` (n, d) and 12-vector targets ``Y`` (n, 12)."""

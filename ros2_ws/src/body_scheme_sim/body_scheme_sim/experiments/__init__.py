@@ -6,6 +6,11 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.fig7`: Fig. 7, the 2-DOF arm learning from scratch (prediction and control error vs samples).
 - :mod:`.table1`: Table I and Fig. 6, the 6-DOF arm's recovery after a blocked joint and a deformed limb.
 - :mod:`.control`: Sec. IV-D, the 4-DOF arm following a trajectory by IK with a deformed middle limb.
+- :mod:`.branching`: not in the paper: a branching body learned from scratch (true tree found, no false alarm).
+
+A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``PERCEPTIONS`` (default both
+``"noise"`` and ``"rendered"``), ``MIN_TARGETS`` (figures where higher is better) and ``NOTES`` (text under its
+table).
 
 :mod:`.runner` runs them in parallel over seeds and :mod:`.report` writes ``docs/results/`` and ``docs/RESULTS.md``.
 """

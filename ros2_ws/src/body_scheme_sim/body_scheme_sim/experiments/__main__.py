@@ -35,7 +35,9 @@ def _commit():
 def main(argv=None):
     """Console entry point."""
     parser = argparse.ArgumentParser(prog="python -m body_scheme_sim.experiments", description=__doc__.split("\n")[0])
-    parser.add_argument("--runs", type=int, default=20, help="noise-model runs per experiment (seeds seed..)")
+    parser.add_argument("--runs", type=int, default=20,
+                        help="noise-model runs per experiment (seeds seed..); an experiment may ask for more (RUNS) "
+                             "outside --quick")
     parser.add_argument("--rendered-runs", type=int, default=1, help="rendered-camera runs per experiment")
     parser.add_argument("--quick", action="store_true", help="the experiments' small CI versions")
     parser.add_argument("--only", nargs="+", choices=EXPERIMENTS, default=list(EXPERIMENTS))
@@ -51,9 +53,14 @@ def main(argv=None):
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     experiments = {name: experiment_module(name) for name in args.only}
-    tasks = [Task(name, args.seed + k, "noise", args.quick) for name in experiments for k in range(args.runs)]
+    run_counts = {name: args.runs if args.quick else getattr(module, "RUNS", args.runs)
+                  for name, module in experiments.items()}
+    rendered_runs = {name: args.rendered_runs if "rendered" in getattr(module, "PERCEPTIONS", ("noise", "rendered"))
+                     else 0 for name, module in experiments.items()}
+    tasks = [Task(name, args.seed + k, "noise", args.quick) for name in experiments
+             for k in range(run_counts[name])]
     tasks += [Task(name, args.seed + k, "rendered", args.quick) for name in experiments
-              for k in range(args.rendered_runs)]
+              for k in range(rendered_runs[name])]
     start = time.monotonic()
     outcomes = run_tasks(tasks, jobs=args.jobs, progress=not args.quiet)
     seconds = time.monotonic() - start
@@ -74,10 +81,11 @@ def main(argv=None):
         bounds = getattr(module, "SANITY", {})
         problems += [f"{name} (noise): {p}" for p in sanity_problems(aggregate(runs), bounds)] if runs else \
             [f"{name}: no successful noise run"]
-        if args.rendered_runs:
+        if rendered_runs[name]:
             problems += [f"{name} (rendered): {p}" for p in sanity_problems(aggregate(shown), bounds)] if shown \
                 else [f"{name}: no successful rendered run"]
-    meta = {"seed": args.seed, "commit": _commit(), "runs": args.runs, "rendered_runs": args.rendered_runs,
+    meta = {"seed": args.seed, "commit": _commit(), "runs": args.runs, "runs_per_experiment": run_counts,
+            "rendered_runs": args.rendered_runs,
             "quick": args.quick, "jobs": args.jobs, "seconds": round(seconds, 1),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     write_results_json(out / "results.json", noise, rendered, meta)

@@ -27,10 +27,10 @@ Three conditions:
 2. ``static``: the same scheme, never adapted, on the bent arm (the same IK solutions, so the error is the bend's).
 3. ``adaptive``: a :class:`~body_scheme_core.learner.BodySchemeLearner` started from the engineered models babbles
    :data:`N_BEFORE` = 100 samples on the healthy arm (Table I's first block), then :data:`N_AFTER` = 150 samples (the
-   fixed budget, the same for every run: detection and replacement take ~5 of them, the replacement then refines
-   to ``refine_window`` = 120 samples) on the bent arm; then the trajectory is followed with its current body
-   scheme, IK within :func:`~body_scheme_core.ik.trained_bounds`. Noise mode: the paper's noise (44 mm / 15 deg),
-   every marker seen (the paper gives no visibility for its simulation); rendered mode: the simulator's images
+   fixed budget, the same for every run: detection and replacement take ~5 of them, the replacement then keeps
+   learning through the joint fit of the body scheme) on the bent arm; then the trajectory is followed with its
+   current body scheme, IK within :func:`~body_scheme_core.ik.trained_bounds`. Noise mode: the paper's noise (44 mm /
+   15 deg), every marker seen (the paper gives no visibility for its simulation); rendered mode: the simulator's images
    through the ArUco tracker, the learner with the tracker's sigmas, babbling that keeps markers 3 and 4 (the
    changed pair) in view of the healthy arm.
    ``quick``: 30 + 60 samples, the same trajectory and figures.

@@ -7,12 +7,17 @@ Noise mode: the paper's noise (44 mm / 15 deg) and visibility (91.9 % blocked, 7
 :mod:`body_scheme_core.synthetic`; rendered mode: the simulator's camera images through the ArUco tracker
 (:func:`body_scheme_sim.sessions.joint_blocked_protocol`), the learner with the tracker's noise sigmas.
 
-Recovery time (one definition throughout): the number of samples of the changed body whose end-effector prediction
-came from the outdated body scheme, ``s - t0 + 1``, where ``t0`` is the first sample of the block (the change) and
-``s`` the sample whose update raised the first ``model_replaced`` or ``model_reinstated`` event on the end-effector
-edge (the tree edge into marker 7) in the block. Predictions are made before each update, so samples ``t0 .. s`` were
-predicted with the old model and the minimum is 1. A run without such an event in the block counts the whole block
-(100) and is reported as not recovered.
+Recovery time, two definitions:
+
+- ``recovery`` (ours, since issue 6): the number of samples of the changed body whose end-effector prediction came from
+  the outdated body scheme, ``s - t0 + 1``, where ``t0`` is the first sample of the block (the change) and ``s`` the
+  sample whose update raised the first ``model_replaced`` or ``model_reinstated`` event on the end-effector edge (the
+  tree edge into marker 7) in the block. Predictions are made before each update, so samples ``t0 .. s`` were
+  predicted with the old model and the minimum is 1. A run without such an event in the block counts the whole block
+  (100) and is reported as not recovered.
+- ``invalid`` (the paper's likely one: samples without a valid spanning tree): the number of samples of the block after
+  whose update some edge of the body scheme was invalid (test window) or in mismatch. A change recognised before the
+  failed model's window turns invalid counts 0, as the paper's 0.45 and 0.65 suggest it did there.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from body_scheme_core.synthetic import joint_blocked_protocol as core_blocked
 from body_scheme_core.synthetic import limb_deformed_protocol as core_deformed
 from body_scheme_core.synthetic import powercube_6dof
 
-__all__ = ["FIGURES", "PAPER", "TARGETS", "PROTOCOLS", "run", "run_protocol", "recovery_times", "plot"]
+__all__ = ["FIGURES", "PAPER", "TARGETS", "NOTES", "PROTOCOLS", "run", "run_protocol", "recovery_times", "plot"]
 
 #: Experiment name -> results.json key prefix.
 PROTOCOLS = {"joint_blocked": "blocked", "limb_deformed": "deformed"}
@@ -40,9 +45,14 @@ for _name, _prefix in PROTOCOLS.items():
         f"{_prefix}_recovery_failure": f"{_what}, block 2 (first change): {_DEFINITION}",
         f"{_prefix}_recovery_repair": f"{_what}, block 3 (repaired): {_DEFINITION}",
         f"{_prefix}_recovery_same": f"{_what}, block 4 (the same change again): {_DEFINITION}",
+        f"{_prefix}_invalid_failure": f"{_what}, block 2: samples after whose update an edge of the body scheme was "
+                                      "invalid or in mismatch (the paper's likely definition)",
+        f"{_prefix}_invalid_repair": f"{_what}, block 3: the same",
+        f"{_prefix}_invalid_same": f"{_what}, block 4: the same",
         f"{_prefix}_ee_err_mm_after": f"{_what}: mean end-effector position error (mm, prediction made before the "
                                       "sample vs ground truth) in block 2 after recovery (samples s+1 .. 199)",
         f"{_prefix}_ee_err_mm_before": f"{_what}: the same in block 1 (engineered body scheme, healthy arm)",
+        f"{_prefix}_all_err_mm_after": f"{_what}: like ee_err_mm_after, averaged over every part but the root",
         f"{_prefix}_not_recovered": f"{_what}: blocks 2-4 without an adaptation event (count per run)",
     })
 #: The paper's Table I and Sec. IV-B/C (recovery in samples; errors in mm).
@@ -50,10 +60,16 @@ PAPER = {"blocked_recovery_failure": 16.50, "blocked_recovery_repair": 0.45, "bl
          "blocked_ee_err_mm_after": 51.0, "blocked_ee_err_mm_before": 37.0,
          "deformed_recovery_failure": 20.20, "deformed_recovery_repair": 11.10, "deformed_recovery_same": 12.10,
          "deformed_ee_err_mm_after": 47.0}
-#: The issue's targets (all: lower is better).
-TARGETS = {"blocked_recovery_failure": 8.0, "blocked_recovery_repair": 0.5, "blocked_recovery_same": 0.5,
-           "blocked_ee_err_mm_after": 30.0, "deformed_recovery_failure": 10.0, "deformed_recovery_repair": 3.0,
-           "deformed_recovery_same": 3.0, "deformed_ee_err_mm_after": 30.0}
+#: The issue's targets (all: lower is better): no recovery time worse than before the rigid joints and the joint
+#: fit (the GP-only learner's figures of docs/RESULTS.md at commit 62a5438), and the end effector within 20 mm after
+#: recovery.
+TARGETS = {"blocked_recovery_failure": 7.05, "blocked_recovery_repair": 3.30, "blocked_recovery_same": 3.85,
+           "blocked_ee_err_mm_after": 20.0, "deformed_recovery_failure": 13.5, "deformed_recovery_repair": 3.60,
+           "deformed_recovery_same": 3.60, "deformed_ee_err_mm_after": 20.0}
+NOTES = """\
+The earlier targets of 0.5 samples for a repair and for the same change again (the paper's 0.45 and 0.65) cannot be
+met under the first definition, whose floor is 1 sample; the second definition is the one to compare with the paper.
+"""
 _ADAPTED = ("model_replaced", "model_reinstated")
 
 
@@ -109,24 +125,34 @@ def run_protocol(protocol, seed, perception="noise"):
                                 action_upper=tree.action_upper)
     effector = max(tree.marker_ids)
     column = list(session.marker_ids).index(effector)
+    parts = [list(session.marker_ids).index(p) for p in tree.marker_ids if p != tree.root_marker]
     n = session.actions.shape[0]
     errors = np.full(n, np.nan)
+    all_errors = np.full(n, np.nan)
+    invalid = np.zeros(n, dtype=bool)
     events = []
     for t in range(n):
-        predicted = learner.predict(session.actions[t])[effector]  # before the update: an unseen sample
-        errors[t] = np.linalg.norm(predicted[:3, 3] - session.true_poses[t, column, :3, 3])
+        predicted = learner.predict(session.actions[t])  # before the update: an unseen sample
+        errors[t] = np.linalg.norm(predicted[effector][:3, 3] - session.true_poses[t, column, :3, 3])
+        all_errors[t] = np.mean([np.linalg.norm(predicted[session.marker_ids[k]][:3, 3]
+                                                - session.true_poses[t, k, :3, 3]) for k in parts])
         events += learner.update(session.actions[t], session.observations[t], stamp=t)
+        invalid[t] = any(not s["valid"] or s["in_mismatch"] for s in learner.edge_status())
     changes = [int(step) for step, _ in session.faults]
     recovery = recovery_times(events, changes, n, effector)
     prefix = PROTOCOLS[protocol]
     (failure, ok1), (repair, ok2), (same, ok3) = recovery
     after_start = changes[0] + int(failure)
+    bounds = changes + [n]
     figures = {
         f"{prefix}_recovery_failure": failure,
         f"{prefix}_recovery_repair": repair,
         f"{prefix}_recovery_same": same,
+        **{f"{prefix}_invalid_{name}": float(invalid[start:stop].sum())
+           for name, start, stop in zip(("failure", "repair", "same"), bounds[:-1], bounds[1:], strict=True)},
         f"{prefix}_ee_err_mm_after": 1e3 * float(np.nanmean(errors[after_start:changes[1]])),
         f"{prefix}_ee_err_mm_before": 1e3 * float(np.nanmean(errors[:changes[0]])),
+        f"{prefix}_all_err_mm_after": 1e3 * float(np.nanmean(all_errors[after_start:changes[1]])),
         f"{prefix}_not_recovered": float(3 - sum((ok1, ok2, ok3))),
     }
     seen = np.mean([len(obs) / len(session.marker_ids) for obs in session.observations])
@@ -176,4 +202,6 @@ def plot(runs, path_prefix):
 
 #: Loose bounds for ``make experiments-quick`` (a broken pipeline, not a weak result, falls outside).
 SANITY = {**{f"{p}_recovery_{k}": (1.0, 100.0) for p in PROTOCOLS.values() for k in ("failure", "repair", "same")},
-          **{f"{p}_ee_err_mm_{k}": (0.0, 500.0) for p in PROTOCOLS.values() for k in ("after", "before")}}
+          **{f"{p}_invalid_{k}": (0.0, 100.0) for p in PROTOCOLS.values() for k in ("failure", "repair", "same")},
+          **{f"{p}_ee_err_mm_{k}": (0.0, 500.0) for p in PROTOCOLS.values() for k in ("after", "before")},
+          **{f"{p}_all_err_mm_after": (0.0, 500.0) for p in PROTOCOLS.values()}}
