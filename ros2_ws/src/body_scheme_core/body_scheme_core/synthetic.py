@@ -352,9 +352,12 @@ class Body:
         True geometry (possibly deformed).
     blocked : dict of int to float or None
         ``{action index: angle}`` of joints that ignore their command and stay at ``angle``.
+    gears : dict of int to (float, float) or None
+        ``{action index: (amplitude, frequency)}`` of joints driven through a nonlinear transmission: the joint moves
+        to ``amplitude sin(frequency a)`` for the (clipped) command ``a``, a relation no rigid joint model explains.
     """
 
-    def __init__(self, tree, blocked=None):
+    def __init__(self, tree, blocked=None, gears=None):
         if not isinstance(tree, KinematicTree):
             raise InvalidInputError(f"tree must be a KinematicTree, got {type(tree).__name__}")
         self.tree = tree
@@ -366,6 +369,14 @@ class Body:
                 raise InvalidInputError(
                     f"blocked angle {angle} of action {action} is outside [{joint.lower}, {joint.upper}]")
             self.blocked[int(action)] = angle
+        self.gears = {}
+        for action, (amplitude, frequency) in (gears or {}).items():
+            joint = tree.action_joint(action)
+            if not (math.isfinite(amplitude) and math.isfinite(frequency)) or not (
+                    joint.lower <= -abs(amplitude) and abs(amplitude) <= joint.upper):
+                raise InvalidInputError(f"gear ({amplitude}, {frequency}) of action {action} must be finite and "
+                                        f"keep the joint in [{joint.lower}, {joint.upper}]")
+            self.gears[int(action)] = (float(amplitude), float(frequency))
 
     @classmethod
     def wrap(cls, body_or_tree):
@@ -376,10 +387,11 @@ class Body:
 
     def copy(self):
         """An independent copy."""
-        return Body(self.tree.copy(), dict(self.blocked))
+        return Body(self.tree.copy(), dict(self.blocked), dict(self.gears))
 
     def execute(self, a):
-        """Executed joint positions for commanded actions: clipped to the joint limits, blocked joints held.
+        """Executed joint positions for commanded actions: clipped to the joint limits, through the gears, blocked
+        joints held.
 
         Parameters
         ----------
@@ -391,6 +403,8 @@ class Body:
         """
         a = np.asarray(a, dtype=float)
         q = np.clip(check_actions(a, self.tree.n_actions), self.tree.action_lower, self.tree.action_upper)
+        for action, (amplitude, frequency) in self.gears.items():
+            q[:, action] = amplitude * np.sin(frequency * q[:, action])
         for action, angle in self.blocked.items():
             q[:, action] = angle
         return q[0] if a.ndim == 1 else q
@@ -405,7 +419,7 @@ class Body:
         return np.stack([poses[i] for i in self.tree.marker_ids], axis=1)
 
     def __repr__(self):
-        return f"<Body {self.tree!r} blocked={self.blocked}>"
+        return f"<Body {self.tree!r} blocked={self.blocked} gears={self.gears}>"
 
 
 def block_joint(body, action_index, angle):
@@ -413,7 +427,7 @@ def block_joint(body, action_index, angle):
     body = Body.wrap(body)
     blocked = dict(body.blocked)
     blocked[int(action_index)] = angle
-    return Body(body.tree, blocked)
+    return Body(body.tree, blocked, body.gears)
 
 
 def deform_limb(body, joint_or_link, delta_length=0.0, delta_rotvec=(0.0, 0.0, 0.0)):
@@ -463,7 +477,7 @@ def deform_limb(body, joint_or_link, delta_length=0.0, delta_rotvec=(0.0, 0.0, 0
                 raise InvalidInputError(f"delta_length {delta_length} would make limb {name!r} ({length} m) vanish")
             origin[:3, 3] *= (length + delta_length) / length
         tree = tree.replace_joint(name, origin=bend @ origin)
-    return Body(tree, body.blocked)
+    return Body(tree, body.blocked, body.gears)
 
 
 def displace_marker(body, marker_id, delta):
@@ -485,7 +499,8 @@ def displace_marker(body, marker_id, delta):
     if delta.shape != (4, 4):
         raise InvalidInputError(f"delta must have shape (4, 4), got {delta.shape}")
     marker = body.tree.marker(marker_id)
-    return Body(body.tree.replace_marker(marker_id, link2marker=marker.link2marker @ delta), body.blocked)
+    return Body(body.tree.replace_marker(marker_id, link2marker=marker.link2marker @ delta), body.blocked,
+                body.gears)
 
 
 class Fault:

@@ -345,15 +345,6 @@ def test_demo_runs_end_to_end(capsys):
     assert "mismatch_detected" in out and "model_replaced" in out and out.count("model_reinstated") >= 2
 
 
-class _Geared(Body):
-    """The 2-DOF arm with a nonlinear transmission on its second joint: the joint turns 1.2 sin(1.3 a), not a."""
-
-    def execute(self, a):
-        q = super().execute(a).copy()
-        q[..., 1] = 1.2 * np.sin(1.3 * q[..., 1])
-        return q
-
-
 def test_rigid_joints_where_they_fit_and_a_gp_where_none_does():
     """From scratch: revolute joints on the plain arm; with the nonlinear transmission the GP challenger takes the
     second edge shortly after bootstrapping (relative observations could not tell them apart)."""
@@ -364,7 +355,8 @@ def test_rigid_joints_where_they_fit_and_a_gp_where_none_does():
     assert not _kinds(events, "model_replaced") and not _kinds(events, "mismatch_detected")
     assert plain.n_candidates == 0  # the challengers were dropped once they had been tested
     geared = BodySchemeLearner(robot.marker_ids, robot.n_actions)
-    events = _run(geared, make_session(_Geared(robot), 120, seed=0, visibility=0.95))
+    geared_arm = Body(robot, gears={1: (1.2, 1.3)})  # the elbow turns 1.2 sin(1.3 a), not a
+    events = _run(geared, make_session(geared_arm, 120, seed=0, visibility=0.95))
     kinds = {(m.parent, m.child): m.kind for m in geared.body_scheme.models}
     assert kinds[(1, 2)] == "revolute"
     assert kinds.get((2, 3), kinds.get((3, 2))) == "gp"

@@ -140,6 +140,20 @@ def test_block_joint_holds_the_angle_and_leaves_original_untouched():
         block_joint(tree, 2, 10.0)
 
 
+def test_a_gear_maps_the_command_nonlinearly_and_survives_faults():
+    """A nonlinear transmission moves the joint to amplitude sin(frequency a); faults and copies keep it."""
+    tree = planar_2dof()
+    body = Body(tree, gears={1: (1.2, 1.3)})
+    np.testing.assert_allclose(body.execute([0.3, 0.5]), [0.3, 1.2 * math.sin(0.65)])
+    np.testing.assert_allclose(body.execute([[0.0, 5.0]])[0, 1], 1.2 * math.sin(1.3 * math.pi / 2))  # clipped first
+    assert block_joint(body, 0, 0.2).gears == body.gears and body.copy().gears == body.gears
+    assert deform_limb(body, "joint2", 0.1).gears == body.gears
+    blocked = block_joint(body, 1, 0.4)
+    assert blocked.execute([0.0, 1.0])[1] == 0.4  # a blocked joint ignores the gear too
+    with pytest.raises(InvalidInputError, match="gear"):
+        Body(tree, gears={1: (2.0, 1.0)})  # would leave the joint's limits
+
+
 def test_execute_clips_commands_to_limits():
     """Commands beyond the joint limits are clipped, as a real controller would."""
     body = Body(planar_2dof())

@@ -7,6 +7,7 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.table1`: Table I and Fig. 6, the 6-DOF arm's recovery after a blocked joint and a deformed limb.
 - :mod:`.control`: Sec. IV-D, the 4-DOF arm following a trajectory by IK with a deformed middle limb.
 - :mod:`.branching`: not in the paper: a branching body learned from scratch (true tree found, no false alarm).
+- :mod:`.transmission`: not in the paper: a nonlinear gear learned from scratch (GP edge, its hyperparameters).
 
 A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``PERCEPTIONS`` (default both
 ``"noise"`` and ``"rendered"``), ``MIN_TARGETS`` (figures where higher is better) and ``NOTES`` (text under its
