@@ -18,7 +18,12 @@ to the failed model (Eq. 11) and class rank, and trained *only* on data since th
 history is replayed to them prequentially at once. If none is valid after ``bridge_patience`` steps, candidates of
 every other pair that reconnects the two halves are sampled too (a local re-bootstrap), so that a wrong edge is
 never permanent. The cheapest valid candidate by ``C(M2|M1)`` plus its error and class penalty replaces the failed model
-(``model_replaced``); a different pair also reports ``structure_changed``.
+(``model_replaced``); a different pair also reports ``structure_changed``. The other candidates keep learning until
+they are frozen: a simpler one that becomes valid takes over unless the installed model is clearly better.
+
+**Challengers.** Right after bootstrapping, every rigid joint of the tree gets a GP challenger trained on the
+chain-consistent history; it takes the edge only if it predicts the same samples clearly better (a nonlinear
+transmission, a flexing tool), else it is dropped.
 
 **Memory.** A model that leaves the tree is retired to memory (``model_retired``): at most ``memory_size`` per pair,
 the least recently used forgotten first (:func:`least_recently_used`).
@@ -42,6 +47,11 @@ from .quality import model_cost, nests, relative_complexity
 from .structure import action_subsets, kinds_for, replacement_candidates
 
 __all__ = ["Adaptation", "Mismatch", "Change", "least_recently_used", "tree_halves"]
+
+#: An alarm is attributed to an edge above it only if that edge's CUSUM reached this fraction of the alarm level: a
+#: change above raises the errors of its own child too, while healthy edges wander a little above zero (up to 0.7 of
+#: the drift-adjusted statistic on clean data, learning-and-adaptation.md Sec. 6).
+_ATTRIBUTION_FRACTION = 0.5
 
 
 @dataclass
@@ -249,13 +259,15 @@ class Adaptation:
             self._start_mismatch(f, step, events, False, st_f, 0, cause=cause)
 
     def _root_most_rising(self, above, entry):
-        """The edge nearest the root among ``above`` whose CUSUM excursion started no later than ``entry``'s."""
+        """The edge nearest the root among ``above`` whose CUSUM excursion started no later than ``entry``'s and
+        reached at least ``_ATTRIBUTION_FRACTION`` of the alarm level (a noise excursion of a healthy edge does not)."""
         monitor = self.pool.monitor
         start = int(monitor.change_point([entry.row])[0])
         start = math.inf if start < 0 else start
+        level = _ATTRIBUTION_FRACTION * self.config.cusum_threshold
         for i in above:
             f = self.pool.tracked[i]
-            if not np.any(monitor.cusum[f.row] > 0.0):
+            if not np.any(monitor.cusum[f.row] >= level):
                 continue
             tau = int(monitor.change_point([f.row])[0])
             if 0 <= tau <= start + 1:
@@ -571,7 +583,7 @@ class Adaptation:
         tool) at the paper's noise; chain-consistent targets can. ``chain`` (this step's targets) orients each
         challenger from the root's side; ``chain_at`` gives the targets of past steps. Each challenger learns like a
         replacement candidate and takes the edge if it dominates the joint (:meth:`_challenge`); it is dropped once
-        frozen and tested for a window without doing so.
+        frozen and compared with the joint over a full window of common samples without doing so.
         """
         pool = self.pool
         edges = [pool.tracked[i] for i in tree if pool.tracked[i].kind in ("static", "prismatic", "revolute")
@@ -591,8 +603,8 @@ class Adaptation:
                             f"show here"))
 
     def _challenge(self, tree, step, events):
-        """Challengers that dominate their tree model take the edge; the others are dropped once they have been
-        frozen and tested for a window. Returns the changes."""
+        """Challengers that dominate their tree model take the edge; the others are dropped once they are frozen and
+        were compared with it over a full window of common samples. Returns the changes."""
         pool = self.pool
         c = self.config
         changes = []
@@ -623,10 +635,11 @@ class Adaptation:
                 pool.remove(current)
                 changes.append(Change(new, current, new.since))
                 continue
-            done = [e for e in challengers if pool.n_now(e) >= c.train_window
-                    and pool.monitor.count[e.row] >= c.train_window + c.test_window]
-            for e in done:
-                pool.remove(e)
+            # Judged: frozen, and compared with the tree model on a full window of common samples.
+            n, _ = pool.monitor.paired_difference([e.row for e in challengers], [current.row] * len(challengers))
+            for e, n_common in zip(challengers, n, strict=True):
+                if pool.n_now(e) >= c.train_window and n_common >= c.test_window:
+                    pool.remove(e)
         return changes
 
     def _replay(self, entries, chain_at, start):

@@ -555,9 +555,9 @@ def babble(tree, n, rng, above_ground=None, ground_z=0.0, max_draws=100_000):
     n : int
         Number of action vectors.
     rng : numpy.random.Generator or int
-    above_ground : iterable of int, True or None
+    above_ground : iterable of int, bool or None
         Marker ids (``True``: all markers) that must stay above ``z = ground_z`` in the root frame, a cheap
-        stand-in for the paper's collision check; ``None`` accepts everything.
+        stand-in for the paper's collision check; ``None`` or ``False`` accepts everything.
     ground_z : float
     max_draws : int
         Give up (``BodySchemeError``) after drawing this many candidates.
@@ -573,6 +573,8 @@ def babble(tree, n, rng, above_ground=None, ground_z=0.0, max_draws=100_000):
     lower, upper = tree.action_lower, tree.action_upper
     if above_ground is True:
         above_ground = tree.marker_ids
+    elif above_ground is False:
+        above_ground = None
     ids = [tree.marker(i).id for i in above_ground] if above_ground is not None else []
     accepted, n_accepted, drawn = [], 0, 0
     while n_accepted < n:

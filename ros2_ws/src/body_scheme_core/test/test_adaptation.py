@@ -149,6 +149,25 @@ def test_edges_below_a_changed_edge_wait_for_it():
     assert all(s["valid"] for s in run.learner.edge_status())
 
 
+def test_an_alarm_is_blamed_on_an_edge_above_only_if_that_edge_rose_too():
+    """The edge nearest the root whose CUSUM rose with the alarming one's takes the blame; a healthy edge above it
+    whose statistic only wanders a little above zero (noise) does not."""
+    robot = arm_4dof()
+    run = _Run(robot, engineered_models(robot), make_session(robot, 30, seed=0))
+    run.run(0, 30)
+    learner = run.learner
+    monitor, adaptation = learner._pool.monitor, learner._adaptation
+    upper, lower = run.edge(2, 3), run.edge(4, 5)
+    monitor.cusum[lower.row] = [2.5, 0.0]
+    monitor.cusum_start[lower.row] = [25, -1]
+    monitor.cusum_start[upper.row] = [24, -1]
+    half = 0.5 * learner.config.cusum_threshold
+    monitor.cusum[upper.row] = [0.6 * half, 0.0]
+    assert adaptation._root_most_rising([upper.id], lower) is None
+    monitor.cusum[upper.row] = [1.1 * half, 0.0]
+    assert adaptation._root_most_rising([upper.id], lower) == upper.id
+
+
 def test_a_remembered_model_that_fits_again_is_put_back():
     """After the repair the engineered model beats the learned one in memory's challenge and is reinstated."""
     robot = planar_2dof()

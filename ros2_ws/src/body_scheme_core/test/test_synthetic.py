@@ -257,6 +257,7 @@ def test_babbling_within_limits_and_above_ground():
     assert np.all(poses[5][:, 2, 3] > 0.4) and np.all(poses[7][:, 2, 3] > 0.4)
     unconstrained = tree.marker_poses(babble(tree, 500, np.random.default_rng(0)))
     assert np.any(unconstrained[7][:, 2, 3] < 0.4)
+    np.testing.assert_array_equal(babble(tree, 20, 1, above_ground=False), babble(tree, 20, 1))
 
 
 def test_babbling_gives_up_when_impossible():
