@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from body_scheme_sim.live_demo import format_summary, run_live_demo
+from body_scheme_sim.live_demo import domain_id, format_summary, run_live_demo
 
 pytestmark = pytest.mark.system
 
@@ -29,6 +29,16 @@ def assert_story(result, block, repair, ik_tolerance):
     assert result.scheme_status.get("events.model_reinstated", 0) >= 1, result.scheme_status
     reached = [r["reached_error"] for r in result.ik]
     assert len(reached) == 3 and all(r is not None and r < ik_tolerance for r in reached), (result.ik, summary)
+
+
+def test_the_monitor_joins_the_domain_of_the_nodes(monkeypatch):
+    """`make demo` in a shell with ROS_DOMAIN_ID set: the node processes inherit it, so the monitor must use it too
+    (it used domain 0 and never saw the graph); an explicit environment wins."""
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    assert domain_id() == 42
+    assert domain_id({"ROS_DOMAIN_ID": "7"}) == 7
+    monkeypatch.setenv("ROS_DOMAIN_ID", "")
+    assert domain_id() == 0 and domain_id({}) == 0
 
 
 def test_live_graph_learns_detects_recovers_and_moves_the_arm(ros_env, tmp_path):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import sys
 import time
@@ -118,6 +119,13 @@ class _Monitor:
         return self.step_of_stamp.get(stamp, -1)
 
 
+def domain_id(env=None):
+    """The ROS domain id of the node processes: ``env``'s ``ROS_DOMAIN_ID``, else this process's (as the nodes
+    inherit it), 0 when unset or empty. The monitor must join the same domain or it never sees the graph."""
+    value = (os.environ if env is None else env).get("ROS_DOMAIN_ID", "").strip()
+    return int(value) if value else 0
+
+
 def _number(text):
     """A diagnostics value as int or float when it is one, else the text."""
     for kind in (int, float):
@@ -185,7 +193,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     result = DemoResult(steps=steps, faults=list(faults), perception=perception,
                         true_edges=[list(e) for e in tree.marker_tree_edges()])
 
-    domain = int((env or {}).get("ROS_DOMAIN_ID", 0))
+    domain = domain_id(env)
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     node = rclpy.create_node("live_demo_monitor", context=context)

@@ -59,6 +59,8 @@ def test_a_figure_where_higher_is_better_has_a_minimum_target(tmp_path):
     text = write_results_md(tmp_path / "R.md", {"fake": module}, {"fraction": 0.9, "fraction_std": 0.3}, {}, {},
                             meta, "make experiments").read_text()
     assert "| `fraction` | n/a | >= 0.96 | 0.90 ± 0.30 | n/a | **no** |" in text and "30 noise-model runs." in text
+    # The run count is said before the table, not inside it (a line between header and rows breaks the table).
+    assert text.index("30 noise-model runs.") < text.index("| figure | paper |")
     assert met("fraction", 0.97, {}, module.MIN_TARGETS) and not met("fraction", 0.5, {}, module.MIN_TARGETS)
 
 

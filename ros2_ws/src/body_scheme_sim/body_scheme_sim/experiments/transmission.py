@@ -1,5 +1,6 @@
-"""A nonlinear transmission learned from scratch: does a GP still win where no rigid joint fits, and what do its
-hyperparameters and the rigid models each contribute?
+"""A nonlinear transmission learned from scratch: does a GP still win where no rigid joint fits?
+
+What the GP's hyperparameters and the rigid models each contribute, on a relation no rigid joint explains.
 
 Protocol (one run, everything from ``seed``): the paper's 2-DOF arm (:func:`~body_scheme_core.synthetic.planar_2dof`)
 whose elbow is driven through a nonlinear gear, ``q = 1.2 sin(1.3 a)`` (:class:`~body_scheme_core.synthetic.Body`
