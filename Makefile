@@ -60,35 +60,35 @@ lint: $(STAMPS)/deps
 
 # The live ROS graph (sim_node -> scheme_node -> control_node as processes over DDS); see README "Demo".
 demo: build
-	$(RUN) python -m body_scheme_sim.live_demo --out out/demo
+	$(RUN) python -m body_scheme_apps.live_demo --out out/demo
 
 # The same story without ROS: body_scheme_core alone on a synthetic session.
 demo-core: build
-	$(RUN) python -m body_scheme_core.demo
+	$(RUN) python -m body_scheme_apps.core_demo
 
 bench: build
-	$(RUN) python -m body_scheme_core.bench --out out/bench/core.json
-	$(RUN) python -m body_scheme_sim.bench --out out/bench/sim.json
+	$(RUN) python -m body_scheme_apps.learning_bench --out out/bench/core.json
+	$(RUN) python -m body_scheme_apps.perception_bench --out out/bench/sim.json
 
 # The sample sessions; the commands are the ones in bags/README.md (a test regenerates them and compares).
 bags: build
 	rm -rf bags/joint_blocked_seed0 bags/limb_deformed_seed0 bags/rendered_seed0
-	$(RUN) python -m body_scheme_sim.record --protocol joint_blocked --seed 0 --out bags/joint_blocked_seed0 --quiet
-	$(RUN) python -m body_scheme_sim.record --protocol limb_deformed --seed 0 --out bags/limb_deformed_seed0 --quiet
-	$(RUN) python -m body_scheme_sim.record --steps 40 --seed 0 --markers-of-interest 6 7 --perception rendered \
+	$(RUN) python -m body_scheme_apps.record --protocol joint_blocked --seed 0 --out bags/joint_blocked_seed0 --quiet
+	$(RUN) python -m body_scheme_apps.record --protocol limb_deformed --seed 0 --out bags/limb_deformed_seed0 --quiet
+	$(RUN) python -m body_scheme_apps.record --steps 40 --seed 0 --markers-of-interest 6 7 --perception rendered \
 	  --images 10 --out bags/rendered_seed0 --quiet
 
 # The offline replay of a shipped session: report, event timeline and error plot (docs/nodes.md#replay_offline-command).
 replay: build
-	$(RUN) python -m body_scheme_nodes.replay_offline bags/joint_blocked_seed0 --out out/replay/joint_blocked_seed0
+	$(RUN) python -m body_scheme_apps.replay_offline bags/joint_blocked_seed0 --out out/replay/joint_blocked_seed0
 
 # The paper's experiments (docs/RESULTS.md): 20 noise-model runs + 1 rendered-camera run each, all cores.
 experiments: build
-	$(RUN) python -m body_scheme_sim.experiments --runs 20 --rendered-runs 1 --out docs/results --md docs/RESULTS.md
+	$(RUN) python -m body_scheme_apps.experiments --runs 20 --rendered-runs 1 --out docs/results --md docs/RESULTS.md
 
 # CI's small version: 2 quick noise runs + 1 quick rendered run each; fails unless every figure is finite and sane.
 experiments-quick: build
-	$(RUN) python -m body_scheme_sim.experiments --quick --runs 2 --rendered-runs 1 --out out/experiments-quick \
+	$(RUN) python -m body_scheme_apps.experiments --quick --runs 2 --rendered-runs 1 --out out/experiments-quick \
 		--md out/experiments-quick/RESULTS.md --check --quiet
 
 clean:

@@ -6,8 +6,7 @@ import math
 
 import numpy as np
 import pytest
-
-from body_scheme_sim.live_demo import domain_id, format_summary, run_live_demo
+from body_scheme_apps.live_demo import domain_id, format_summary, run_live_demo
 
 pytestmark = pytest.mark.system
 

@@ -56,7 +56,7 @@ def matches(poses, expected, tolerance=1e-6):
 def test_babbling_noise_mode_and_a_blocked_joint_over_dds(start_node, ros_node, spin_until):
     """Babbling sim_node publishes commands, noisy observations and ground truth; a block_joint call shows in it."""
     tree, camera = load_robot("powercube_6dof"), Camera()
-    process = start_node("body_scheme_sim", "sim_node", {
+    process = start_node("body_scheme_nodes", "sim_node", {
         "robot": "powercube_6dof", "perception_mode": "noise", "babbling": True, "babbling_period": 0.05,
         "sigma_trans": 0.01, "visibility": 0.9, "markers_of_interest": [1], "seed": 4})
     recorder = Recorder(ros_node, [("joint_commands", JointState, 100), ("observations", MarkerPoses, 100),
@@ -99,7 +99,7 @@ def test_rendered_mode_answers_commands_with_images_over_dds(start_node, ros_nod
     The subscriber uses sensor-data (best effort) QoS: the sim's reliable image publisher must serve it too.
     """
     tree = load_robot("arm_4dof")
-    process = start_node("body_scheme_sim", "sim_node", {
+    process = start_node("body_scheme_nodes", "sim_node", {
         "robot": "arm_4dof", "perception_mode": "rendered", "camera.width": 320, "camera.height": 240,
         "camera.fx": 280.0, "camera.fy": 280.0, "camera.cx": 159.5, "camera.cy": 119.5, "image_encoding": "rgb8"})
     recorder = Recorder(ros_node, [("camera/image_raw", Image, qos_profile_sensor_data),

@@ -7,9 +7,9 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 
+from body_scheme_core.perception import DOCUMENTED_TRANS_ERROR_MEDIAN
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_nodes import conversions
-from body_scheme_nodes.tracker import DOCUMENTED_TRANS_ERROR_MEDIAN
 from body_scheme_sim.robots import robot_files
 
 pytestmark = pytest.mark.system
@@ -45,7 +45,7 @@ class Listener:
 def test_tracker_node_turns_rendered_images_into_marker_poses(start_node, ros_node, spin_until):
     """Marker poses tracked in sim_node's rendered images arrive with the image stamp, close to the ground truth."""
     _, markers_path = robot_files("powercube_6dof")
-    sim = start_node("body_scheme_sim", "sim_node", {
+    sim = start_node("body_scheme_nodes", "sim_node", {
         "robot": "powercube_6dof", "perception_mode": "rendered", "babbling": True, "babbling_period": 0.1,
         "markers_of_interest": [6, 7], "seed": 1})
     tracker = start_node("body_scheme_nodes", "tracker_node", {"markers_path": str(markers_path),

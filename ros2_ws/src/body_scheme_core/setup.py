@@ -17,10 +17,4 @@ setup(
     install_requires=["numpy>=1.26", "scipy>=1.11", "networkx>=3.0", "urdf_parser_py>=0.0.4", "PyYAML>=6", "tqdm>=4"],
     extras_require={"test": ["pytest>=7", "scikit-learn>=1.3"]},
     zip_safe=True,
-    entry_points={
-        "console_scripts": [
-            "body-scheme-bench = body_scheme_core.bench:main",
-            "body-scheme-demo = body_scheme_core.demo:main",
-        ],
-    },
 )

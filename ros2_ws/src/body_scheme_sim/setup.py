@@ -15,8 +15,6 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", glob("config/*.yaml")),
-        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
         ("share/" + package_name + "/robots", glob(package_name + "/robots/*.urdf")
          + glob(package_name + "/robots/*.yaml")),
     ],
@@ -24,6 +22,8 @@ setup(
     zip_safe=True,
     entry_points={
         "console_scripts": [
+            # Aliases of commands that moved (docs/architecture.md): sim_node to body_scheme_nodes, the rest to
+            # body_scheme_apps.
             "sim_node = body_scheme_sim.sim_node:main",
             "record_session = body_scheme_sim.record:main",
             "live_demo = body_scheme_sim.live_demo:main",

@@ -49,7 +49,7 @@ from std_msgs.msg import Bool, UInt64
 
 from body_scheme_core.errors import InvalidInputError
 
-from .bag_reader import MESSAGE_CLASSES, BagReadError, bag_topics, read_messages
+from .bag_io import MESSAGE_CLASSES, BagError, bag_topics, read_messages
 from .spin import run_node
 
 __all__ = ["BagReplay", "DEFAULT_TOPICS", "main"]
@@ -77,7 +77,7 @@ class BagReplay(Node):
     bag_path : string  (required)              rosbag2 directory of a recorded session
     rate : double 1.0                          1.0 original timing, 2.0 twice as fast, 0.0 backpressure
     topics : string[] ["/joint_commands", "/observations", "/ground_truth/marker_poses"]
-                                               bag topics to publish (types: bag_reader.MESSAGE_CLASSES)
+                                               bag topics to publish (types: bag_io.MESSAGE_CLASSES)
     restamp : bool true                        move header stamps into the present (module docstring)
     start_delay : double 1.0 s                 wait before the first message (for subscribers to connect)
     max_in_flight : int 10                     rate 0: observation messages published but not yet taken in
@@ -149,7 +149,7 @@ class BagReplay(Node):
             return
         try:
             self._publish_due(now)
-        except BagReadError as error:
+        except BagError as error:
             self.get_logger().error(f"stopping the replay: {error}")
             self._finish(success=False)
 

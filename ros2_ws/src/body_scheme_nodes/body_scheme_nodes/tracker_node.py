@@ -52,11 +52,11 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.kinematics import load_markers_yaml
+from body_scheme_core.perception import MarkerTracker
 from body_scheme_msgs.msg import MarkerPoses
 
 from . import conversions
 from .spin import run_node
-from .tracker import MarkerTracker
 
 #: Image subscription QoS. Sensor data (best effort) is the ROS convention for cameras; a large image over best
 #: effort can be lost in transit (Fast DDS drops frames whose fragments do not all arrive), so with a publisher that
@@ -85,7 +85,7 @@ def marker_sizes_from_parameters(markers_path, ids, sizes):
 
 
 class TrackerNode(Node):
-    """ROS wrapper of :class:`body_scheme_nodes.tracker.MarkerTracker` (see the module docstring)."""
+    """ROS wrapper of :class:`body_scheme_core.perception.MarkerTracker` (see the module docstring)."""
 
     def __init__(self, **node_options):
         super().__init__("tracker_node", **node_options)

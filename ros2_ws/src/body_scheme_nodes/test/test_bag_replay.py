@@ -15,9 +15,8 @@ from std_msgs.msg import Bool, UInt64
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_msgs.msg import MarkerPoses
-from body_scheme_nodes.bag_reader import BagReadError
+from body_scheme_nodes.bag_io import BagError, write_session
 from body_scheme_nodes.bag_replay import BagReplay, main
-from body_scheme_sim.bags import write_bag
 from body_scheme_sim.sessions import record_session
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -28,7 +27,7 @@ N_STEPS = 20
 def session_and_bag(tmp_path_factory):
     """A 20-step planar session (commands every 0.1 s, observations 5 ms later) and its bag."""
     session = record_session("planar_2dof", N_STEPS, seed=2)
-    return session, write_bag(session, tmp_path_factory.mktemp("bags") / "planar")
+    return session, write_session(session, tmp_path_factory.mktemp("bags") / "planar")
 
 
 @pytest.fixture
@@ -151,7 +150,7 @@ def test_a_bag_broken_midway_ends_with_done_false(context, session_and_bag, tmp_
     for part in bag.iterdir():
         data = bytearray(part.read_bytes())
         if part.suffix == ".mcap":
-            data[len(data) // 4:len(data) // 4 + 64] = bytes(range(64))
+            data[len(data) // 2:len(data) // 2 + 64] = bytes(range(64))  # inside the compressed chunks
         (broken / part.name).write_bytes(bytes(data))
     listener = Listener(context)
     replay = _replay(context, broken, rate=50.0)
@@ -167,7 +166,7 @@ def test_a_bag_broken_midway_ends_with_done_false(context, session_and_bag, tmp_
     ({"rate": -1.0}, InvalidInputError, "rate must be >= 0"),
     ({"max_in_flight": 0}, InvalidInputError, "max_in_flight"),
     ({"topics": ["observations"]}, InvalidInputError, "absolute"),
-    ({"bag_path": "/nonexistent/bag"}, BagReadError, "does not exist"),
+    ({"bag_path": "/nonexistent/bag"}, BagError, "does not exist"),
 ])
 def test_bad_parameters_and_missing_bags_are_refused(context, session_and_bag, parameters, error, message):
     """Invalid parameters or a missing bag stop the node at construction with the reason."""

@@ -1,6 +1,6 @@
 """pybullet arm simulator seen by a fixed camera (issue 4): robots, rendering, babbling, faults, ground truth.
 
-The library (everything but :mod:`body_scheme_sim.sim_node`) has no ROS dependency. See docs/sim.md.
+The library (everything but :mod:`body_scheme_nodes.sim_node`) has no ROS dependency. See docs/sim.md.
 """
 
 from .babbling import babble

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
 
-__all__ = ["SimError", "RobotFileError", "BabblingError", "FaultScheduleError", "BagError"]
+__all__ = ["SimError", "RobotFileError", "BabblingError", "FaultScheduleError"]
 
 
 class SimError(BodySchemeError):
@@ -27,5 +27,3 @@ class FaultScheduleError(SimError, InvalidInputError):
     """A fault schedule entry (``"step:kind:args"``) cannot be parsed."""
 
 
-class BagError(SimError):
-    """A session bag is missing, truncated, corrupt, of another format, or cannot be written."""

@@ -5,7 +5,7 @@
 truth. Perception is either
 
 - ``"noise"``: the visible markers' true poses perturbed with the paper's noise (``SimWorld.observe_noisy``), fast;
-- ``"rendered"``: the camera image through the ArUco tracker (:class:`body_scheme_nodes.tracker.MarkerTracker`),
+- ``"rendered"``: the camera image through the ArUco tracker (:class:`body_scheme_core.perception.MarkerTracker`),
   exactly what ``sim_node`` + ``tracker_node`` produce.
 
 Both give ``{marker id: camera2marker}`` per step, so downstream code cannot tell them apart. The commands are
@@ -16,7 +16,7 @@ Time: command ``k`` is stamped ``START_STAMP_NS + k * period``; its observation 
 arm moved) :data:`IMAGE_DELAY_NS` later. Stamps are integer nanoseconds, so bags round-trip them exactly.
 
 :func:`joint_blocked_protocol` and :func:`limb_deformed_protocol` are the paper's two adaptation experiments
-(Sec. IV-B/C, 4 blocks of 100 samples) on the 6-DOF arm. Bags: :mod:`body_scheme_sim.bags`.
+(Sec. IV-B/C, 4 blocks of 100 samples) on the 6-DOF arm. Bags: :mod:`body_scheme_nodes.bag_io`.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.perception import MarkerTracker
 from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_core.transforms import relative_transform
-from body_scheme_nodes.tracker import MarkerTracker
 
 from .babbling import babble
 from .camera import Camera

@@ -296,9 +296,9 @@ def _noise_world(seed, n_samples):
 
 def _rendered_world(seed, n_samples):
     """The same from the simulator's rendered images through the ArUco tracker; truth from the sim robot's tree."""
-    from ..camera import Camera, look_at
-    from ..robots import load_robot
-    from ..sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
+    from body_scheme_sim.camera import Camera, look_at
+    from body_scheme_sim.robots import load_robot
+    from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
 
     tree = load_robot(ROBOT)
     camera = Camera(world2camera=look_at(RENDERED_EYE, RENDERED_TARGET))

@@ -3,8 +3,7 @@
 import math
 
 import pytest
-
-from body_scheme_sim.experiments import transmission
+from body_scheme_apps.experiments import transmission
 
 
 def test_a_quick_run_finds_the_gp_edge_and_beats_the_rigid_only_learner():

@@ -7,11 +7,11 @@ import pathlib
 
 import pytest
 import yaml
+from body_scheme_apps.replay_offline import default_part, fault_blocks, main, replay_bag
 
 from body_scheme_core.transforms import translational_error
-from body_scheme_nodes.replay_offline import default_part, fault_blocks, main, replay_bag
+from body_scheme_nodes.bag_io import read_session, write_session
 from body_scheme_nodes.settings import SchemeSettings
-from body_scheme_sim.bags import read_bag, write_bag
 from body_scheme_sim.robots import load_robot
 from body_scheme_sim.sessions import record_session
 
@@ -30,7 +30,7 @@ def _planar_parameters():
 def planar_bag(tmp_path_factory):
     """A 60-step planar session whose second joint gets blocked at step 40, as a bag."""
     session = record_session("planar_2dof", 60, seed=1, faults=["40:block_joint:1:0.3"])
-    return write_bag(session, tmp_path_factory.mktemp("bags") / "planar")
+    return write_session(session, tmp_path_factory.mktemp("bags") / "planar")
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_offline_replay_equals_the_learner_fed_the_session_directly(planar_bag):
     settings = SchemeSettings.from_parameters(_planar_parameters())
     result = replay_bag(planar_bag, settings)
 
-    session = read_bag(planar_bag)
+    session = read_session(planar_bag)
     learner = settings.new_learner()
     events, errors = [], []
     for k in range(session.n_steps):

@@ -3,9 +3,9 @@
 import math
 
 import numpy as np
+from body_scheme_apps.experiments import table1
 
 from body_scheme_core.events import Event
-from body_scheme_sim.experiments import table1
 
 
 def test_recovery_counts_samples_up_to_the_adapting_one_and_the_whole_block_without_one():

@@ -77,7 +77,7 @@ def _session(protocol, seed, perception):
     if perception == "noise":
         return (core_blocked if protocol == "joint_blocked" else core_deformed)(seed, n_per_block=N_PER_BLOCK)
     if perception == "rendered":
-        from ..sessions import joint_blocked_protocol, limb_deformed_protocol
+        from body_scheme_sim.sessions import joint_blocked_protocol, limb_deformed_protocol
         record = joint_blocked_protocol if protocol == "joint_blocked" else limb_deformed_protocol
         return record(seed, n_per_block=N_PER_BLOCK, perception="rendered")
     raise ValueError(f"perception must be 'noise' or 'rendered', got {perception!r}")
@@ -85,7 +85,7 @@ def _session(protocol, seed, perception):
 
 def _config(perception):
     if perception == "rendered":
-        from ..sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
+        from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
         return BodySchemeConfig(sigma_trans=RENDERED_SIGMA_TRANS, sigma_rot=RENDERED_SIGMA_ROT)
     return BodySchemeConfig()
 

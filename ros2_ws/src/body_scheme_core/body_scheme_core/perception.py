@@ -16,10 +16,10 @@ Measured accuracy
 -----------------
 On the simulator's 640x480 images of ``powercube_6dof`` (8 cm markers, 10 cm on the base, 1.6-2.2 m from the
 camera, 14-25 pixels across), over a 300-step rendered babbling session against ground truth
-(``python -m body_scheme_sim.bench``; ``docs/sim.md``, "Tracker accuracy"): translation error median 8 mm, 90th
-percentile 23 mm; rotation error median 0.8 deg, 90th percentile 2.3 deg; about 6 % of the poses are IPPE's mirrored
-solution (rotation off by 20-120 deg), mostly on the smallest, farthest markers. The 90th percentile is the fixed
-23 mm error of the static base marker, seen in every frame: an axis-aligned, foreshortened marker whose edges the
+(``python -m body_scheme_apps.perception_bench``; ``docs/sim.md``, "Tracker accuracy"): translation error median
+8 mm, 90th percentile 23 mm; rotation error median 0.8 deg, 90th percentile 2.3 deg; about 6 % of the poses are IPPE's
+mirrored solution (rotation off by 20-120 deg), mostly on the smallest, farthest markers. The 90th percentile is the
+fixed 23 mm error of the static base marker, seen in every frame: an axis-aligned, foreshortened marker whose edges the
 aliased renderer quantises to whole pixels. 84 % of the geometrically visible markers are detected. The corner
 refinement matters: OpenCV's ``subpix`` and ``contour`` methods place the corners of such small markers 0.2-0.7 px
 inside the square (distances biased by 3-9 cm; ``subpix`` also mirrors many poses); ``apriltag`` is unbiased to

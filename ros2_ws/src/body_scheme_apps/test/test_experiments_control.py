@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
+from body_scheme_apps.experiments import control
 
 from body_scheme_core.events import Event
-from body_scheme_sim.experiments import control
 
 
 @pytest.fixture(scope="module")

@@ -5,10 +5,9 @@ import math
 import types
 
 import pytest
-
-from body_scheme_sim.experiments import runner
-from body_scheme_sim.experiments.__main__ import main
-from body_scheme_sim.experiments.report import met, write_results_md
+from body_scheme_apps.experiments import runner
+from body_scheme_apps.experiments.__main__ import main
+from body_scheme_apps.experiments.report import met, write_results_md
 
 
 def test_aggregate_gives_nan_aware_mean_and_std_twins_and_skips_curves():

@@ -3,11 +3,11 @@
 import math
 
 import numpy as np
+from body_scheme_apps.experiments import branching
 
 from body_scheme_core.models import RevoluteModel, StaticModel
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_sim.experiments import branching
 
 
 def test_the_robot_has_two_markers_on_the_torso_and_a_dummy_action():

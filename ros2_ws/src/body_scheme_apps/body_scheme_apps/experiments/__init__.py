@@ -1,4 +1,4 @@
-"""The paper's experiments (Sec. IV), reproduced: ``python -m body_scheme_sim.experiments`` (``make experiments``).
+"""The paper's experiments (Sec. IV), reproduced: ``python -m body_scheme_apps.experiments`` (``make experiments``).
 
 One module per experiment, each with ``run(seed, perception, quick) -> dict`` (one run's figures and curves),
 ``FIGURES`` (definitions), ``PAPER`` (the paper's values), ``TARGETS`` and ``plot(runs, path_prefix)``:

@@ -15,8 +15,8 @@ from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.kinematics import transform_from_xyz_rpy
 from body_scheme_msgs.srv import InjectFault
 from body_scheme_nodes import conversions
+from body_scheme_nodes.sim_node import SimNode
 from body_scheme_sim.camera import Camera
-from body_scheme_sim.sim_node import SimNode
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "sim_node.yaml"
 BUILT_IN = {"use_sim_time", "start_type_description_service"}  # declared by rclpy itself

@@ -192,10 +192,10 @@ def _noise_world(seed, n_before, n_after):
 
 def _rendered_world(seed, n_before, n_after):
     """The same from the simulator: rendered images through the ArUco tracker; truth from ``SimWorld``."""
-    from ..faults import parse_fault
-    from ..robots import load_robot
-    from ..sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
-    from ..world import SimWorld
+    from body_scheme_sim.faults import parse_fault
+    from body_scheme_sim.robots import load_robot
+    from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
+    from body_scheme_sim.world import SimWorld
 
     tree = load_robot(ROBOT)
     session = record_session(ROBOT, n_before + n_after, seed, faults=[f"{n_before}:{SIM_FAULT}"],

@@ -1,4 +1,4 @@
-"""``python -m body_scheme_sim.experiments``: run the paper's experiments and write plots, results.json, RESULTS.md.
+"""``python -m body_scheme_apps.experiments``: run the paper's experiments and write plots, results.json, RESULTS.md.
 
 ``make experiments``: 20 noise-model runs and 1 rendered-camera run per experiment into ``docs/results/`` and
 ``docs/RESULTS.md``. ``make experiments-quick`` (CI): 2 quick noise runs and 1 quick rendered run into
@@ -34,7 +34,7 @@ def _commit():
 
 def main(argv=None):
     """Console entry point."""
-    parser = argparse.ArgumentParser(prog="python -m body_scheme_sim.experiments", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.experiments", description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=20,
                         help="noise-model runs per experiment (seeds seed..); an experiment may ask for more (RUNS) "
                              "outside --quick")

@@ -1,8 +1,8 @@
 """The live graph for ROS 2 Jazzy from apt: sim_node -> tracker_node -> scheme_node -> control_node.
 
-    ros2 launch body_scheme_sim live_graph.launch.py
+    ros2 launch body_scheme_apps live_graph.launch.py
 
-The same graph as ``make demo`` (``body_scheme_sim.live_demo``, which starts these nodes as processes because the
+The same graph as ``make demo`` (``body_scheme_apps.live_demo``, which starts these nodes as processes because the
 ``launch`` package is not on PyPI): the simulated ``powercube_6dof`` babbles 300 commands from rendered camera
 images, its end-effector joint is blocked at command 120 and repaired at 220, then the sim executes whatever arrives
 on ``joint_commands``, e.g. control_node's answers to ``ik_target``. Each node reads its shipped parameter YAML; the
@@ -37,8 +37,8 @@ def generate_launch_description():
                          {"markers_path": markers, "image_reliability": "reliable"}]),
         Node(package="body_scheme_nodes", executable="control_node", output="screen",
              parameters=[config(nodes_share, "control_node")]),
-        Node(package="body_scheme_sim", executable="sim_node", output="screen",
-             parameters=[config(sim_share, "sim_node"),
+        Node(package="body_scheme_nodes", executable="sim_node", output="screen",
+             parameters=[config(nodes_share, "sim_node"),
                          {"babbling": True, "babbling_period": 0.05, "babbling_steps": 300,
                           "wait_for_subscribers": 2, "markers_of_interest": [6, 7],
                           "fault_schedule": ["120:block_joint:5:0.8", "220:repair"]}]),

@@ -1,0 +1,297 @@
+"""sim_node: a simulated arm with ArUco markers seen by a fixed camera; executes joint commands or babbles.
+
+Subscriptions
+-------------
+joint_commands : sensor_msgs/JointState  (reliable, depth 10)
+    Commanded joint positions by joint name. Only the newest pending command is executed (older ones are counted
+    as superseded). Ignored while babbling (counted), executed once ``babbling_steps`` commands were babbled.
+
+Publishers
+----------
+joint_commands : sensor_msgs/JointState  (reliable, depth 100; babbling mode only)
+    The babbling commands, stamped at command time.
+camera/image_raw : sensor_msgs/Image  (reliable, depth 5, volatile; perception_mode "rendered")
+    ``image_encoding`` mono8 (default) or rgb8, after each executed command, stamped when it was taken (>= the
+    command's stamp).
+camera/camera_info : sensor_msgs/CameraInfo  (as the images; perception_mode "rendered")
+    With each image, same header.
+observations : body_scheme_msgs/MarkerPoses  (reliable, depth 100; perception_mode "noise")
+    Visible markers' true poses with noise and random dropout, ``camera2marker``.
+ground_truth/marker_poses : body_scheme_msgs/MarkerPoses  (reliable, depth 100)
+    True pose of every marker after each command, same stamp as the image or observations. Evaluation only.
+
+Services
+--------
+~/inject_fault : body_scheme_msgs/InjectFault
+    Block a joint, deform a limb, displace a marker, or repair.
+
+Parameters
+----------
+robot : string "powercube_6dof"      shipped robot name or URDF path
+markers_path : string ""             marker placement file ("" = shipped / next to the URDF)
+frame_id : string "camera"           frame of images, observations and ground truth (camera optical frame)
+camera.width, camera.height : int 640, 480
+camera.fx, camera.fy, camera.cx, camera.cy : double   default Camera() intrinsics (60 deg horizontal FOV)
+camera.xyz, camera.rpy : double[3]   camera optical frame pose in the world (URDF rpy); default Camera() pose
+perception_mode : string "rendered"  "rendered" (images) or "noise" (noisy ground truth on observations)
+sigma_trans : double 0.044 m, sigma_rot : double 0.2618 rad, visibility : double 1.0   noise mode settings
+seed : int 0                         seed of babbling and noise
+babbling : bool false                publish and execute own random commands
+babbling_period : double 0.2 s       time between babbling commands
+babbling_steps : int 0               stop babbling after this many commands and execute joint_commands (0: never)
+wait_for_subscribers : int 0         babble only once joint_commands has this many subscriptions and the image (or
+                                     observations) and ground-truth topics one each, then 1 s more: messages sent
+                                     before discovery matched them are lost (volatile QoS)
+markers_of_interest : int[] []       markers that must be visible in babbled configurations
+fault_schedule : string[] []         "step:kind:args" entries (body_scheme_sim.faults); steps count executed commands
+update_period : double 0.01 s        period of the timer executing subscribed commands
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+
+import cv2
+import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, JointState
+
+from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.kinematics import transform_from_xyz_rpy, xyz_rpy_from_transform
+from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
+from body_scheme_msgs.msg import MarkerPoses
+from body_scheme_msgs.srv import InjectFault
+from body_scheme_sim.babbling import babble
+from body_scheme_sim.camera import Camera
+from body_scheme_sim.faults import apply_fault, parse_fault_schedule
+from body_scheme_sim.world import SimWorld
+
+from . import conversions
+from .spin import run_node
+
+PERCEPTION_MODES = ("rendered", "noise")
+#: Images are offered reliably: best-effort (sensor data QoS) subscribers still match, and reliable ones get every
+#: frame. Frame size matters as much: Fast DDS moves messages up to its 512 KB shared-memory segment through shared
+#: memory, larger ones as fragmented UDP, which on loopback loses frames (best effort) or, reliable, starves the
+#: node's other topics. A 640x480 mono8 frame (300 KB) stays in shared memory; rgb8 (900 KB) does not.
+IMAGE_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def camera_from_parameters(node, prefix="camera."):
+    """Declare the camera parameters (defaults: :class:`Camera`'s) and build the camera from their values."""
+    default = Camera()
+    xyz, rpy = xyz_rpy_from_transform(default.world2camera)
+    values = {name: node.declare_parameter(prefix + name, getattr(default, name)).value
+              for name in ("width", "height", "fx", "fy", "cx", "cy")}
+    xyz = node.declare_parameter(prefix + "xyz", [float(v) for v in xyz]).value
+    rpy = node.declare_parameter(prefix + "rpy", [float(v) for v in rpy]).value
+    return Camera(**values, world2camera=transform_from_xyz_rpy(list(xyz), list(rpy)))
+
+
+def declare_list_parameter(node, name, item_type):
+    """Declare a list parameter whose default is empty and return its value as a list of ``item_type``.
+
+    ROS cannot type an empty list (rclpy would call ``[]`` a byte array and refuse a later string list), so the
+    parameter is dynamically typed and checked here.
+    """
+    value = node.declare_parameter(name, [], ParameterDescriptor(dynamic_typing=True)).value
+    if value is None:  # "[]" in a parameter file
+        return []
+    if isinstance(value, (str, bytes)) or not all(isinstance(v, item_type) and not isinstance(v, bool)
+                                                  for v in value):
+        raise InvalidInputError(f"parameter {name} must be a list of {item_type.__name__}, got {value!r}")
+    return list(value)
+
+
+class SimNode(Node):
+    """ROS wrapper of :class:`body_scheme_sim.world.SimWorld` (see the module docstring)."""
+
+    def __init__(self, **node_options):
+        super().__init__("sim_node", **node_options)
+        robot = self.declare_parameter("robot", "powercube_6dof").value
+        markers_path = self.declare_parameter("markers_path", "").value or None
+        self.frame_id = self.declare_parameter("frame_id", "camera").value
+        camera = camera_from_parameters(self)
+        self.mode = self.declare_parameter("perception_mode", "rendered").value
+        self.image_encoding = self.declare_parameter("image_encoding", "mono8").value
+        self.sigma_trans = self.declare_parameter("sigma_trans", PAPER_SIGMA_TRANS).value
+        self.sigma_rot = self.declare_parameter("sigma_rot", PAPER_SIGMA_ROT).value
+        self.visibility = self.declare_parameter("visibility", 1.0).value
+        seed = self.declare_parameter("seed", 0).value
+        self.babbling = self.declare_parameter("babbling", False).value
+        babbling_period = self.declare_parameter("babbling_period", 0.2).value
+        self.babbling_steps = self.declare_parameter("babbling_steps", 0).value
+        self.wait_for_subscribers = self.declare_parameter("wait_for_subscribers", 0).value
+        self._ready_at = None  # monotonic time babbling may start, once the subscribers are there
+        self.markers_of_interest = declare_list_parameter(self, "markers_of_interest", int)
+        fault_schedule = declare_list_parameter(self, "fault_schedule", str)
+        update_period = self.declare_parameter("update_period", 0.01).value
+        if self.image_encoding not in ("mono8", "rgb8"):
+            raise InvalidInputError(f"image_encoding must be mono8 or rgb8, got {self.image_encoding!r}")
+        if self.mode not in PERCEPTION_MODES:
+            raise InvalidInputError(f"perception_mode must be one of {PERCEPTION_MODES}, got {self.mode!r}")
+        if not (babbling_period > 0 and update_period > 0):
+            raise InvalidInputError("babbling_period and update_period must be > 0 s")
+        if self.babbling_steps < 0:
+            raise InvalidInputError(f"babbling_steps must be >= 0, got {self.babbling_steps}")
+        ObservationModel(self.sigma_trans, self.sigma_rot, self.visibility)  # validates the noise settings now
+
+        self.schedule = parse_fault_schedule(fault_schedule)
+        self.rng_babbling, self.rng_noise = np.random.default_rng(seed).spawn(2)
+        self.world = SimWorld(robot, camera=camera, markers_path=markers_path, seed=seed,
+                              marker_texture=self.mode == "rendered")
+        unknown = sorted(set(self.markers_of_interest) - set(self.world.marker_ids))
+        if unknown:
+            self.world.close()
+            raise InvalidInputError(f"markers_of_interest {unknown} are not markers of {robot}: "
+                                    f"{list(self.world.marker_ids)}")
+        self.n_executed = 0
+        self.n_babbled = 0
+        self.last_babbled_stamp = -np.inf
+        self.counts = Counter()
+        self._pending = None
+        self._lock = threading.Lock()
+
+        work = MutuallyExclusiveCallbackGroup()
+        if self.babbling:
+            self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
+            self.babbling_timer = self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
+        self.create_subscription(JointState, "joint_commands", self._on_command, 10)
+        self.create_timer(update_period, self._on_update_timer, callback_group=work)
+        if self.mode == "rendered":
+            self.pub_image = self.create_publisher(Image, "camera/image_raw", IMAGE_QOS)
+            self.pub_info = self.create_publisher(CameraInfo, "camera/camera_info", IMAGE_QOS)
+        else:
+            self.pub_observations = self.create_publisher(MarkerPoses, "observations", 100)
+        self.pub_truth = self.create_publisher(MarkerPoses, "ground_truth/marker_poses", 100)
+        self.create_service(InjectFault, "~/inject_fault", self._on_inject_fault, callback_group=work)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.get_logger().info(
+            f"sim_node ready: {robot}, joints {list(self.world.action_joint_names)}, markers "
+            f"{list(self.world.marker_ids)}, {self.mode} perception, "
+            f"{'babbling' if self.babbling else 'executing joint_commands'}, {len(self.schedule)} scheduled fault(s)")
+
+    # -- callbacks ------------------------------------------------------------------------------------------------
+    def _on_command(self, msg):
+        with self._lock:
+            if self.babbling or conversions.seconds_from_stamp(msg.header.stamp) <= self.last_babbled_stamp:
+                self.counts["ignored_while_babbling"] += 1  # our own babbling commands come back here too
+                return
+            if self._pending is not None:
+                self.counts["superseded"] += 1
+            self._pending = msg
+
+    def _on_update_timer(self):
+        with self._lock:
+            msg, self._pending = self._pending, None
+        if msg is None:
+            return
+        try:
+            stamp, actions = conversions.actions_from_joint_state(msg, self.world.action_joint_names)
+        except InvalidInputError as error:
+            self.counts["rejected"] += 1
+            self.get_logger().warn(f"rejected joint command: {error}", throttle_duration_sec=5.0)
+            return
+        self._step(actions, stamp)
+
+    def _subscribers_ready(self):
+        """Whether babbling may start (see ``wait_for_subscribers``); logs while waiting."""
+        if self.wait_for_subscribers <= 0:
+            return True
+        now = time.monotonic()
+        if self._ready_at is None:
+            perception = self.pub_image if self.mode == "rendered" else self.pub_observations
+            if (self.pub_commands.get_subscription_count() >= self.wait_for_subscribers
+                    and perception.get_subscription_count() >= 1 and self.pub_truth.get_subscription_count() >= 1):
+                self._ready_at = now + 1.0  # the subscribers' side of the match may lag a little
+            else:
+                self.get_logger().info("waiting for subscribers before babbling", throttle_duration_sec=2.0)
+        return self._ready_at is not None and now >= self._ready_at
+
+    def _on_babbling_timer(self):
+        if not self._subscribers_ready():
+            return
+        self._apply_due_faults()
+        try:
+            actions = babble(self.world, self.rng_babbling, 1, self.markers_of_interest)[0]
+        except BodySchemeError as error:
+            self.get_logger().error(f"babbling failed: {error}", throttle_duration_sec=5.0)
+            return
+        stamp = self._now()
+        self.pub_commands.publish(conversions.joint_state_msg(stamp, self.world.action_joint_names, actions))
+        self._step(actions, stamp)
+        self.n_babbled += 1
+        if self.babbling_steps and self.n_babbled >= self.babbling_steps:
+            with self._lock:
+                self.babbling = False
+                self.last_babbled_stamp = stamp
+            self.babbling_timer.cancel()
+            self.get_logger().info(f"babbled {self.n_babbled} commands: now executing joint_commands")
+
+    # -- the work -------------------------------------------------------------------------------------------------
+    def _now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _apply_due_faults(self):
+        while self.schedule and self.schedule[0][0] <= self.n_executed:
+            _, fault = self.schedule.pop(0)
+            try:
+                fault(self.world)
+                self.get_logger().info(f"scheduled fault {fault.text!r} applied before command {self.n_executed}")
+            except BodySchemeError as error:
+                self.get_logger().error(f"scheduled fault {fault.text!r} failed: {error}")
+
+    def _step(self, actions, command_stamp):
+        """Execute one command and publish what the camera sees and the ground truth."""
+        self._apply_due_faults()
+        self.world.execute(actions)
+        self.n_executed += 1
+        stamp = max(self._now(), command_stamp)  # the picture is taken after the command, never before
+        if self.mode == "rendered":
+            rendered = self.world.render()
+            if self.image_encoding == "mono8":
+                rendered = cv2.cvtColor(rendered, cv2.COLOR_RGB2GRAY)
+            image = conversions.image_msg(stamp, self.frame_id, rendered)
+            camera = self.world.camera
+            info = conversions.camera_info_msg(stamp, self.frame_id, camera.width, camera.height, camera.K)
+            info.header = image.header
+            self.pub_image.publish(image)
+            self.pub_info.publish(info)
+        else:
+            observed = self.world.observe_noisy(self.sigma_trans, self.sigma_rot, self.visibility, self.rng_noise)
+            self.pub_observations.publish(conversions.marker_poses_msg(stamp, self.frame_id, observed))
+        self.pub_truth.publish(conversions.marker_poses_msg(stamp, self.frame_id, self.world.true_marker_poses()))
+
+    def _on_inject_fault(self, request, response):
+        try:
+            kind, params = conversions.fault_from_request(request)
+            apply_fault(self.world, kind, **params)
+        except BodySchemeError as error:
+            response.success, response.message = False, f"{request.kind} refused: {error}"
+        else:
+            response.success = True
+            response.message = f"{kind} applied; active faults: {[f['kind'] for f in self.world.faults]}"
+            self.get_logger().info(f"fault injected: {kind} {params}")
+        return response
+
+    def _on_set_parameters(self, parameters):
+        names = ", ".join(p.name for p in parameters)
+        return SetParametersResult(successful=False,
+                                   reason=f"{names}: read at start-up only; restart sim_node to change it")
+
+    def destroy_node(self):
+        self.world.close()
+        super().destroy_node()
+
+
+def main(args=None):
+    return run_node(SimNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

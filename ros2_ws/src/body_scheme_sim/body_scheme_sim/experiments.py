@@ -1,0 +1,19 @@
+"""Alias of :mod:`body_scheme_apps.experiments`, where this command now lives (see docs/architecture.md).
+
+Kept so that ``python -m body_scheme_sim.experiments``
+keep working; it runs that module and imports nothing from it.
+"""
+
+import runpy
+
+#: The module this alias runs.
+TARGET = "body_scheme_apps.experiments"
+
+
+def main():
+    """Run :data:`TARGET` as ``__main__`` with this process's arguments."""
+    runpy.run_module(TARGET, run_name="__main__", alter_sys=True)
+
+
+if __name__ == "__main__":
+    main()
