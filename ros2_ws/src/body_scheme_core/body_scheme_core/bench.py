@@ -56,7 +56,8 @@ from . import __version__  # noqa: E402
 from .config import BodySchemeConfig  # noqa: E402
 from .ik import solve_ik  # noqa: E402
 from .learner import BodySchemeLearner  # noqa: E402
-from .models.gp import GPHyperparameters, GPModel, squared_exponential  # noqa: E402
+from .models.gp import GPModel  # noqa: E402
+from .models.gp_kernel import GPHyperparameters, squared_exponential  # noqa: E402
 from .structure import enumerate_candidates  # noqa: E402
 from .synthetic import make_session, powercube_6dof  # noqa: E402
 from .transforms import (  # noqa: E402
