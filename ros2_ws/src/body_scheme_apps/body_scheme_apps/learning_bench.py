@@ -56,7 +56,8 @@ from body_scheme_core import __version__  # noqa: E402
 from body_scheme_core.config import BodySchemeConfig  # noqa: E402
 from body_scheme_core.ik import solve_ik  # noqa: E402
 from body_scheme_core.learner import BodySchemeLearner  # noqa: E402
-from body_scheme_core.models.gp import GPHyperparameters, GPModel, squared_exponential  # noqa: E402
+from body_scheme_core.models.gp import GPModel  # noqa: E402
+from body_scheme_core.models.gp_kernel import GPHyperparameters, squared_exponential  # noqa: E402
 from body_scheme_core.structure import enumerate_candidates  # noqa: E402
 from body_scheme_core.synthetic import make_session, powercube_6dof  # noqa: E402
 from body_scheme_core.transforms import (  # noqa: E402

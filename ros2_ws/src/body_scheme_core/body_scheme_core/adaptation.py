@@ -41,10 +41,10 @@ import networkx as nx
 import numpy as np
 
 from .errors import ModelFileError
-from .events import Event
-from .pool import MEMORY, TREE, TrackedModel, finite_or_none, format_errors, nested_models
+from .events import Event, finite_or_none, format_errors
 from .quality import model_cost, nests, relative_complexity
 from .structure import action_subsets, kinds_for, replacement_candidates
+from .tracked import MEMORY, TREE, TrackedModel, nested_models
 
 __all__ = ["Adaptation", "Mismatch", "Change", "least_recently_used", "tree_halves"]
 
@@ -502,7 +502,7 @@ class Adaptation:
                                                                      len(candidates))
             if choice is not None and (simpler or dominating is not None):
                 new = choice.entry
-                pool.materialize(new)
+                pool.freeze(new)
                 pool.assign(new, TREE, step)
                 tree[tree.index(current.id)] = new.id
                 pool.monitor.reset_cusum([new.row])
@@ -529,7 +529,7 @@ class Adaptation:
         """The chosen candidate becomes a fitted tree model; the failed one goes to memory."""
         pool = self.pool
         new = choice.entry
-        pool.materialize(new)
+        pool.freeze(new)
         pool.assign(new, TREE, step)
         mismatch = self._take_over(tree, failed, new, keep_candidates=True)
         self.refining[new.id] = (failed.id, mismatch.tau)
@@ -618,7 +618,7 @@ class Adaptation:
             found = self._dominating(current, challengers)
             if found is not None:
                 new, n, mt, mr = found
-                pool.materialize(new)
+                pool.freeze(new)
                 pool.assign(new, TREE, step)
                 new.since = current.since
                 tree[tree.index(current_id)] = new.id

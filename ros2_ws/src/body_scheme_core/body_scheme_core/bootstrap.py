@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .events import Event
-from .pool import TREE, format_errors
+from .events import Event, format_errors
 from .quality import model_cost
 from .structure import enumerate_candidates, select_spanning_tree
+from .tracked import TREE
 
 __all__ = ["Bootstrap"]
 

@@ -1,7 +1,8 @@
 """Configuration of the body-scheme learner: one validated dataclass, the single source of defaults.
 
 The ROS nodes declare one parameter per field (same name) and build this object from them; the YAML files in
-``body_scheme_nodes/config`` mirror these defaults.
+``body_scheme_nodes/config`` mirror these defaults. The defaults of the marker noise and of the GP hyperparameters are
+those of the models (:mod:`~body_scheme_core.models.gp_kernel`), which do not depend on this module.
 """
 
 from __future__ import annotations
@@ -11,6 +12,13 @@ import math
 from dataclasses import dataclass
 
 from .errors import InvalidInputError
+from .models.gp_kernel import (
+    DEFAULT_LENGTH_SCALE,
+    DEFAULT_SIGMA_ROT,
+    DEFAULT_SIGMA_TRANS,
+    DEFAULT_SIGNAL_STD_ROT,
+    DEFAULT_SIGNAL_STD_TRANS,
+)
 from .structure import CANDIDATE_KINDS
 
 __all__ = ["BodySchemeConfig"]
@@ -107,8 +115,8 @@ class BodySchemeConfig:
         world for :meth:`BodySchemeLearner.predict`.
     """
 
-    sigma_trans: float = 0.05
-    sigma_rot: float = math.radians(15.0)
+    sigma_trans: float = DEFAULT_SIGMA_TRANS
+    sigma_rot: float = DEFAULT_SIGMA_ROT
     theta_trans: float | None = None
     theta_rot: float | None = None
     validity_sigmas: float = 3.0
@@ -119,9 +127,9 @@ class BodySchemeConfig:
     max_complexity: int = 2
     min_test_samples: int = 3
     root: int | None = None
-    gp_length_scale: float = 1.0
-    gp_signal_std_trans: float = 0.3
-    gp_signal_std_rot: float = 0.7
+    gp_length_scale: float = DEFAULT_LENGTH_SCALE
+    gp_signal_std_trans: float = DEFAULT_SIGNAL_STD_TRANS
+    gp_signal_std_rot: float = DEFAULT_SIGNAL_STD_ROT
     gp_optimize: bool = True
     stale_fraction: float = 0.5
     bootstrap_patience: int = 30

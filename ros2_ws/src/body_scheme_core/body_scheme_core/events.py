@@ -1,10 +1,12 @@
-"""Events: every decision of the learner, with its reason, for logs, ROS topics and reports."""
+"""Events: every decision of the learner, with its reason, for logs, ROS topics and reports; and how their errors are
+written (:func:`format_errors` in reasons, :func:`finite_or_none` in the error fields)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
-__all__ = ["Event", "EVENT_KINDS"]
+__all__ = ["Event", "EVENT_KINDS", "format_errors", "finite_or_none"]
 
 #: Kinds of events, in the paper's vocabulary.
 EVENT_KINDS = (
@@ -56,3 +58,17 @@ class Event:
     def to_dict(self):
         """Plain dict (JSON-serialisable)."""
         return asdict(self)
+
+
+def format_errors(trans, rot):
+    """``"78 mm / 12.3 deg"`` for a pair of errors in m and rad, as event reasons show them; ``"n/a"`` if one is not
+    finite."""
+    if not (math.isfinite(trans) and math.isfinite(rot)):
+        return "n/a"
+    return f"{1000.0 * trans:.0f} mm / {math.degrees(rot):.1f} deg"
+
+
+def finite_or_none(value):
+    """Event error fields: a float, or None where no error is known (keeps events JSON-safe)."""
+    value = float(value)
+    return value if math.isfinite(value) else None

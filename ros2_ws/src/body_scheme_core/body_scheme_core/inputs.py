@@ -31,7 +31,7 @@ __all__ = [
     "root_part",
     "check_action_bounds",
     "check_initial_models",
-    "check_actions",
+    "check_action_vector",
     "check_stamp",
     "check_observation_mapping",
     "filter_observations",
@@ -153,8 +153,10 @@ def check_initial_models(models, parts, root, n_actions):
 
 
 # ---------------------------------------------------------------------- one time step
-def check_actions(actions, n_actions):
-    """One action vector as a float array of shape (m,), finite.
+def check_action_vector(actions, n_actions):
+    """The one action vector of a time step as a float array of shape exactly ``(n_actions,)``, finite.
+
+    The models validate their stacked inputs with :func:`~body_scheme_core.models.base.check_action_batch` instead.
 
     Returns
     -------

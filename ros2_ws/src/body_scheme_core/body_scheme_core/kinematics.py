@@ -31,7 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .errors import InvalidInputError
-from .models.base import check_actions
+from .models.base import check_action_batch
 from .transforms import check_transform, invert_transform
 
 __all__ = [
@@ -442,7 +442,7 @@ class KinematicTree:
         """
         a = np.asarray(a, dtype=float)
         single = a.ndim == 1
-        A = check_actions(a, self.n_actions, name="a")
+        A = check_action_batch(a, self.n_actions, name="a")
         n = A.shape[0]
         poses = {self.root_link: np.tile(np.eye(4), (n, 1, 1))}
         for joint in self._order:

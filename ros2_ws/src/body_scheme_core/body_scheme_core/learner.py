@@ -54,7 +54,7 @@ from .errors import BodySchemeError, InvalidInputError, ModelFileError, NotFitte
 from .events import Event
 from .inputs import (
     check_action_bounds,
-    check_actions,
+    check_action_vector,
     check_config,
     check_initial_models,
     check_n_actions,
@@ -66,10 +66,11 @@ from .inputs import (
 )
 from .models import GPModel
 from .models.rigid import RigidJointModel
-from .pool import MEMORY, TREE, ModelPool
+from .pool import ModelPool
 from .relative import PartPairs
 from .root_pose import RootPoseEstimator
 from .scheme import BodyScheme
+from .tracked import MEMORY, TREE
 
 __all__ = ["BodySchemeLearner", "PHASES", "STATE_VERSION"]
 
@@ -244,7 +245,7 @@ class BodySchemeLearner:
         scheme = self.body_scheme
         if scheme is None:
             raise NotFittedError(f"no valid body scheme yet (phase {self.phase}, step {self.step})")
-        a = check_actions(a, self.n_actions)
+        a = check_action_vector(a, self.n_actions)
         world2root = self.root_pose
         if return_std:
             root2part, std = scheme.predict(a, return_std=True)
@@ -311,7 +312,7 @@ class BodySchemeLearner:
             If ``actions`` has the wrong shape or is not finite, or ``observations`` is not a mapping; the learner
             is then unchanged.
         """
-        a = check_actions(actions, self.n_actions).copy()
+        a = check_action_vector(actions, self.n_actions).copy()
         check_observation_mapping(observations)
         stamp = check_stamp(stamp)
         step = self.step

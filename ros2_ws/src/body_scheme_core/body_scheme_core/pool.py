@@ -1,14 +1,14 @@
-"""The local models a learner tracks, and their prequential (test-then-train) evaluation.
+"""The pool of local models a learner tracks, and their prequential (test-then-train) evaluation.
 
-A :class:`TrackedModel` is a local model in one of three roles: ``tree`` (an edge of the body scheme), ``memory``
-(retired, remembered for reuse) or ``candidate`` (still learning: a bootstrap candidate or a replacement for a
-failed tree model). :class:`ModelPool` holds all of them with their storage:
+A :class:`~body_scheme_core.tracked.TrackedModel` is a local model in one of three roles: ``tree`` (an edge of the
+body scheme), ``memory`` (retired, remembered for reuse) or ``candidate`` (still learning: a bootstrap candidate or a
+replacement for a failed tree model). :class:`ModelPool` holds all of them with their storage:
 
-- candidates learn in one of two batches: GP candidates in a :class:`~body_scheme_core.models.gp.GPBatch`, rigid-joint
-  candidates (static, prismatic, revolute) in a :class:`~body_scheme_core.models.rigid_batch.RigidBatch` (one *slot*
-  each); tree and memory models are fitted :class:`~body_scheme_core.models.base.LocalModel` objects (the tree's are
-  refined by the joint fit, :mod:`~body_scheme_core.calibration`);
-- every tracked model has one *row* in an :class:`~body_scheme_core.quality.ErrorMonitor` (test window and CUSUM).
+- candidates learn in one of two batches: GP candidates in a :class:`~body_scheme_core.models.gp_batch.GPBatch`,
+  rigid-joint candidates (static, prismatic, revolute) in a :class:`~body_scheme_core.models.rigid_batch.RigidBatch`
+  (one *slot* each); tree and memory models are fitted :class:`~body_scheme_core.models.base.LocalModel` objects (the
+  tree's are refined by the joint fit, :mod:`~body_scheme_core.calibration`);
+- every tracked model has one *row* in the :class:`~body_scheme_core.validity.ValidityMonitor` (test window and CUSUM).
 
 Every step each tracked model whose *target* is available first predicts it, its error enters its test window, and
 only then may a learning model add the sample to its training set (:meth:`ModelPool.evaluate`,
@@ -20,34 +20,20 @@ change detection, repair) live in :mod:`~body_scheme_core.bootstrap` and :mod:`~
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 
 from .errors import ModelFileError
-from .models import GPBatch, GPModel, model_from_dict
-from .models.gp import GPHyperparameters
+from .models import GPBatch, GPModel
 from .models.rigid_batch import RIGID_CLASSES, RigidBatch
-from .quality import ErrorMonitor, class_rank, nests, prediction_errors
+from .quality import prediction_errors
+from .tracked import CANDIDATE, MEMORY, TrackedModel, nested_models
 from .transforms import invert_transform, transform_from_vector12
+from .validity import ValidityMonitor
 
-__all__ = [
-    "TREE",
-    "MEMORY",
-    "CANDIDATE",
-    "Targets",
-    "TrackedModel",
-    "LearningSlots",
-    "ModelPool",
-    "nested_models",
-    "new_monitor",
-    "format_errors",
-    "finite_or_none",
-]
+__all__ = ["Targets", "LearningSlots", "ModelPool"]
 
-#: Roles of a tracked model.
-TREE, MEMORY, CANDIDATE = "tree", "memory", "candidate"
 #: Rigid candidates are refitted with every sample only while they are among the ``_PROMISING`` best of their pair
 #: and class (by mean error over the test window) or not yet judged; the others every ``_SLOW_REFIT`` samples. A
 #: slightly stale fit still tests a candidate fairly (prequentially), at a fraction of the cost.
@@ -56,25 +42,6 @@ _SLOW_REFIT = 8
 #: Training-set sizes at which promising rigid candidates are refitted: every sample while few, then ever more
 #: sparsely (the body scheme's accuracy comes from the joint fit; candidate fits only rank and validate).
 _REFIT_SIZES = frozenset((1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 15, 19, 24, 30))
-
-
-def format_errors(trans, rot):
-    """``"78 mm / 12.3 deg"`` for a pair of errors in m and rad; ``"n/a"`` if one is not finite."""
-    if not (math.isfinite(trans) and math.isfinite(rot)):
-        return "n/a"
-    return f"{1000.0 * trans:.0f} mm / {math.degrees(rot):.1f} deg"
-
-
-def finite_or_none(value):
-    """Event error fields: a float, or None where no error is known (keeps events JSON-safe)."""
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-def new_monitor(config):
-    """An empty :class:`ErrorMonitor` with the test window, thresholds and CUSUM settings of ``config``."""
-    c = config
-    return ErrorMonitor(c.test_window, 0, c.theta_trans, c.theta_rot, c.cusum_drift, c.cusum_threshold, c.cusum_clip)
 
 
 class Targets(NamedTuple):
@@ -103,107 +70,6 @@ class Targets(NamedTuple):
         return Targets(self.Z[index], self.theta_trans[index], self.sigma[index], self.flip[index])
 
 
-class TrackedModel:
-    """A local model the learner tracks: in the tree, in memory, or a candidate still learning in a batch.
-
-    Attributes
-    ----------
-    id : int
-        Unique id, shown in events (``describe``) and used as the tree's edge key.
-    parent, child : int
-        Part ids; the model predicts ``parent2child``.
-    actions : tuple of int
-    kind : str
-        Model class (``"static"``, ``"prismatic"``, ``"revolute"``, ``"gp"``, ``"engineered"``).
-    role : str
-        ``"tree"``, ``"memory"`` or ``"candidate"``.
-    model : LocalModel or None
-        The fitted model; None while a candidate learns (its batch slot holds it).
-    slot : int
-        Batch slot while the model learns, -1 when frozen.
-    row : int
-        Row in the error monitor.
-    n_train : int
-        Training samples (0 for models the learner did not train, e.g. engineered ones).
-    created : int
-        Step at which a replacement was sampled (0 otherwise).
-    origin : str
-        ``"bootstrap"``, ``"replacement"``, ``"bridge"`` or ``"initial"``.
-    last_used : int
-        Last step at which the model entered the tree or memory (-1 never); memory forgets the least recent.
-    target : int
-        For a replacement candidate, the id of the tree model it is meant to replace; -1 otherwise.
-    since : int
-        First step at which the model describes the body (its change point), for the joint fit.
-    prior : tuple (params, cov) or None
-        A Gaussian prior on a rigid model's parameters in the joint fit, for knowledge from data the fit does not
-        use (a reinstated model's earlier life, or observations cut by a change above it in the tree).
-    """
-
-    __slots__ = ("id", "parent", "child", "actions", "kind", "role", "model", "slot", "row", "n_train", "created",
-                 "origin", "last_used", "target", "since", "prior")
-
-    def __init__(self, id, parent, child, actions, kind, role, row, slot=-1, model=None, n_train=0, created=0,
-                 origin="", last_used=-1, target=-1, since=0, prior=None):
-        self.id = int(id)
-        self.parent = int(parent)
-        self.child = int(child)
-        self.actions = tuple(int(a) for a in actions)
-        self.kind = str(kind)
-        self.role = role
-        self.model = model
-        self.slot = int(slot)
-        self.row = int(row)
-        self.n_train = int(n_train)
-        self.created = int(created)
-        self.origin = origin
-        self.last_used = int(last_used)
-        self.target = int(target)
-        self.since = int(since)
-        self.prior = prior
-
-    @property
-    def complexity(self):
-        """Number of actions the model depends on."""
-        return len(self.actions)
-
-    @property
-    def rank(self):
-        """Rank of the model class within its complexity layer (:func:`~body_scheme_core.quality.class_rank`)."""
-        return class_rank(self.kind)
-
-    def describe(self):
-        """``kind(parent->child | actions)#id``: the id tells apart models with equal structure (in events)."""
-        acts = ",".join(f"a{a}" for a in self.actions) or "-"
-        return f"{self.kind}({self.parent}->{self.child} | {acts})#{self.id}"
-
-    def to_dict(self, with_model):
-        """JSON-serialisable dict; the model itself only ``with_model``."""
-        prior = None if self.prior is None else [np.asarray(self.prior[0]).tolist(), np.asarray(self.prior[1]).tolist()]
-        return {"id": self.id, "parent": self.parent, "child": self.child, "actions": list(self.actions),
-                "kind": self.kind, "role": self.role, "slot": self.slot, "row": self.row, "n_train": self.n_train,
-                "created": self.created, "origin": self.origin, "last_used": self.last_used, "target": self.target,
-                "since": self.since, "prior": prior,
-                "model": self.model.to_dict() if (with_model and self.model is not None) else None}
-
-    @classmethod
-    def from_dict(cls, data):
-        """Rebuild from :meth:`to_dict` output; raises ModelFileError on an unknown role or a bad prior."""
-        model = model_from_dict(data["model"]) if data["model"] is not None else None
-        if data["role"] not in (TREE, MEMORY, CANDIDATE):
-            raise ModelFileError(f"unknown entry role {data['role']!r}")
-        prior = data["prior"]
-        if prior is not None:
-            params, cov = (np.asarray(v, dtype=float) for v in prior)
-            if cov.ndim != 2 or cov.shape[0] != cov.shape[1] or not (np.all(np.isfinite(params))
-                                                                      and np.all(np.isfinite(cov))):
-                raise ModelFileError(f"bad prior of model {data['id']!r}")
-            prior = (params, cov)
-        return cls(data["id"], data["parent"], data["child"], data["actions"], data["kind"], data["role"],
-                   data["row"], data["slot"], model, data["n_train"], data["created"], data["origin"],
-                   data["last_used"], data["target"], data["since"], prior)
-
-
 class LearningSlots(NamedTuple):
     """Arrays over the tracked models that are learning in a batch, in pool order (shape (k,) each).
 
@@ -214,7 +80,7 @@ class LearningSlots(NamedTuple):
     rigid : ndarray of bool
         Whether the slot is in the rigid batch (else the GP batch).
     nested : tuple (sub, sup) of ndarray of int
-        Positions of nested candidates for the dominance rule (:func:`nested_models`).
+        Positions of nested candidates for the dominance rule (:func:`~body_scheme_core.tracked.nested_models`).
     layer : ndarray of float
         Complexity (number of actions).
     rank : ndarray of int
@@ -230,35 +96,8 @@ class LearningSlots(NamedTuple):
     rank: np.ndarray
 
 
-def nested_models(models):
-    """Positions ``(sub, sup)`` of models of the same pair (and target) where ``sup`` nests ``sub``.
-
-    ``sup`` nests ``sub`` when it can represent everything ``sub`` can (:func:`~body_scheme_core.quality.nests`): a
-    model class at least as flexible and a superset of the actions. These are the pairs the dominance rule compares.
-
-    Parameters
-    ----------
-    models : list of TrackedModel
-
-    Returns
-    -------
-    sub, sup : ndarray of int
-    """
-    groups = {}
-    for k, e in enumerate(models):
-        groups.setdefault((e.parent, e.child, e.target), []).append(k)
-    sub, sup = [], []
-    for members in groups.values():
-        for k in members:
-            for q in members:
-                if k != q and nests(models[q].kind, models[q].actions, models[k].kind, models[k].actions):
-                    sub.append(k)
-                    sup.append(q)
-    return np.array(sub, dtype=np.intp), np.array(sup, dtype=np.intp)
-
-
 class ModelPool:
-    """Every local model a learner tracks, with its batch slot and its error-monitor row.
+    """Every local model a learner tracks, with its batch slot and its validity-monitor row.
 
     Parameters
     ----------
@@ -268,7 +107,7 @@ class ModelPool:
         Storage of the GP candidates.
     rigid_batch : RigidBatch
         Storage of the rigid-joint candidates.
-    monitor : ErrorMonitor
+    monitor : ValidityMonitor
         Test windows and CUSUMs, one row per tracked model.
     next_id : int
         Id of the next model added.
@@ -285,16 +124,14 @@ class ModelPool:
         self.n_actions = n_actions
         self.gp_batch = gp_batch if gp_batch is not None else self.new_gp_batch()
         self.rigid_batch = rigid_batch if rigid_batch is not None else self.new_rigid_batch()
-        self.monitor = monitor if monitor is not None else new_monitor(config)
+        self.monitor = monitor if monitor is not None else ValidityMonitor.from_config(config)
         self.next_id = int(next_id)
         self.tracked = {}
         self._changed()
 
     def new_gp_batch(self, max_dim=None):
         """An empty GP batch of ``train_window`` capacity with the configuration's hyperparameters."""
-        c = self.config
-        max_dim = c.max_complexity if max_dim is None else max_dim
-        return GPBatch(self.n_actions, c.train_window, max_dim, **GPHyperparameters.from_config(c).to_dict())
+        return GPBatch.from_config(self.n_actions, self.config, max_dim)
 
     def new_rigid_batch(self):
         """An empty rigid-joint batch of ``train_window`` capacity with the configuration's loss and scale option."""
@@ -408,7 +245,7 @@ class ModelPool:
         rows, n_now : array-like of int, shape (k,)
             Monitor rows and training-set sizes of the models compared.
         sub, sup : ndarray of int
-            Nested positions (:func:`nested_models`).
+            Nested positions (:func:`~body_scheme_core.tracked.nested_models`).
         valid : array-like of bool, shape (k,), optional
             Only valid models are examined (the others are out of the tree search anyway).
 
@@ -514,7 +351,7 @@ class ModelPool:
         Slots are processed per batch in groups of equal training-set size. GPBatch pads a group's arrays to its
         largest slot, and that padding changes the last bits of the results; equal-size groups are exactly the
         groups :meth:`GPBatch.from_state_dict` replays, so a restored learner continues bit-identically. Rigid
-        candidates far from valid are refitted only every few samples (see ``_PROMISING_RATIO``).
+        candidates far from valid are refitted only every few samples (see ``_PROMISING``).
         """
         ids = np.asarray(ids, dtype=np.int64)
         if ids.size == 0:
@@ -571,8 +408,8 @@ class ModelPool:
         return promising | unjudged
 
     # ------------------------------------------------------------------ freezing
-    def materialize(self, entry):
-        """Turn a learning entry into a fitted model (rigid candidates re-weighted robustly) and free its slot."""
+    def freeze(self, entry):
+        """Freeze a learning entry: fit a model on its slot (rigid candidates re-weighted robustly), free the slot."""
         batch = self._batch(entry)
         model = batch.to_model(entry.slot, entry.parent, entry.child)
         entry.n_train = int(batch.size([entry.slot])[0])
@@ -589,11 +426,11 @@ class ModelPool:
         """
         for entry in keep:
             if entry.slot >= 0:
-                self.materialize(entry)
+                self.freeze(entry)
         old_monitor = self.monitor
         self.gp_batch = self.new_gp_batch(self.gp_batch.max_dim)
         self.rigid_batch = self.new_rigid_batch()
-        self.monitor = new_monitor(self.config)
+        self.monitor = ValidityMonitor.from_config(self.config)
         rows = self.monitor.allocate(len(keep))
         self.monitor.copy_rows(old_monitor, [e.row for e in keep], rows)
         self.monitor.reset_cusum(rows)
@@ -609,7 +446,7 @@ class ModelPool:
 
     @classmethod
     def from_state(cls, config, n_actions, part_ids, tracked, next_id, monitor, gp_batch, rigid_batch):
-        """Rebuild from :meth:`tracked_state`, ``next_id``, ``ErrorMonitor.to_dict`` and the batches' state dicts.
+        """Rebuild from :meth:`tracked_state`, ``next_id``, ``ValidityMonitor.to_dict`` and the batches' state dicts.
 
         Raises
         ------
@@ -617,7 +454,7 @@ class ModelPool:
             If the monitor or batches do not fit the configuration, or a model refers to an unknown part, a free
             monitor row or batch slot, or is frozen without a stored model.
         """
-        monitor = ErrorMonitor.from_dict(monitor)
+        monitor = ValidityMonitor.from_dict(monitor)
         if monitor.window != config.test_window:
             raise ModelFileError(f"monitor window {monitor.window} != test_window {config.test_window}")
         gp = GPBatch.from_state_dict(gp_batch)

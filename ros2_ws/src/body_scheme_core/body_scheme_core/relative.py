@@ -4,7 +4,7 @@ Local models describe pairs of parts. :class:`PartPairs` numbers the unordered p
 *canonical* direction of pair ``(p_i, p_j)`` is ``i < j``), and turns the marker poses of one step into a
 :class:`RelativeObservations`: all relative transforms of observed pairs, formed in one vectorised pass, with the
 translational validity threshold of each (it grows with the parts' distance, see
-:func:`~body_scheme_core.quality.translation_threshold`). A model whose parent comes later in the part order
+:func:`~body_scheme_core.validity.translation_threshold`). A model whose parent comes later in the part order
 predicts the inverse of the canonical transform (:meth:`PartPairs.flip`).
 """
 
@@ -15,8 +15,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .quality import translation_threshold
 from .transforms import invert_transform
+from .validity import translation_threshold
 
 __all__ = ["PartPairs", "RelativeObservations"]
 

@@ -17,7 +17,7 @@ import networkx as nx
 import numpy as np
 
 from .errors import InvalidInputError, ModelFileError, NotFittedError
-from .models.base import LocalModel, check_actions
+from .models.base import LocalModel, check_action_batch
 from .transforms import invert_transform
 
 __all__ = ["BodyScheme"]
@@ -293,7 +293,7 @@ class BodyScheme:
         std : ndarray, shape (n, n_parts, 2)
             ``[trans (m), rot (rad)]``; only if ``return_std``.
         """
-        A = check_actions(A)
+        A = check_action_batch(A)
         if A.shape[1] < self.min_n_actions:
             raise InvalidInputError(
                 f"A must have at least {self.min_n_actions} action columns, got {A.shape[1]}")

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from .errors import BodySchemeError, InvalidInputError
 from .kinematics import Joint, KinematicTree, Marker, transform_from_xyz_rpy
-from .models.base import check_actions
+from .models.base import check_action_batch
 from .transforms import check_transform, concat, relative_transform
 
 __all__ = [
@@ -402,7 +402,7 @@ class Body:
         q : ndarray, same shape as ``a``
         """
         a = np.asarray(a, dtype=float)
-        q = np.clip(check_actions(a, self.tree.n_actions), self.tree.action_lower, self.tree.action_upper)
+        q = np.clip(check_action_batch(a, self.tree.n_actions), self.tree.action_lower, self.tree.action_upper)
         for action, (amplitude, frequency) in self.gears.items():
             q[:, action] = amplitude * np.sin(frequency * q[:, action])
         for action, angle in self.blocked.items():
@@ -415,7 +415,7 @@ class Body:
 
     def true_marker_array(self, A):
         """True ``root2marker`` for commanded actions ``A`` (n, m), shape (n, n_markers, 4, 4) in id order."""
-        poses = self.true_marker_poses(check_actions(A, self.tree.n_actions))
+        poses = self.true_marker_poses(check_action_batch(A, self.tree.n_actions))
         return np.stack([poses[i] for i in self.tree.marker_ids], axis=1)
 
     def __repr__(self):

@@ -1,4 +1,5 @@
-"""Rigid transforms and poses: validation, conversion, composition, inversion and error metrics.
+"""Rigid transforms and poses: validation, conversion, composition, inversion, error metrics, and the projection of
+3x3 matrices onto rotations with its derivative.
 
 Convention (the ROS/TF one, not pytransform3d's): ``A2B`` is the pose of frame ``B`` expressed in frame ``A``, a
 (4, 4) homogeneous matrix that maps points in ``B`` coordinates to ``A`` coordinates. Composition therefore reads
@@ -30,6 +31,8 @@ __all__ = [
     "vector12_from_transform",
     "transform_from_vector12",
     "project_to_rotation",
+    "project_to_rotation_batch",
+    "polar_derivative",
 ]
 
 #: Tolerance on ``|R^T R - I|`` and ``det R`` for a matrix to count as a rotation.
@@ -238,6 +241,102 @@ def project_to_rotation(M):
     U = U.copy()
     U[..., :, 2] *= d[..., None]
     return U @ Vt
+
+
+def polar_derivative(M, dM):
+    """Derivative of ``R = project_to_rotation(M)`` in the direction(s) ``dM``.
+
+    With the signed SVD ``M = U' S' V^T`` used by the projection (``R = U' V^T``, last singular value negated when
+    the determinant had to be fixed), ``dR = U' Omega V^T`` where ``Omega`` is skew with
+    ``Omega_ij = (W_ij - W_ji) / (s'_i + s'_j)`` and ``W = U'^T dM V``. This is exact (no finite differences).
+
+    Parameters
+    ----------
+    M : array-like, shape (3, 3)
+    dM : array-like, shape (..., 3, 3)
+
+    Returns
+    -------
+    dR : ndarray, shape (..., 3, 3)
+    """
+    M = np.asarray(M, dtype=float)
+    dM = np.asarray(dM, dtype=float)
+    U, s, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = 1.0 if d == 0.0 else d
+    U = U.copy()
+    U[:, 2] *= d
+    s = s.copy()
+    s[2] *= d
+    W = U.T @ dM @ Vt.T
+    denom = s[:, None] + s[None, :]
+    # The sum only vanishes for a degenerate M (two singular values cancelling): the projection is not
+    # differentiable there; a tiny denominator keeps the result finite instead of NaN.
+    denom = np.where(np.abs(denom) < 1e-12, 1e-12, denom)
+    Omega = (W - np.swapaxes(W, -1, -2)) / denom
+    return U @ Omega @ Vt
+
+
+# Cofactor entries of a row-major 3x3 matrix x (9, k): C = x[_P1] * x[_P2] - x[_P3] * x[_P4], so X^-T = C / det X.
+_P1 = np.array([4, 5, 3, 2, 0, 1, 1, 2, 0])
+_P2 = np.array([8, 6, 7, 7, 8, 6, 5, 3, 4])
+_P3 = np.array([5, 3, 4, 1, 2, 0, 2, 0, 1])
+_P4 = np.array([7, 8, 6, 8, 6, 7, 4, 5, 3])
+
+
+def project_to_rotation_batch(M, tol=1e-8, max_iter=50):
+    """Same result as :func:`project_to_rotation` (to ~1e-14), faster for stacks of matrices.
+
+    LAPACK's SVD costs a few microseconds per 3x3 matrix, which dominated a 462-slot prediction. The orthogonal
+    polar factor is computed instead by the scaled Newton iteration ``X <- (z X + X^-T / z) / 2`` (Higham,
+    Frobenius-norm scaling ``z`` until the step is small, then unscaled for quadratic convergence), vectorised
+    over the stack with explicit cofactors. A step below ``tol`` leaves an error of order ``tol^2``. For
+    ``det M <= 0`` (nearly) the polar factor is not the nearest rotation, and those matrices take the SVD path.
+
+    Parameters
+    ----------
+    M : ndarray, shape (k, 3, 3)
+
+    Returns
+    -------
+    R : ndarray, shape (k, 3, 3)
+    """
+    k = M.shape[0]
+    x = M.reshape(k, 9).T.copy()  # component-major: each entry a contiguous (k,) vector
+    cof = x[_P1] * x[_P2] - x[_P3] * x[_P4]
+    det = np.einsum("ik,ik->k", x[:3], cof[:3])
+    sq = np.einsum("ik,ik->k", x, x)
+    good = det > 1e-6 * sq**1.5
+    all_good = bool(np.all(good))
+    if not all_good:
+        x, cof, det, sq = x[:, good], cof[:, good], det[good], sq[good]
+    scale = True
+    converged = x.shape[1] == 0
+    for _ in range(max_iter):
+        if converged:
+            break
+        inv_t = cof / det
+        if scale:
+            zeta = np.sqrt(np.sqrt(np.einsum("ik,ik->k", inv_t, inv_t) / sq))
+            x_new = 0.5 * (zeta * x + inv_t / zeta)
+        else:
+            x_new = 0.5 * (x + inv_t)
+        step = np.max(np.abs(x_new - x))
+        x = x_new
+        converged = step < tol
+        scale = step > 1e-2
+        cof = x[_P1] * x[_P2] - x[_P3] * x[_P4]
+        det = np.einsum("ik,ik->k", x[:3], cof[:3])
+        if scale:
+            sq = np.einsum("ik,ik->k", x, x)
+    if not converged:  # pragma: no cover - the scaled iteration converges in < 15 steps for det > 0
+        return project_to_rotation(M)
+    if all_good:
+        return x.T.reshape(k, 3, 3)
+    R = np.empty((k, 9))
+    R[good] = x.T
+    R[~good] = project_to_rotation(M[~good]).reshape(-1, 9)
+    return R.reshape(k, 3, 3)
 
 
 def transform_from_vector12(v):

@@ -4,10 +4,11 @@ import numpy as np
 
 from body_scheme_core.bootstrap import Bootstrap
 from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.pool import CANDIDATE, TREE, ModelPool
+from body_scheme_core.pool import ModelPool
 from body_scheme_core.relative import PartPairs
 from body_scheme_core.structure import n_candidates
 from body_scheme_core.synthetic import Fault, make_session, planar_2dof
+from body_scheme_core.tracked import CANDIDATE, TREE
 from body_scheme_core.transforms import transform_from_rotvec
 
 

@@ -6,10 +6,10 @@ from numpy.testing import assert_allclose
 from body_scheme_core.chain import ChainTargets
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.pool import TrackedModel
 from body_scheme_core.quality import prediction_errors
 from body_scheme_core.scheme import BodyScheme
 from body_scheme_core.synthetic import arm_4dof, make_session
+from body_scheme_core.tracked import TrackedModel
 from body_scheme_core.transforms import invert_transform
 
 CONFIG = BodySchemeConfig()

@@ -13,8 +13,13 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import BodySchemeError, InvalidInputError, ModelFileError, NotFittedError
 from body_scheme_core.models import GPBatch, GPModel
-from body_scheme_core.models.gp import _project_to_rotation_batch, squared_exponential
-from body_scheme_core.transforms import check_transform, project_to_rotation, transform_from_rotvec
+from body_scheme_core.models.gp_kernel import squared_exponential
+from body_scheme_core.transforms import (
+    check_transform,
+    project_to_rotation,
+    project_to_rotation_batch,
+    transform_from_rotvec,
+)
 
 HYPER = dict(length_scale=0.8, signal_std_trans=0.3, signal_std_rot=0.7, noise_std_trans=0.06, noise_std_rot=0.14)
 M = 5
@@ -96,8 +101,8 @@ def test_fast_projection_equals_svd_projection():
     M_ = np.concatenate([R, R + 0.1 * rng.normal(size=R.shape), rng.normal(size=(300, 3, 3)),
                          0.2 * R + 0.3 * rng.normal(size=R.shape), R @ np.diag([1.0, 1.0, 1e-9])])
     assert np.any(np.linalg.det(M_) < 0)
-    assert_allclose(_project_to_rotation_batch(M_), project_to_rotation(M_), atol=1e-12)
-    assert _project_to_rotation_batch(np.zeros((0, 3, 3))).shape == (0, 3, 3)
+    assert_allclose(project_to_rotation_batch(M_), project_to_rotation(M_), atol=1e-12)
+    assert project_to_rotation_batch(np.zeros((0, 3, 3))).shape == (0, 3, 3)
 
 
 def test_empty_slot_predicts_identity_with_infinite_std():

@@ -14,16 +14,16 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import BodySchemeError, InvalidInputError, ModelFileError, NotFittedError
 from body_scheme_core.models import GPModel, model_from_dict
-from body_scheme_core.models.gp import (
+from body_scheme_core.models.gp_kernel import (
     GPHyperparameters,
     _clamp_variance,
-    polar_derivative,
     squared_exponential,
     squared_exponential_gradient,
 )
 from body_scheme_core.transforms import (
     check_transform,
     concat,
+    polar_derivative,
     project_to_rotation,
     transform_from_rotvec,
     vector12_from_transform,
@@ -253,6 +253,13 @@ def test_from_config_uses_one_ratio_from_marker_noise():
     assert model.hyperparameters == hp
     quiet = BodySchemeConfig(sigma_trans=0.05, sigma_rot=0.001)
     assert_allclose(GPHyperparameters.from_config(quiet).noise_std_trans, math.sqrt(2) * 0.05 / math.sqrt(3))
+
+
+def test_default_hyperparameters_are_those_of_the_default_config():
+    """A GP built without hyperparameters uses exactly what the default configuration derives (models own them)."""
+    assert GPModel(1, 2, (0,)).hyperparameters == GPHyperparameters.from_config(BodySchemeConfig())
+    partial = GPModel(1, 2, (0,), length_scale=0.5).hyperparameters
+    assert partial == GPHyperparameters.from_config(BodySchemeConfig(gp_length_scale=0.5))
 
 
 @pytest.mark.parametrize("corrupt", [

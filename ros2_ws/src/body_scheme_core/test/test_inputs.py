@@ -10,7 +10,7 @@ from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.inputs import (
     OBSERVATION_TOLERANCE,
     check_action_bounds,
-    check_actions,
+    check_action_vector,
     check_config,
     check_initial_models,
     check_n_actions,
@@ -33,13 +33,13 @@ def _pose(rng):
 
 def test_check_actions_accepts_one_finite_vector():
     """A finite vector of length m passes as floats; other lengths, stacks and NaN or inf are refused."""
-    np.testing.assert_array_equal(check_actions([1, 2], 2), [1.0, 2.0])
+    np.testing.assert_array_equal(check_action_vector([1, 2], 2), [1.0, 2.0])
     for bad in ([0.1, 0.2, 0.3], [[0.1, 0.2]], 0.5):
         with pytest.raises(InvalidInputError, match=r"shape \(2,\)"):
-            check_actions(bad, 2)
+            check_action_vector(bad, 2)
     for bad in ([np.nan, 0.0], [0.0, np.inf]):
         with pytest.raises(InvalidInputError, match="NaN or inf"):
-            check_actions(bad, 2)
+            check_action_vector(bad, 2)
 
 
 def test_check_stamp_wants_a_finite_number_or_none():

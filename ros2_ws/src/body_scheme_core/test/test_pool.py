@@ -8,9 +8,10 @@ import pytest
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import ModelFileError
 from body_scheme_core.models import GPModel, RevoluteModel, StaticModel
-from body_scheme_core.pool import MEMORY, TREE, ModelPool, Targets, TrackedModel, format_errors, nested_models
+from body_scheme_core.pool import ModelPool, Targets
 from body_scheme_core.quality import prediction_errors
 from body_scheme_core.relative import PartPairs
+from body_scheme_core.tracked import MEMORY, TREE, TrackedModel, nested_models
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
 
 CONFIG = BodySchemeConfig()
@@ -86,13 +87,13 @@ def test_fitted_models_are_tested_and_only_tree_models_run_a_cusum():
     np.testing.assert_allclose(pool.monitor.errors[memory.row, :4], 0.0, atol=1e-7)
 
 
-def test_materialize_turns_a_candidate_into_a_fitted_model():
+def test_freeze_turns_a_candidate_into_a_fitted_model():
     """A learning rigid candidate becomes a fitted model with a covariance and leaves its batch."""
     pool = ModelPool(CONFIG, 1)
     (entry,) = pool.add_learning([(1, 2, (0,), "revolute")], origin="test")
     for t, a in enumerate(np.linspace(-1.0, 1.0, 8)):
         _train(pool, a, t)
-    model = pool.materialize(entry)
+    model = pool.freeze(entry)
     assert entry.slot == -1 and pool.rigid_batch.n_allocated == 0 and pool.learning().ids.size == 0
     assert isinstance(entry.model, RevoluteModel) and model is entry.model and entry.n_train == 8
     assert model.param_cov_.shape == (10, 10)
@@ -174,8 +175,3 @@ def test_targets_select_rows():
     np.testing.assert_array_equal(sub.theta_trans, [3.0, 2.0])
     np.testing.assert_array_equal(sub.flip, [False, True])
 
-
-def test_error_text():
-    """Errors read as mm and degrees, and as n/a when unknown."""
-    assert format_errors(0.078, np.radians(12.3)) == "78 mm / 12.3 deg"
-    assert format_errors(np.inf, 0.1) == "n/a"

@@ -1,31 +1,20 @@
-"""Tests of prediction errors, test windows, validity, costs and the CUSUM change detector."""
+"""Tests of prediction errors, the nesting of model classes and the structure costs."""
 
-import json
 import math
 
 import numpy as np
 import pytest
 
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.errors import InvalidInputError, ModelFileError
 from body_scheme_core.quality import (
     RANK_PENALTY,
-    ErrorMonitor,
     class_rank,
     model_cost,
     nests,
     prediction_errors,
     relative_complexity,
     replacement_cost,
-    translation_threshold,
 )
 from body_scheme_core.transforms import transform_from_rotvec
-
-THETA_T, THETA_R = 0.15, math.radians(45.0)
-
-
-def _monitor(window=5, **kwargs):
-    return ErrorMonitor(window, 0, THETA_T, THETA_R, **kwargs)
 
 
 def test_prediction_errors_of_known_offsets():
@@ -35,15 +24,6 @@ def test_prediction_errors_of_known_offsets():
     e_t, e_r = prediction_errors(np.stack([Z, Z]), np.stack([Z, Z2]))
     np.testing.assert_allclose(e_t, [0.0, 0.1], atol=1e-12)
     np.testing.assert_allclose(e_r, [0.0, 0.3], atol=1e-7)
-
-
-def test_translation_threshold_grows_with_lever_arm():
-    """At zero distance the threshold is theta_trans; it grows like the parent's orientation noise moves the child."""
-    assert translation_threshold(THETA_T, THETA_R, 0.0) == pytest.approx(THETA_T)
-    d = np.array([0.0, 0.5, 1.0])
-    theta = translation_threshold(THETA_T, THETA_R, d)
-    np.testing.assert_allclose(theta, np.sqrt(THETA_T**2 + 2.0 / 3.0 * THETA_R**2 * d**2))
-    assert np.all(np.diff(theta) > 0)
 
 
 def test_model_cost_layers_never_overlap():
@@ -87,174 +67,3 @@ def test_nesting_follows_flexibility_and_actions():
     assert not nests("revolute", (1,), "prismatic", (1,))
     assert not nests("gp", (2,), "revolute", (1,))
     assert not nests("engineered", (1,), "static", ())
-
-
-def test_window_keeps_only_the_last_samples():
-    """The ring buffer averages exactly the last `window` samples, with their steps."""
-    mon = _monitor(window=5)
-    rows = mon.allocate(2)
-    for step in range(8):
-        mon.record(rows, [0.01 * step, 0.02 * step], [0.0, 0.0], step)
-    st = mon.stats(rows)
-    np.testing.assert_array_equal(st.n, [5, 5])
-    np.testing.assert_allclose(st.trans_error, [0.01 * 5, 0.02 * 5])  # mean of steps 3..7
-    assert sorted(mon.steps[rows[0]].tolist()) == [3, 4, 5, 6, 7]
-    assert mon.first_step(rows).tolist() == [3, 3]
-
-
-def test_validity_needs_samples_and_both_thresholds():
-    """Valid iff enough samples and both mean error ratios below 1."""
-    mon = _monitor(window=5)
-    rows = mon.allocate(3)
-    mon.record(rows, [0.1, 0.2, 0.1], [0.1, 0.1, 1.0], 0)
-    mon.record(rows, [0.1, 0.2, 0.1], [0.1, 0.1, 1.0], 1)
-    assert mon.valid(mon.stats(rows), 3).tolist() == [False, False, False]
-    mon.record(rows, [0.1, 0.2, 0.1], [0.1, 0.1, 1.0], 2)
-    assert mon.valid(mon.stats(rows), 3).tolist() == [True, False, False]
-
-
-def test_per_sample_thresholds_enter_the_ratios():
-    """A 0.2 m error is invalid at theta 0.15 m but valid at the larger threshold of a distant pair."""
-    mon = _monitor(window=3)
-    rows = mon.allocate(2)
-    for step in range(3):
-        mon.record(rows, [0.2, 0.2], [0.0, 0.0], step, theta_trans=[0.15, 0.4])
-    st = mon.stats(rows)
-    np.testing.assert_allclose(st.trans_ratio, [0.2 / 0.15, 0.5])
-    np.testing.assert_allclose(st.theta_trans, [0.15, 0.4])
-    assert mon.valid(st, 3).tolist() == [False, True]
-
-
-def test_stale_predictions_of_a_learning_model_are_ignored():
-    """Errors made with fewer than half of the current training samples do not count."""
-    mon = _monitor(window=10)
-    (row,) = mon.allocate(1)
-    for n in range(1, 9):  # predictions by a model with n training samples: bad early, good later
-        mon.record([row], [1.0 if n < 6 else 0.01], [0.0], n, n_train=n)
-    assert not mon.valid(mon.stats([row]), 3)[0]  # 5 of 8 far off (clipped at 2 thresholds each)
-    st = mon.stats([row], n_train=[8], stale_fraction=0.5)
-    assert st.n[0] == 5  # predictions made with 4..8 samples: 2 bad, 3 good
-    assert mon.valid(st, 3)[0]
-
-
-def test_one_outlier_cannot_invalidate_a_window():
-    """Per-sample ratios are clipped at cusum_clip: one wild error moves a window mean by at most clip/window."""
-    mon = _monitor(window=10)
-    (row,) = mon.allocate(1)
-    for step in range(10):
-        mon.record([row], [0.05 if step != 4 else 100.0], [0.1], step)
-    st = mon.stats([row])
-    assert mon.valid(st, 3)[0]
-    assert st.trans_ratio[0] == pytest.approx((9 * 0.05 / 0.15 + mon.cusum_clip) / 10)
-
-
-def test_stats_since_a_change_point():
-    """`since` restricts the statistics to samples observed at or after a step."""
-    mon = _monitor(window=10)
-    (row,) = mon.allocate(1)
-    for step in range(6):
-        mon.record([row], [0.5 if step < 3 else 0.05], [0.0], step)
-    st = mon.stats([row], since=3)
-    assert st.n[0] == 3
-    assert st.trans_error[0] == pytest.approx(0.05)
-
-
-def test_cusum_alarms_after_a_shift_and_estimates_the_change_point():
-    """Clean samples keep the CUSUM at zero; a shift to twice the threshold alarms within two samples."""
-    mon = _monitor(window=15, cusum_drift=0.75, cusum_threshold=2.5, cusum_clip=2.0)
-    (row,) = mon.allocate(1)
-    rng = np.random.default_rng(0)
-    for step in range(100):
-        alarm = mon.record([row], [rng.uniform(0, 0.5) * THETA_T], [rng.uniform(0, 0.5) * THETA_R], step)
-        assert not alarm[0]
-    assert mon.change_point([row])[0] == -1
-    alarms = [mon.record([row], [2.0 * THETA_T], [0.1], step)[0] for step in range(100, 103)]
-    assert alarms == [False, True, True]
-    assert mon.change_point([row])[0] == 100
-
-
-def test_cusum_needs_more_than_one_outlier():
-    """A single huge error is clipped: it raises the statistic by at most clip - drift."""
-    mon = _monitor(window=15, cusum_drift=0.75, cusum_threshold=2.5, cusum_clip=2.0)
-    (row,) = mon.allocate(1)
-    assert not mon.record([row], [100.0], [3.0], 0)[0]
-    np.testing.assert_allclose(mon.cusum[row], [1.25, 1.25])
-    mon.reset_cusum([row])
-    assert np.all(mon.cusum[row] == 0.0)
-
-
-def test_paired_difference_matches_samples_by_step():
-    """Rows created at different times are compared on their common steps only."""
-    mon = _monitor(window=4)
-    a, b = mon.allocate(2)
-    for step in range(6):
-        mon.record([a], [0.3], [0.0], step)
-        if step >= 3:
-            mon.record([b], [0.15], [0.0], step)
-    n, diff = mon.paired_difference([a], [b])
-    assert n[0] == 3
-    np.testing.assert_allclose(diff[0], [(0.3 - 0.15) / THETA_T, 0.0])
-    n, _ = mon.paired_difference([a], [b], since=5)
-    assert n[0] == 1
-
-
-def test_forget_before_drops_old_samples():
-    """Samples from before a change point can be dropped from a window."""
-    mon = _monitor(window=5)
-    (row,) = mon.allocate(1)
-    for step in range(5):
-        mon.record([row], [0.5], [0.0], step)
-    mon.forget_before([row], 3)
-    assert mon.stats([row]).n[0] == 2
-
-
-def test_rows_are_reused_and_grow():
-    """Released rows are reused; allocation grows the arrays when needed."""
-    mon = _monitor(window=3)
-    rows = mon.allocate(3)
-    mon.record(rows, [0.1] * 3, [0.1] * 3, 0)
-    mon.release(rows[1:2])
-    again = mon.allocate(2)
-    assert again[0] == rows[1]
-    assert mon.stats(again).n.tolist() == [0, 0]
-    assert mon.capacity >= 4
-
-
-def test_monitor_round_trip_through_json():
-    """to_dict -> JSON -> from_dict reproduces every array exactly."""
-    rng = np.random.default_rng(0)
-    mon = _monitor(window=4)
-    rows = mon.allocate(3)
-    for step in range(7):
-        mon.record(rows, rng.uniform(0, 0.3, 3), rng.uniform(0, 1, 3), step, n_train=step,
-                   theta_trans=rng.uniform(0.15, 0.3, 3))
-    back = ErrorMonitor.from_dict(json.loads(json.dumps(mon.to_dict())))
-    for name in ErrorMonitor._ARRAYS:
-        np.testing.assert_array_equal(getattr(back, name), getattr(mon, name))
-    np.testing.assert_array_equal(back.stats(rows).trans_error, mon.stats(rows).trans_error)
-
-
-def test_monitor_from_dict_rejects_bad_content():
-    """Wrong shapes and NaN are ModelFileErrors."""
-    mon = _monitor(window=4)
-    mon.record(mon.allocate(2), [0.1, 0.1], [0.1, 0.1], 0)
-    data = mon.to_dict()
-    bad = dict(data, errors=[[[0.0, 0.0]] * 3] * 2)
-    with pytest.raises(ModelFileError, match="shape"):
-        ErrorMonitor.from_dict(bad)
-    bad = json.loads(json.dumps(data))
-    bad["cusum"][0][0] = float("nan")
-    with pytest.raises(ModelFileError, match="NaN"):
-        ErrorMonitor.from_dict(bad)
-    with pytest.raises(ModelFileError):
-        ErrorMonitor.from_dict({"window": 4})
-
-
-def test_zero_length_windows_are_rejected():
-    """test_window = 0 is refused by the config and by the monitor."""
-    with pytest.raises(InvalidInputError, match="test_window"):
-        BodySchemeConfig(test_window=0)
-    with pytest.raises(InvalidInputError, match="window"):
-        ErrorMonitor(0)
-    with pytest.raises(InvalidInputError):
-        BodySchemeConfig(cusum_drift=2.0, cusum_clip=1.5)

@@ -5,9 +5,9 @@ import itertools
 import numpy as np
 import pytest
 
-from body_scheme_core.quality import translation_threshold
 from body_scheme_core.relative import PartPairs
 from body_scheme_core.transforms import invert_transform, relative_transform, transform_from_rotvec
+from body_scheme_core.validity import translation_threshold
 
 THETA_T, THETA_R = 0.15, np.radians(45.0)
 

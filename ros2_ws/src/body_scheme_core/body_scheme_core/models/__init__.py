@@ -1,16 +1,18 @@
 """Local model classes p(Z_ij | A_ij), one module each, and the registry used by persistence.
 
 Rigid joints (:class:`StaticModel`, :class:`PrismaticModel`, :class:`RevoluteModel` on the shared
-:class:`RigidJointModel`), Gaussian processes (:class:`GPModel`), the robot's specification (:class:`EngineeredModel`),
-and the two batches that let hundreds of candidates learn at once (:class:`GPBatch`, :class:`RigidBatch`).
+:class:`RigidJointModel`), Gaussian processes (:class:`GPModel`; kernel and hyperparameters in :mod:`.gp_kernel`), the
+robot's specification (:class:`EngineeredModel`), and the two batches that let hundreds of candidates learn at once
+(:class:`GPBatch`, :class:`RigidBatch`).
 """
 
 from __future__ import annotations
 
 from ..errors import ModelFileError
-from .base import LocalModel, check_actions, check_observations
+from .base import LocalModel, check_action_batch, check_observations
 from .engineered import EngineeredModel
-from .gp import GPBatch, GPModel
+from .gp import GPModel
+from .gp_batch import GPBatch
 from .prismatic import PrismaticModel
 from .revolute import RevoluteModel
 from .rigid import RigidJointModel
@@ -19,7 +21,7 @@ from .static import StaticModel
 
 __all__ = [
     "LocalModel",
-    "check_actions",
+    "check_action_batch",
     "check_observations",
     "StaticModel",
     "PrismaticModel",

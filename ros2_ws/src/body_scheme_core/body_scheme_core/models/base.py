@@ -24,11 +24,14 @@ import numpy as np
 from ..errors import InvalidInputError, NotFittedError
 from ..transforms import check_transform
 
-__all__ = ["LocalModel", "check_actions", "check_observations"]
+__all__ = ["LocalModel", "check_action_batch", "check_observations"]
 
 
-def check_actions(A, n_actions=None, name="A"):
-    """Validate a stack of full action vectors.
+def check_action_batch(A, n_actions=None, name="A"):
+    """Validate a stack of full action vectors for the models; one vector (m,) becomes a stack of one.
+
+    Not to be confused with :func:`~body_scheme_core.inputs.check_action_vector`, which checks the one action vector a
+    caller hands the learner per step (exact length, never a stack).
 
     Parameters
     ----------
@@ -54,7 +57,7 @@ def check_actions(A, n_actions=None, name="A"):
 
 def check_observations(A, Z):
     """Validate a training set: action vectors (n, m) and relative transforms (n, 4, 4) of equal length."""
-    A = check_actions(A)
+    A = check_action_batch(A)
     Z = check_transform(Z, name="Z", tolerance=1e-4)
     if Z.ndim != 3 or Z.shape[0] != A.shape[0]:
         raise InvalidInputError(f"A and Z must have the same length, got A {A.shape} and Z {Z.shape}")
@@ -106,7 +109,7 @@ class LocalModel(ABC):
 
     def _select(self, A):
         """Columns of ``A`` this model depends on, after validating ``A``."""
-        A = check_actions(A)
+        A = check_action_batch(A)
         if self.actions and A.shape[1] <= max(self.actions):
             raise InvalidInputError(
                 f"{self.describe()} needs action index {max(self.actions)}, got vectors of length {A.shape[1]}")
@@ -145,7 +148,7 @@ class LocalModel(ABC):
         The base implementation uses central differences on the model's own actions; subclasses override it
         analytically where they can.
         """
-        a = check_actions(a)[0]
+        a = check_action_batch(a)[0]
         J = np.zeros((a.shape[0], 4, 4))
         for k in self.actions:
             step = np.zeros_like(a)

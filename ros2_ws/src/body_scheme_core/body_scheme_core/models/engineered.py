@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InvalidInputError, ModelFileError
 from ..transforms import check_transform, invert_transform
-from .base import LocalModel, check_actions, check_observations
+from .base import LocalModel, check_action_batch, check_observations
 
 __all__ = ["EngineeredModel", "engineered_models", "chain_from_tree"]
 
@@ -193,7 +193,7 @@ class EngineeredModel(LocalModel):
         std : ndarray, shape (k, 2)
             Zeros (trans m, rot rad); only if ``return_std``.
         """
-        A = check_actions(A)
+        A = check_action_batch(A)
         Z = np.tile(np.eye(4), (A.shape[0], 1, 1))
         for T in self._forward(A):
             Z = Z @ T
@@ -214,7 +214,7 @@ class EngineeredModel(LocalModel):
         eps : ignored
             Accepted for signature compatibility with :meth:`LocalModel.jacobian`.
         """
-        A = check_actions(a)
+        A = check_action_batch(a)
         if A.shape[0] != 1:
             raise InvalidInputError(f"jacobian takes one action vector (m,), got shape {np.shape(a)}")
         transforms = [T[0] if T.ndim == 3 else T for T in self._forward(A)]

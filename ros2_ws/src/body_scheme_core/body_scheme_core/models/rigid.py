@@ -44,7 +44,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InvalidInputError, ModelFileError
 from ..transforms import check_transform
-from .base import LocalModel, check_actions, check_observations
+from .base import LocalModel, check_action_batch, check_observations
 
 __all__ = [
     "RigidJointModel",
@@ -444,7 +444,7 @@ class RigidJointModel(LocalModel):
 
     def _x(self, A):
         """The model's action values (k,) of full action vectors (validated); zeros for a static model."""
-        A = check_actions(A)
+        A = check_action_batch(A)
         if not self.actions:
             return np.zeros(A.shape[0])
         return self._select(A)[:, 0]
@@ -531,7 +531,7 @@ class RigidJointModel(LocalModel):
     def jacobian(self, a, eps=None):
         """Analytic ``dZ/da`` (m, 4, 4) at one full action vector ``a``; ``eps`` is ignored."""
         self._check_fitted()
-        A = check_actions(a)
+        A = check_action_batch(a)
         J = np.zeros((A.shape[1], 4, 4))
         if self.actions:
             J[self.actions[0]] = self.form.action_derivative(self.params_, self._x(A)[0])

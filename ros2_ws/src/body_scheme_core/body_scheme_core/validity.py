@@ -1,0 +1,447 @@
+"""The validity monitor: test windows, validity and CUSUM change detection of tracked models (paper Eq. 5-6).
+
+A local model is judged by how well it predicts observations it has *not* been trained on. The learner evaluates
+prequentially (test-then-train): each new observation ``Z`` is first predicted, the error
+(:func:`~body_scheme_core.quality.prediction_errors`) enters the model's test window, and only then may the sample be
+added to the model's training set.
+
+Errors are split into a translational part (m) and a rotational part (rad), because the two have different units
+and noise levels; the paper's single norm ``||Z - Z'||`` (Eq. 6) mixes them. A model is *valid* (Eq. 5-6 with
+``theta = 3 sigma``) when its mean errors over the test window are below both thresholds.
+
+Thresholds. ``theta_trans`` and ``theta_rot`` are the configuration's (``BodySchemeConfig``, default
+``validity_sigmas`` times the marker noise); :meth:`ValidityMonitor.from_config` takes them from there, and the monitor
+saves them with its state. The rotational threshold is ``theta_rot`` for every sample. The translational threshold of
+a sample grows with the lever arm between its two parts, so it is computed per sample where the sample is formed and
+recorded with its errors: :func:`translation_threshold` for the relative observations of
+:mod:`~body_scheme_core.relative`, :meth:`~body_scheme_core.chain.ChainTargets.threshold` for chain-consistent targets;
+it travels to :meth:`ValidityMonitor.record` in :class:`~body_scheme_core.pool.Targets`.
+
+The monitor is *batched*: one object holds the windows of hundreds of candidate models in ``(rows, W)`` arrays, with
+``allocate``/``release`` row management like :class:`~body_scheme_core.models.gp_batch.GPBatch`, so one learner step
+costs a handful of numpy calls instead of one Python loop iteration per candidate.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .errors import InvalidInputError, ModelFileError
+
+__all__ = ["translation_threshold", "WindowStats", "ValidityMonitor"]
+
+
+def translation_threshold(theta_trans, theta_rot, distance):
+    """Validity threshold of the translational error of a relative observation whose parts are ``distance`` apart.
+
+    ``Z_ij = Y_i^-1 Y_j`` expresses the child's observed position in the parent's *observed* frame, so the parent's
+    orientation noise (RMS angle ``sigma_rot``) moves it by the lever arm: RMS ``sqrt(2/3) sigma_rot d`` (only the
+    rotation components perpendicular to the offset count). The threshold grows the same way::
+
+        theta_t(d) = sqrt(theta_trans^2 + (2/3) theta_rot^2 d^2)
+
+    It equals the paper's ``theta_trans`` for coincident parts. Without it a perfect model of two markers 0.5 m
+    apart has a mean error near ``theta_trans`` at the paper's noise (15 deg), and validity becomes a coin toss.
+
+    Parameters
+    ----------
+    theta_trans, theta_rot : float
+        Validity thresholds (m, rad).
+    distance : float or array-like
+        Observed distance between the two parts (m).
+
+    Returns
+    -------
+    theta : float or ndarray
+    """
+    d = np.asarray(distance, dtype=float)
+    theta = np.sqrt(theta_trans**2 + (2.0 / 3.0) * theta_rot**2 * d * d)
+    return float(theta) if theta.ndim == 0 else theta
+
+
+class WindowStats(NamedTuple):
+    """Test-window statistics of k models (arrays of shape (k,)); means are ``inf`` where ``n == 0``.
+
+    Attributes
+    ----------
+    n : ndarray of int
+        Number of counted samples.
+    trans_error, rot_error : ndarray
+        Mean errors (m, rad).
+    trans_ratio, rot_ratio : ndarray
+        Mean of the per-sample errors divided by their thresholds; the model is valid when both are below 1.
+    theta_trans : ndarray
+        Mean effective translational threshold (m) over the counted samples.
+    """
+
+    n: np.ndarray
+    trans_error: np.ndarray
+    rot_error: np.ndarray
+    trans_ratio: np.ndarray
+    rot_ratio: np.ndarray
+    theta_trans: np.ndarray
+
+
+class ValidityMonitor:
+    """The validity monitor: test windows, validity and CUSUM change detectors of many models at once, one row each.
+
+    Each row holds a ring buffer of the last ``window`` per-sample errors (translational, rotational) with their
+    translational threshold (see :func:`translation_threshold`), the step index at which they were observed and the
+    number of training samples the model had when it predicted them, plus a one-sided CUSUM per error channel.
+
+    Parameters
+    ----------
+    window : int
+        |D_test|, the ring buffer length (>= 1).
+    capacity : int
+        Initial number of rows; grows on demand.
+    theta_trans, theta_rot : float
+        Validity thresholds (m, rad); ``theta_trans`` is the default per-sample translational threshold.
+    cusum_drift : float
+        Reference value ``k`` of the CUSUM in threshold units: a sample raises the statistic only by the amount its
+        normalised error exceeds ``k``. With ``k = 1`` a model that is valid on average drifts back to zero.
+    cusum_threshold : float
+        Alarm level ``h`` in threshold units.
+    cusum_clip : float
+        Normalised per-sample errors are clipped to this value before entering the CUSUM, so that one outlier (a
+        misdetected marker) raises it by at most ``cusum_clip - cusum_drift``; an alarm then needs at least
+        ``ceil(h / (cusum_clip - k))`` bad samples.
+
+    Notes
+    -----
+    The CUSUM of a channel is ``S <- max(0, S + min(x, clip) - k)`` with ``x = e / theta``. Its change-point estimate
+    is the step of the first sample of the current excursion above zero (where ``S`` last left zero): for an abrupt
+    change this is the first sample after the change whose error exceeded ``k``, so data from there on is clean
+    post-change data.
+    """
+
+    _ARRAYS = ("errors", "thresholds", "steps", "n_train", "head", "count", "cusum", "cusum_start", "in_use")
+
+    def __init__(self, window, capacity=0, theta_trans=0.15, theta_rot=0.7853981633974483, cusum_drift=1.0,
+                 cusum_threshold=3.0, cusum_clip=2.0):
+        if isinstance(window, bool) or not (isinstance(window, (int, np.integer)) and window >= 1):
+            raise InvalidInputError(f"window must be an integer >= 1, got {window!r}")
+        if not (theta_trans > 0 and theta_rot > 0):
+            raise InvalidInputError(f"thresholds must be > 0, got {theta_trans!r}, {theta_rot!r}")
+        if not (cusum_clip > cusum_drift > 0 and cusum_threshold > 0):
+            raise InvalidInputError(
+                f"need cusum_clip > cusum_drift > 0 and cusum_threshold > 0, got clip {cusum_clip}, "
+                f"drift {cusum_drift}, threshold {cusum_threshold}")
+        self.window = int(window)
+        self.theta = np.array([theta_trans, theta_rot], dtype=float)
+        self.cusum_drift = float(cusum_drift)
+        self.cusum_threshold = float(cusum_threshold)
+        self.cusum_clip = float(cusum_clip)
+        self._resize(int(capacity))
+
+    @classmethod
+    def from_config(cls, config, capacity=0):
+        """An empty monitor with the test window, the validity thresholds and the CUSUM settings of ``config``."""
+        c = config
+        return cls(c.test_window, capacity, c.theta_trans, c.theta_rot, c.cusum_drift, c.cusum_threshold, c.cusum_clip)
+
+    # ------------------------------------------------------------------ rows
+    def _empty(self, capacity):
+        W = self.window
+        return {
+            "errors": np.zeros((capacity, W, 2)),
+            "thresholds": np.ones((capacity, W)),
+            "steps": np.full((capacity, W), -1, dtype=np.int64),
+            "n_train": np.zeros((capacity, W), dtype=np.int64),
+            "head": np.zeros(capacity, dtype=np.int64),
+            "count": np.zeros(capacity, dtype=np.int64),
+            "cusum": np.zeros((capacity, 2)),
+            "cusum_start": np.full((capacity, 2), -1, dtype=np.int64),
+            "in_use": np.zeros(capacity, dtype=bool),
+        }
+
+    def _resize(self, capacity):
+        arrays = self._empty(capacity)
+        if hasattr(self, "errors"):
+            k = min(self.capacity, capacity)
+            for name in self._ARRAYS:
+                arrays[name][:k] = getattr(self, name)[:k]
+        for name, value in arrays.items():
+            setattr(self, name, value)
+
+    @property
+    def capacity(self):
+        """Number of rows currently allocated in memory (used or free)."""
+        return self.errors.shape[0]
+
+    def allocate(self, k):
+        """Reserve ``k`` empty rows; returns their indices (ndarray of int, shape (k,)), lowest free first."""
+        free = np.flatnonzero(~self.in_use)
+        if free.size < k:
+            self._resize(max(2 * self.capacity, self.capacity + k - free.size))
+            free = np.flatnonzero(~self.in_use)
+        rows = free[:k]
+        self.clear(rows)
+        self.in_use[rows] = True
+        return rows
+
+    def release(self, rows):
+        """Free rows for reuse."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        self.clear(rows)
+        self.in_use[rows] = False
+
+    def clear(self, rows):
+        """Empty the windows and reset the CUSUMs of ``rows``."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        empty = self._empty(1)
+        for name in self._ARRAYS:
+            if name != "in_use":
+                getattr(self, name)[rows] = empty[name][0]
+
+    def copy_rows(self, other, src_rows, dst_rows):
+        """Copy windows and CUSUMs of ``src_rows`` of monitor ``other`` into ``dst_rows`` of this one."""
+        if other.window != self.window:
+            raise InvalidInputError(f"window lengths differ: {other.window} != {self.window}")
+        s = np.asarray(src_rows, dtype=np.int64)
+        d = np.asarray(dst_rows, dtype=np.int64)
+        for name in self._ARRAYS:
+            if name != "in_use":
+                getattr(self, name)[d] = getattr(other, name)[s]
+
+    # ------------------------------------------------------------------ recording
+    def record(self, rows, trans_error, rot_error, step, n_train=0, cusum=True, theta_trans=None):
+        """Append one error sample to each row and update its CUSUMs.
+
+        Parameters
+        ----------
+        rows : array-like of int, shape (k,)
+            Distinct rows.
+        trans_error, rot_error : array-like, shape (k,)
+            Per-sample errors (m, rad).
+        step : int
+            Time step of the observation.
+        n_train : int or array-like of int, shape (k,)
+            Training samples each model had when it made the prediction (for :meth:`stats`' staleness rule).
+        cusum : bool or array-like of bool, shape (k,)
+            Whether to update the CUSUMs too (per row, or for all).
+        theta_trans : float or array-like, shape (k,), optional
+            Translational threshold of each sample (:func:`translation_threshold`); default ``theta[0]``.
+
+        Returns
+        -------
+        alarm : ndarray of bool, shape (k,)
+            CUSUM at or above the threshold in either channel after this sample.
+        """
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if rows.size == 0:
+            return np.zeros(0, dtype=bool)
+        e = np.stack([np.asarray(trans_error, dtype=float).reshape(-1),
+                      np.asarray(rot_error, dtype=float).reshape(-1)], axis=1)
+        theta_t = np.broadcast_to(self.theta[0] if theta_trans is None else np.asarray(theta_trans, dtype=float),
+                                  rows.shape)
+        pos = self.head[rows]
+        self.errors[rows, pos] = e
+        self.thresholds[rows, pos] = theta_t
+        self.steps[rows, pos] = step
+        self.n_train[rows, pos] = n_train
+        self.head[rows] = (pos + 1) % self.window
+        self.count[rows] += 1
+        use = np.broadcast_to(np.asarray(cusum, dtype=bool), rows.shape)
+        if not np.any(use):
+            return np.zeros(rows.size, dtype=bool)
+        x = e / np.stack([theta_t, np.full(rows.size, self.theta[1])], axis=1)
+        if not np.all(use):
+            alarm = np.zeros(rows.size, dtype=bool)
+            alarm[use] = self._update_cusum(rows[use], x[use], step)
+            return alarm
+        return self._update_cusum(rows, x, step)
+
+    def _update_cusum(self, rows, x, step):
+        x = np.minimum(x, self.cusum_clip)
+        S_old = self.cusum[rows]
+        S = np.maximum(0.0, S_old + x - self.cusum_drift)
+        start = self.cusum_start[rows]
+        start[(S_old <= 0.0) & (S > 0.0)] = step
+        start[S <= 0.0] = -1
+        self.cusum[rows] = S
+        self.cusum_start[rows] = start
+        return np.any(S >= self.cusum_threshold, axis=1)
+
+    def forget_before(self, rows, step):
+        """Drop window samples observed before ``step`` (e.g. from before a change point); the CUSUMs are kept."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        steps = self.steps[rows]
+        steps[steps < step] = -1
+        self.steps[rows] = steps
+
+    def forget_since(self, rows, step):
+        """Drop window samples observed at or after ``step`` (errors that followed from a change elsewhere)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        steps = self.steps[rows]
+        steps[steps >= step] = -1
+        self.steps[rows] = steps
+
+    def reset_cusum(self, rows):
+        """Set the CUSUMs of ``rows`` back to zero (after a model was (re)installed)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        self.cusum[rows] = 0.0
+        self.cusum_start[rows] = -1
+
+    # ------------------------------------------------------------------ statistics
+    def _mask(self, rows, n_train, stale_fraction):
+        mask = self.steps[rows] >= 0
+        if n_train is not None and stale_fraction > 0.0:
+            floor = np.floor(stale_fraction * np.asarray(n_train, dtype=float)).astype(np.int64).reshape(-1, 1)
+            mask &= self.n_train[rows] >= floor
+        return mask
+
+    def _ratios(self, rows):
+        """Per-sample errors in threshold units, clipped at ``cusum_clip``, shape (k, W, 2).
+
+        The clip bounds what one outlier (a mirrored marker orientation, a misdetection) does to a window mean: at
+        most ``cusum_clip / window`` thresholds, while a model whose errors all exceed the threshold still averages
+        above 1. Validity, quality and the paired comparisons all use these clipped ratios.
+        """
+        ratios = self.errors[rows] / np.stack(
+            [self.thresholds[rows], np.full(self.thresholds[rows].shape, self.theta[1])], axis=-1)
+        return np.minimum(ratios, self.cusum_clip)
+
+    def stats(self, rows, since=None, n_train=None, stale_fraction=0.0):
+        """Test-window statistics of ``rows``.
+
+        Parameters
+        ----------
+        rows : array-like of int, shape (k,)
+        since : int or array-like of int, shape (k,), optional
+            Count only samples observed at or after this step (errors since a change point).
+        n_train : int or array-like of int, shape (k,), optional
+            Current number of training samples of each model.
+        stale_fraction : float
+            With ``n_train``: ignore errors of predictions the model made while it had fewer than
+            ``floor(stale_fraction * n_train)`` training samples. While a model is still learning, its early
+            predictions say little about the current model, so they would keep it invalid for a whole window.
+
+        Returns
+        -------
+        stats : WindowStats
+        """
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        mask = self._mask(rows, n_train, stale_fraction)
+        if since is not None:
+            mask &= self.steps[rows] >= np.asarray(since, dtype=np.int64).reshape(-1, 1)
+        n = mask.sum(axis=1)
+        w = mask.astype(float)
+        values = np.concatenate([self.errors[rows], self._ratios(rows), self.thresholds[rows][..., None]], axis=-1)
+        total = np.einsum("kw,kwc->kc", w, values)
+        mean = np.where(n[:, None] > 0, total / np.maximum(n, 1)[:, None], np.inf)
+        return WindowStats(n, mean[:, 0], mean[:, 1], mean[:, 2], mean[:, 3], mean[:, 4])
+
+    def valid(self, stats, min_samples):
+        """Validity (paper Eq. 5-6): at least ``min_samples`` samples and both mean error ratios below 1.
+
+        With a constant translational threshold this is exactly "mean error below the threshold".
+        """
+        return (stats.n >= min_samples) & (stats.trans_ratio < 1.0) & (stats.rot_ratio < 1.0)
+
+    def paired_difference(self, rows_a, rows_b, n_train_a=None, n_train_b=None, stale_fraction=0.0, since=None):
+        """Mean of ``(e_a - e_b) / theta`` per channel over the samples both rows observed at the same step.
+
+        Two models of one pair of parts see the same observations, so this is a paired comparison on identical
+        samples: the observation noise largely cancels and a small mean difference is already significant.
+
+        Parameters
+        ----------
+        rows_a, rows_b : array-like of int, shape (k,)
+        n_train_a, n_train_b : array-like of int, shape (k,), optional
+            Current training-set sizes, for the staleness rule of :meth:`stats`.
+        stale_fraction : float
+        since : int or array-like of int, shape (k,), optional
+            Only samples observed at or after this step.
+
+        Returns
+        -------
+        n : ndarray of int, shape (k,)
+            Number of common samples.
+        diff : ndarray, shape (k, 2)
+            Mean normalised difference (translational, rotational); 0 where ``n == 0``.
+        """
+        rows_a = np.asarray(rows_a, dtype=np.int64).reshape(-1)
+        rows_b = np.asarray(rows_b, dtype=np.int64).reshape(-1)
+        mask_a = self._mask(rows_a, n_train_a, stale_fraction)
+        mask_b = self._mask(rows_b, n_train_b, stale_fraction)
+        if since is not None:
+            mask_a &= self.steps[rows_a] >= np.asarray(since, dtype=np.int64).reshape(-1, 1)
+        steps_a, steps_b = self.steps[rows_a], self.steps[rows_b]
+        ratios_a, ratios_b = self._ratios(rows_a), self._ratios(rows_b)
+        # Rows that recorded the same steps from the same start (models created together) are aligned slot by
+        # slot; the others are matched by step with a (W, W) comparison.
+        aligned = np.all(steps_a == steps_b, axis=1)
+        other = np.flatnonzero(~aligned)
+        if other.size:
+            match = ((steps_a[other][:, :, None] == steps_b[other][:, None, :])
+                     & mask_a[other][:, :, None] & mask_b[other][:, None, :])
+            # Each step occurs at most once per row, so the matched sample of b is the masked row sum.
+            ratios_b[other] = np.einsum("kij,kjc->kic", match.astype(float), ratios_b[other])
+            mask_b[other] = match.any(axis=2)
+            mask_a[other] = mask_b[other]
+        both = mask_a & mask_b
+        n = both.sum(axis=1)
+        d = np.where(both[..., None], ratios_a - ratios_b, 0.0)
+        return n, d.sum(axis=1) / np.maximum(n, 1)[:, None]
+
+    def change_point(self, rows):
+        """CUSUM change-point estimate per row: earliest excursion start over the alarmed channels, else over all.
+
+        Returns
+        -------
+        tau : ndarray of int, shape (k,)
+            Step index, or -1 where no CUSUM is above zero.
+        """
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        S = self.cusum[rows]
+        start = self.cusum_start[rows]
+        alarmed = S >= self.cusum_threshold
+        use = np.where(np.any(alarmed, axis=1, keepdims=True), alarmed, S > 0.0)
+        big = np.iinfo(np.int64).max
+        tau = np.where(use & (start >= 0), start, big).min(axis=1)
+        return np.where(tau == big, -1, tau)
+
+    def first_step(self, rows):
+        """Oldest step in each row's window, -1 if empty."""
+        steps = self.steps[np.asarray(rows, dtype=np.int64).reshape(-1)]
+        big = np.iinfo(np.int64).max
+        first = np.where(steps >= 0, steps, big).min(axis=1)
+        return np.where(first == big, -1, first)
+
+    # ------------------------------------------------------------------ persistence
+    def to_dict(self):
+        """JSON-serialisable state (all rows, used or free, so row indices survive a round trip)."""
+        data = {"window": self.window, "theta": self.theta.tolist(), "cusum_drift": self.cusum_drift,
+                "cusum_threshold": self.cusum_threshold, "cusum_clip": self.cusum_clip}
+        for name in self._ARRAYS:
+            data[name] = getattr(self, name).tolist()
+        return data
+
+    @classmethod
+    def from_dict(cls, data):
+        """Rebuild from :meth:`to_dict` output; raises ModelFileError on missing keys, bad shapes or NaN."""
+        try:
+            monitor = cls(int(data["window"]), 0, float(data["theta"][0]), float(data["theta"][1]),
+                          float(data["cusum_drift"]), float(data["cusum_threshold"]), float(data["cusum_clip"]))
+            n = len(data["in_use"])
+            template = monitor._empty(n)
+            arrays = {name: np.asarray(data[name], dtype=template[name].dtype) for name in cls._ARRAYS}
+        except (KeyError, TypeError, ValueError, IndexError, InvalidInputError) as exc:
+            raise ModelFileError(f"bad validity-monitor state: {type(exc).__name__}: {exc}") from exc
+        for name, value in arrays.items():
+            shape = template[name].shape
+            if value.size == 0 and n == 0:
+                value = value.reshape(shape)
+            if value.shape != shape:
+                raise ModelFileError(f"validity-monitor array {name!r} must have shape {shape}, got {value.shape}")
+            if value.dtype == float and not np.all(np.isfinite(value)):
+                raise ModelFileError(f"validity-monitor array {name!r} contains NaN or inf")
+            setattr(monitor, name, value)
+        if np.any((monitor.head < 0) | (monitor.head >= monitor.window)):
+            raise ModelFileError("validity-monitor ring-buffer heads out of range")
+        if np.any(monitor.thresholds <= 0):
+            raise ModelFileError("validity-monitor thresholds must be > 0")
+        return monitor
