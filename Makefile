@@ -1,6 +1,7 @@
 # Body Scheme: set-up, build, test, demo and benchmarks on a machine with or without ROS 2 installed.
 #
 #   make test    set up (if needed), build, run every test and ruff   <- the README's test command, run by CI
+#   make test-fast  the inner loop: every test but the DDS system tests and the slow ones (under 90 s)
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
 #   make bags    regenerate the sample babbling sessions in bags/ (see bags/README.md)
@@ -22,7 +23,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test unit lint demo bench bags replay experiments experiments-quick clean distclean
+.PHONY: all setup build test test-fast unit lint demo bench bags replay experiments experiments-quick clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -51,6 +52,10 @@ $(STAMPS)/build: $(STAMPS)/cmake-fixed $(PKG_SOURCES)
 test: build
 	$(RUN) python -m pytest
 	$(MAKE) --no-print-directory lint
+
+# The inner loop: every test but the DDS system tests and the ones marked slow (target: under 90 s).
+test-fast: build
+	$(RUN) python -m pytest -q -m "not system and not slow"
 
 unit: build
 	$(RUN) python -m pytest ros2_ws/src

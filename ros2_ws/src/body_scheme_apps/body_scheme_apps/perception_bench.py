@@ -36,14 +36,13 @@ import time  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
 from body_scheme_core.perception import MarkerTracker  # noqa: E402
 from body_scheme_sim.babbling import babble  # noqa: E402
 from body_scheme_sim.sessions import PROTOCOL_MARKERS_OF_INTEREST, record_session  # noqa: E402
 from body_scheme_sim.world import SimWorld  # noqa: E402
 
-__all__ = ["TARGETS", "run_benchmarks", "pose_errors", "main"]
+__all__ = ["TARGETS", "run_benchmarks", "main"]
 
 #: Minimum rates the simulator and the tracker must reach on one core, Hz.
 TARGETS = {"sim_render_hz": 30.0, "tracker_hz": 60.0}
@@ -59,35 +58,11 @@ def _pin_one_core():
     return "cv2.setNumThreads(1) (no CPU affinity on this platform)"
 
 
-def pose_errors(session, marker_ids=None):
-    """Translational (m) and rotational (rad) errors of every observed pose against ground truth.
-
-    Parameters
-    ----------
-    session : Session
-    marker_ids : iterable of int or None
-        Only these markers (``None``: all).
-
-    Returns
-    -------
-    errors : ndarray, shape (k, 2)
-    """
-    errors = []
-    for k, observed in enumerate(session.observations):
-        for marker_id, camera2marker in observed.items():
-            if marker_ids is not None and marker_id not in marker_ids:
-                continue
-            truth = session.true_poses[k, session.marker_ids.index(marker_id)]
-            rotation = Rotation.from_matrix(camera2marker[:3, :3].T @ truth[:3, :3]).magnitude()
-            errors.append((np.linalg.norm(camera2marker[:3, 3] - truth[:3, 3]), rotation))
-    return np.array(errors).reshape(-1, 2)
-
-
 def _per_marker_errors(session):
     """``{id: {trans_mm_median, rot_deg_median, rot_deg_p90}}`` of every tracked marker."""
     result = {}
     for marker_id in session.marker_ids:
-        errors = pose_errors(session, {marker_id})
+        errors = session.observation_errors({marker_id})
         if errors.shape[0]:
             result[str(marker_id)] = {"trans_mm_median": float(1e3 * np.median(errors[:, 0])),
                                       "rot_deg_median": float(np.degrees(np.median(errors[:, 1]))),
@@ -134,7 +109,7 @@ def run_benchmarks(n_frames=200, n_steps=300, seed=0):
     render_hz, tracker_hz = _rates(n_frames, seed)
     session = record_session("powercube_6dof", n_steps, seed, perception="rendered",
                              markers_of_interest=PROTOCOL_MARKERS_OF_INTEREST)
-    errors = pose_errors(session)
+    errors = session.observation_errors()
     trans_mm, rot_deg = 1e3 * errors[:, 0], np.degrees(errors[:, 1])
     return {
         "sim_render_hz": float(render_hz),

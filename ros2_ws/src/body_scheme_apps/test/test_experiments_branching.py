@@ -3,11 +3,14 @@
 import math
 
 import numpy as np
+import pytest
 from body_scheme_apps.experiments import branching
 
 from body_scheme_core.models import RevoluteModel, StaticModel
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.scheme import BodyScheme
+
+pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)
 
 
 def test_the_robot_has_two_markers_on_the_torso_and_a_dummy_action():

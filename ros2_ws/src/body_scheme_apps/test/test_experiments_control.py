@@ -10,6 +10,8 @@ from body_scheme_apps.experiments import control
 
 from body_scheme_core.events import Event
 
+pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)
+
 
 @pytest.fixture(scope="module")
 def quick_run():

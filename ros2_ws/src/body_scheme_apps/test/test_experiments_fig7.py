@@ -17,6 +17,8 @@ from body_scheme_sim.camera import Camera, look_at
 from body_scheme_sim.robots import load_robot
 from body_scheme_sim.sessions import record_session
 
+pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)
+
 
 @pytest.fixture(scope="module")
 def quick_run():

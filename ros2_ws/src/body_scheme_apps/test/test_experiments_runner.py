@@ -9,6 +9,8 @@ from body_scheme_apps.experiments import runner
 from body_scheme_apps.experiments.__main__ import main
 from body_scheme_apps.experiments.report import met, write_results_md
 
+pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)
+
 
 def test_aggregate_gives_nan_aware_mean_and_std_twins_and_skips_curves():
     """Mean and std over runs per scalar key, NaN runs left out, curves and events not aggregated."""

@@ -3,9 +3,12 @@
 import math
 
 import numpy as np
+import pytest
 from body_scheme_apps.experiments import table1
 
 from body_scheme_core.events import Event
+
+pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)
 
 
 def test_recovery_counts_samples_up_to_the_adapting_one_and_the_whole_block_without_one():

@@ -5,6 +5,8 @@ import math
 import pytest
 from body_scheme_apps.experiments import transmission
 
+pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)
+
 
 def test_a_quick_run_finds_the_gp_edge_and_beats_the_rigid_only_learner():
     """A quick run returns the FIGURES keys, finite; the elbow is a GP, and rigid models alone predict far worse."""

@@ -13,6 +13,8 @@ from body_scheme_apps import record
 
 from body_scheme_nodes.bag_io import SESSION_TOPICS, read_messages
 
+pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)
+
 REPO = pathlib.Path(__file__).resolve().parents[4]
 BAGS = REPO / "bags"
 

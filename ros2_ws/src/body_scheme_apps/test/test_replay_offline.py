@@ -68,6 +68,7 @@ def test_offline_replay_equals_the_learner_fed_the_session_directly(planar_bag):
     assert sum(result.rejected.values()) == 0
 
 
+@pytest.mark.slow
 def test_shipped_bag_finds_the_true_structure_detects_the_block_and_recovers(shipped_report):
     """On joint_blocked_seed0 bootstrapping finds powercube_6dof's chain, the block is detected and repaired."""
     code, out, _ = shipped_report

@@ -335,16 +335,6 @@ def test_memory_is_bounded_per_pair():
     assert REPAIR.kind == "repair"
 
 
-def test_demo_runs_end_to_end(capsys):
-    """body-scheme-demo bootstraps, detects the blocked joint, repairs and reinstates (short run)."""
-    from body_scheme_core import demo
-
-    assert demo.main(["--steps", "270", "--seed", "1"]) == 0
-    out = capsys.readouterr().out
-    assert "Structure recovered exactly: yes" in out
-    assert "mismatch_detected" in out and "model_replaced" in out and out.count("model_reinstated") >= 2
-
-
 def test_rigid_joints_where_they_fit_and_a_gp_where_none_does():
     """From scratch: revolute joints on the plain arm; with the nonlinear transmission the GP challenger takes the
     second edge shortly after bootstrapping (relative observations could not tell them apart)."""

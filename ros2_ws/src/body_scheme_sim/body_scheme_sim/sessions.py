@@ -30,7 +30,7 @@ import numpy as np
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker
 from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
-from body_scheme_core.transforms import relative_transform
+from body_scheme_core.transforms import relative_transform, rotational_error, translational_error
 
 from .babbling import babble
 from .camera import Camera
@@ -146,6 +146,26 @@ class Session:
         """Boolean mask (n, n_markers) of the observed markers."""
         return np.array([[i in obs for i in self.marker_ids] for obs in self.observations], dtype=bool).reshape(
             self.n_steps, len(self.marker_ids))
+
+    def observation_errors(self, marker_ids=None):
+        """Translational (m) and rotational (rad) errors of every observed pose against ground truth.
+
+        Parameters
+        ----------
+        marker_ids : iterable of int or None
+            Only these markers (``None``: all).
+
+        Returns
+        -------
+        errors : ndarray, shape (k, 2)
+        """
+        errors = []
+        for k, observed in enumerate(self.observations):
+            for marker_id, camera2marker in observed.items():
+                if marker_ids is None or marker_id in marker_ids:
+                    truth = self.true_poses[k, self._column(marker_id)]
+                    errors.append((translational_error(camera2marker, truth), rotational_error(camera2marker, truth)))
+        return np.array(errors).reshape(-1, 2)
 
     def true_relative(self, id_i, id_j):
         """True ``marker_i2marker_j`` at every step, shape (n, 4, 4)."""

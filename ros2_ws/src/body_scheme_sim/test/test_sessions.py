@@ -6,7 +6,6 @@ import pathlib
 
 import numpy as np
 import pytest
-from body_scheme_apps.perception_bench import pose_errors
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_sim.sessions import (
@@ -74,12 +73,12 @@ def test_same_seed_gives_same_commands_and_noise_gives_different_observations():
 def test_rendered_session_observes_through_the_tracker():
     """In rendered mode observations come from the tracker: close to the truth, and only visible-ish markers."""
     session = record_session("powercube_6dof", 12, seed=0, perception="rendered", markers_of_interest=(6, 7))
-    errors = pose_errors(session)
+    errors = session.observation_errors()
     assert errors.shape[0] >= 12 * 3
     assert np.median(errors[:, 0]) < 0.02
     noisy = record_session("powercube_6dof", 12, seed=0, perception="noise", markers_of_interest=(6, 7))
     np.testing.assert_array_equal(session.actions, noisy.actions)
-    assert np.median(pose_errors(noisy)[:, 0]) > 0.02  # the paper's 44 mm noise, not the tracker's
+    assert np.median(noisy.observation_errors()[:, 0]) > 0.02  # the paper's 44 mm noise, not the tracker's
 
 
 @pytest.mark.parametrize("kwargs, message", [
