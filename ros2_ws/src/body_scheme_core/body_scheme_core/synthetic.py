@@ -39,6 +39,8 @@ __all__ = [
     "babble",
     "Session",
     "make_session",
+    "PROTOCOL_FAULTS",
+    "protocol_schedule",
     "joint_blocked_protocol",
     "limb_deformed_protocol",
 ]
@@ -530,6 +532,26 @@ class Fault:
         function = {"block_joint": block_joint, "deform_limb": deform_limb, "displace_marker": displace_marker}
         return function[self.kind](current, **self.params)
 
+    @property
+    def entry(self):
+        """The fault as a simulator schedule entry without its step (``"block_joint:5:0.8"``, ``"repair"``; see
+        :mod:`body_scheme_sim.faults`).
+
+        Raises
+        ------
+        InvalidInputError
+            For a fault the schedule syntax cannot express (a marker displacement given as a matrix).
+        """
+        p = self.params
+        if self.kind == "repair":
+            return "repair"
+        if self.kind == "block_joint":
+            return f"block_joint:{p['action_index']}:{p['angle']}"
+        if self.kind == "deform_limb":
+            numbers = (p.get("delta_length", 0.0), *p.get("delta_rotvec", (0.0, 0.0, 0.0)))
+            return f"deform_limb:{p['joint_or_link']}:" + ":".join(repr(float(v)) for v in numbers)
+        raise InvalidInputError(f"{self.describe()} has no schedule entry form")
+
     def describe(self):
         """Short text like ``block_joint(action_index=5, angle=0.8)``."""
         args = ", ".join(f"{k}={np.asarray(v).round(4).tolist() if not np.isscalar(v) else v}"
@@ -735,6 +757,34 @@ def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS,
                    sigma_rot=sigma_rot, visibility=visibility, seed=seed)
 
 
+#: The paper's adaptation protocols (Sec. IV-B/C) on :func:`powercube_6dof`: name -> the fault of blocks 2 and 4.
+#: Block 1 is normal, block 3 repaired. Defined once here; the simulator records the same schedule
+#: (:func:`body_scheme_sim.sessions.record_protocol`) from :meth:`Fault.entry`.
+PROTOCOL_FAULTS = {
+    "joint_blocked": lambda: Fault("block_joint", action_index=5, angle=0.8),
+    "limb_deformed": lambda: Fault("deform_limb", joint_or_link="tool_joint", delta_length=0.1,
+                                   delta_rotvec=(math.pi / 4, 0.0, 0.0)),
+}
+
+
+def protocol_schedule(protocol, n_per_block=100, fault=None):
+    """The fault schedule of a protocol: ``[(n, fault), (2n, REPAIR), (3n, fault)]``.
+
+    Parameters
+    ----------
+    protocol : str
+        A key of :data:`PROTOCOL_FAULTS`.
+    n_per_block : int
+    fault : Fault or None
+        Replaces the protocol's own fault (e.g. another blocked angle).
+    """
+    if protocol not in PROTOCOL_FAULTS:
+        raise InvalidInputError(f"protocol must be one of {list(PROTOCOL_FAULTS)}, got {protocol!r}")
+    fault = PROTOCOL_FAULTS[protocol]() if fault is None else fault
+    n = n_per_block
+    return [(n, fault), (2 * n, REPAIR), (3 * n, fault)]
+
+
 def joint_blocked_protocol(seed, n_per_block=100, blocked_angle=0.8, sigma_trans=PAPER_SIGMA_TRANS,
                            sigma_rot=PAPER_SIGMA_ROT, visibility=0.919):
     """The paper's "joint stuck" scenario (Sec. IV-B) on :func:`powercube_6dof`.
@@ -747,9 +797,9 @@ def joint_blocked_protocol(seed, n_per_block=100, blocked_angle=0.8, sigma_trans
     session : Session
     """
     fault = Fault("block_joint", action_index=5, angle=blocked_angle)
-    n = n_per_block
-    return make_session(powercube_6dof(), 4 * n, seed, faults=[(n, fault), (2 * n, REPAIR), (3 * n, fault)],
-                        sigma_trans=sigma_trans, sigma_rot=sigma_rot, visibility=visibility, above_ground=True)
+    return make_session(powercube_6dof(), 4 * n_per_block, seed,
+                        faults=protocol_schedule("joint_blocked", n_per_block, fault), sigma_trans=sigma_trans,
+                        sigma_rot=sigma_rot, visibility=visibility, above_ground=True)
 
 
 def limb_deformed_protocol(seed, n_per_block=100, delta_length=0.1, delta_rotvec=(math.pi / 4, 0.0, 0.0),
@@ -765,6 +815,6 @@ def limb_deformed_protocol(seed, n_per_block=100, delta_length=0.1, delta_rotvec
     """
     fault = Fault("deform_limb", joint_or_link="tool_joint", delta_length=delta_length,
                   delta_rotvec=tuple(float(v) for v in delta_rotvec))
-    n = n_per_block
-    return make_session(powercube_6dof(), 4 * n, seed, faults=[(n, fault), (2 * n, REPAIR), (3 * n, fault)],
-                        sigma_trans=sigma_trans, sigma_rot=sigma_rot, visibility=visibility, above_ground=True)
+    return make_session(powercube_6dof(), 4 * n_per_block, seed,
+                        faults=protocol_schedule("limb_deformed", n_per_block, fault), sigma_trans=sigma_trans,
+                        sigma_rot=sigma_rot, visibility=visibility, above_ground=True)

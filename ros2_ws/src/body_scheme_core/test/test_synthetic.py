@@ -276,3 +276,18 @@ def test_invalid_session_input_rejected():
         make_session(planar_2dof(), 10, 0, faults=[(3, "repair")])
     with pytest.raises(InvalidInputError, match="visibility"):
         ObservationModel(visibility=1.5)
+
+
+def test_protocol_schedule_is_fault_repair_fault_and_has_schedule_entries():
+    """The protocols' schedules (defined once, also recorded by the simulator) and their schedule-entry texts."""
+    from body_scheme_core.synthetic import PROTOCOL_FAULTS, protocol_schedule
+
+    assert set(PROTOCOL_FAULTS) == {"joint_blocked", "limb_deformed"}
+    schedule = protocol_schedule("joint_blocked", 10)
+    assert [step for step, _ in schedule] == [10, 20, 30]
+    assert [fault.entry for _, fault in schedule] == ["block_joint:5:0.8", "repair", "block_joint:5:0.8"]
+    assert protocol_schedule("limb_deformed", 5)[0][1].entry == "deform_limb:tool_joint:0.1:0.7853981633974483:0.0:0.0"
+    with pytest.raises(InvalidInputError, match="protocol must be one of"):
+        protocol_schedule("nope")
+    with pytest.raises(InvalidInputError, match="no schedule entry form"):
+        _ = Fault("displace_marker", marker_id=3, delta=np.eye(4)).entry

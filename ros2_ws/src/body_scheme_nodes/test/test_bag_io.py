@@ -151,13 +151,13 @@ def test_message_that_does_not_decode_raises(tmp_path):
 # ---------------------------------------------------------------------- sessions written and read back
 from rosbags.rosbag2 import Reader  # noqa: E402
 
-from body_scheme_sim.sessions import joint_blocked_protocol  # noqa: E402
+from body_scheme_sim.sessions import record_protocol  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def blocked():
     """A short joint-blocked protocol session (4 blocks of 10 steps), noise mode."""
-    return joint_blocked_protocol(seed=3, n_per_block=10)
+    return record_protocol("joint_blocked", seed=3, n_per_block=10)
 
 
 def test_bag_reads_back_with_expected_topics_and_counts(blocked, tmp_path):

@@ -15,8 +15,9 @@ their commands whatever the faults and the perception mode.
 Time: command ``k`` is stamped ``START_STAMP_NS + k * period``; its observation (the camera image taken after the
 arm moved) :data:`IMAGE_DELAY_NS` later. Stamps are integer nanoseconds, so bags round-trip them exactly.
 
-:func:`joint_blocked_protocol` and :func:`limb_deformed_protocol` are the paper's two adaptation experiments
-(Sec. IV-B/C, 4 blocks of 100 samples) on the 6-DOF arm. Bags: :mod:`body_scheme_nodes.bag_io`.
+:func:`record_protocol` records the paper's two adaptation experiments (Sec. IV-B/C, 4 blocks of 100 samples) on
+the 6-DOF arm, with the fault schedules of :func:`body_scheme_core.synthetic.protocol_schedule`.
+Bags: :mod:`body_scheme_nodes.bag_io`.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker
-from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
+from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, PROTOCOL_FAULTS, protocol_schedule
 from body_scheme_core.transforms import relative_transform, rotational_error, translational_error
 
 from .babbling import babble
@@ -48,8 +49,7 @@ __all__ = [
     "record_session",
     "PROTOCOL_MARKERS_OF_INTEREST",
     "protocol_faults",
-    "joint_blocked_protocol",
-    "limb_deformed_protocol",
+    "record_protocol",
 ]
 
 PERCEPTION_MODES = ("noise", "rendered")
@@ -298,38 +298,32 @@ def _tracker(world):
 PROTOCOL_MARKERS_OF_INTEREST = (6, 7)
 
 
-def _joint_blocked_faults(n, blocked_angle=0.8):
-    fault = f"block_joint:5:{blocked_angle}"
-    return [f"{n}:{fault}", f"{2 * n}:repair", f"{3 * n}:{fault}"]
-
-
-def _limb_deformed_faults(n, delta_length=0.1, delta_rotvec=(math.pi / 4, 0.0, 0.0)):
-    fault = "deform_limb:tool_joint:" + ":".join(repr(float(v)) for v in (delta_length, *delta_rotvec))
-    return [f"{n}:{fault}", f"{2 * n}:repair", f"{3 * n}:{fault}"]
-
-
-#: Protocol name -> function giving its fault schedule for ``n`` steps per block.
-PROTOCOLS = {"joint_blocked": _joint_blocked_faults, "limb_deformed": _limb_deformed_faults}
+#: The protocols the simulator records (their fault schedules are the core's, :data:`PROTOCOL_FAULTS`).
+PROTOCOLS = tuple(PROTOCOL_FAULTS)
 
 
 def protocol_faults(protocol, n_per_block=100):
-    """Fault schedule of a protocol (``"none"``, ``"joint_blocked"`` or ``"limb_deformed"``), a list of entries."""
+    """Fault schedule entries of a protocol (``"none"`` or a key of :data:`PROTOCOL_FAULTS`), e.g.
+    ``["100:block_joint:5:0.8", "200:repair", "300:block_joint:5:0.8"]``."""
     if protocol == "none":
         return []
-    if protocol not in PROTOCOLS:
-        raise InvalidInputError(f"protocol must be one of {['none', *PROTOCOLS]}, got {protocol!r}")
-    return PROTOCOLS[protocol](n_per_block)
+    if protocol not in PROTOCOL_FAULTS:
+        raise InvalidInputError(f"protocol must be one of {['none', *PROTOCOL_FAULTS]}, got {protocol!r}")
+    return [f"{step}:{fault.entry}" for step, fault in protocol_schedule(protocol, n_per_block)]
 
 
-def joint_blocked_protocol(seed, n_per_block=100, perception="noise", **options):
-    """The paper's "joint stuck" experiment (Sec. IV-B) on the simulated 6-DOF arm.
+def record_protocol(protocol, seed, n_per_block=100, perception="noise", **options):
+    """Record one of the paper's adaptation protocols (Sec. IV-B/C) on the simulated 6-DOF arm.
 
-    Four blocks of ``n_per_block`` steps: normal; end-effector joint (action 5) blocked at 0.8 rad; repaired;
-    blocked again at the same angle (so the learner can recall the model it learnt in block 2). Commands are babbled
-    such that markers 6 and 7 are visible on the healthy robot, as in the paper.
+    The fault schedule is the core's (:func:`~body_scheme_core.synthetic.protocol_schedule`): four blocks of
+    ``n_per_block`` steps, normal; faulty (``"joint_blocked"``: end-effector joint blocked at 0.8 rad;
+    ``"limb_deformed"``: ``tool_joint`` 0.1 m longer and bent by 45 deg about its parent's x axis); repaired; faulty
+    again the same way (so the learner can recall the model of block 2). Commands are babbled such that markers 6
+    and 7 are visible on the healthy robot, as in the paper.
 
     Parameters
     ----------
+    protocol : str
     seed : int
     n_per_block : int
     perception : str
@@ -340,21 +334,7 @@ def joint_blocked_protocol(seed, n_per_block=100, perception="noise", **options)
     -------
     session : Session
     """
+    faults = protocol_faults(protocol, n_per_block)
     options.setdefault("markers_of_interest", PROTOCOL_MARKERS_OF_INTEREST)
-    return record_session("powercube_6dof", 4 * n_per_block, seed, faults=_joint_blocked_faults(n_per_block),
-                          perception=perception, protocol="joint_blocked", **options)
-
-
-def limb_deformed_protocol(seed, n_per_block=100, perception="noise", **options):
-    """The paper's "deformed limb" experiment (Sec. IV-C) on the simulated 6-DOF arm.
-
-    Four blocks of ``n_per_block`` steps: normal; tool displaced (``tool_joint`` 0.1 m longer and bent by 45 deg
-    about its parent's x axis); restored; displaced again the same way. Markers 6 and 7 visible as above.
-
-    Returns
-    -------
-    session : Session
-    """
-    options.setdefault("markers_of_interest", PROTOCOL_MARKERS_OF_INTEREST)
-    return record_session("powercube_6dof", 4 * n_per_block, seed, faults=_limb_deformed_faults(n_per_block),
-                          perception=perception, protocol="limb_deformed", **options)
+    return record_session("powercube_6dof", 4 * n_per_block, seed, faults=faults, perception=perception,
+                          protocol=protocol, **options)

@@ -10,8 +10,7 @@ import pytest
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_sim.sessions import (
     IMAGE_DELAY_NS,
-    joint_blocked_protocol,
-    limb_deformed_protocol,
+    record_protocol,
     record_session,
 )
 
@@ -22,7 +21,7 @@ BAGS = REPO / "bags"
 @pytest.fixture(scope="module")
 def blocked():
     """A short joint-blocked protocol session (4 blocks of 10 steps), noise mode."""
-    return joint_blocked_protocol(seed=3, n_per_block=10)
+    return record_protocol("joint_blocked", seed=3, n_per_block=10)
 
 
 def test_observations_are_stamped_just_after_their_commands(blocked):
@@ -47,7 +46,7 @@ def test_blocked_joint_ignores_commands_only_in_fault_blocks(blocked):
 
 def test_limb_deformation_moves_only_the_tool_marker():
     """Deforming the tool limb moves marker 7 in the fault blocks only, and no other marker ever."""
-    session = limb_deformed_protocol(seed=3, n_per_block=5)
+    session = record_protocol("limb_deformed", seed=3, n_per_block=5)
     healthy = record_session("powercube_6dof", 20, seed=3, markers_of_interest=(6, 7))  # same commands, no fault
     np.testing.assert_array_equal(session.actions, healthy.actions)
     moved = np.linalg.norm(session.true_poses[:, 6, :3, 3] - healthy.true_poses[:, 6, :3, 3], axis=1)

@@ -5,7 +5,7 @@ engineered body scheme (the robot's specification) and babbles through 4 blocks 
 (end-effector joint blocked at 0.8 rad, or the tool displaced 0.1 m and bent 45 deg); repaired; the same change again.
 Noise mode: the paper's noise (44 mm / 15 deg) and visibility (91.9 % blocked, 79.0 % deformed) from
 :mod:`body_scheme_core.synthetic`; rendered mode: the simulator's camera images through the ArUco tracker
-(:func:`body_scheme_sim.sessions.joint_blocked_protocol`), the learner with the tracker's noise sigmas.
+(:func:`body_scheme_sim.sessions.record_protocol`), the learner with the tracker's noise sigmas.
 
 Recovery time, two definitions:
 
@@ -27,9 +27,7 @@ import numpy as np
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.synthetic import joint_blocked_protocol as core_blocked
-from body_scheme_core.synthetic import limb_deformed_protocol as core_deformed
-from body_scheme_core.synthetic import powercube_6dof
+from body_scheme_core.synthetic import joint_blocked_protocol, limb_deformed_protocol, powercube_6dof
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "NOTES", "PROTOCOLS", "run", "run_protocol", "recovery_times", "plot"]
 
@@ -75,11 +73,11 @@ _ADAPTED = ("model_replaced", "model_reinstated")
 
 def _session(protocol, seed, perception):
     if perception == "noise":
-        return (core_blocked if protocol == "joint_blocked" else core_deformed)(seed, n_per_block=N_PER_BLOCK)
+        protocol_session = joint_blocked_protocol if protocol == "joint_blocked" else limb_deformed_protocol
+        return protocol_session(seed, n_per_block=N_PER_BLOCK)
     if perception == "rendered":
-        from body_scheme_sim.sessions import joint_blocked_protocol, limb_deformed_protocol
-        record = joint_blocked_protocol if protocol == "joint_blocked" else limb_deformed_protocol
-        return record(seed, n_per_block=N_PER_BLOCK, perception="rendered")
+        from body_scheme_sim.sessions import record_protocol
+        return record_protocol(protocol, seed, n_per_block=N_PER_BLOCK, perception="rendered")
     raise ValueError(f"perception must be 'noise' or 'rendered', got {perception!r}")
 
 
