@@ -73,7 +73,7 @@ def _per_marker_errors(session):
 def _rates(n_frames, seed):
     """``(sim_render_hz, tracker_hz)`` over ``n_frames`` babbled configurations."""
     with SimWorld(seed=seed) as world:
-        actions = babble(world, np.random.default_rng(seed), n_frames)
+        actions = babble(world, n_frames, np.random.default_rng(seed))
         world.render()  # the static backdrop is rendered once per camera: not part of the per-frame cost
         frames = []
         start = time.perf_counter()

@@ -218,7 +218,7 @@ class SimNode(Node):
             return
         self._apply_due_faults()
         try:
-            actions = babble(self.world, self.rng_babbling, 1, self.markers_of_interest)[0]
+            actions = babble(self.world, 1, self.rng_babbling, self.markers_of_interest)[0]
         except BodySchemeError as error:
             self.get_logger().error(f"babbling failed: {error}", throttle_duration_sec=5.0)
             return

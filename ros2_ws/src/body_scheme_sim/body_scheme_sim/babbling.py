@@ -21,15 +21,15 @@ __all__ = ["babble", "DEFAULT_MAX_TRIES"]
 DEFAULT_MAX_TRIES = 200
 
 
-def babble(world, rng, n, markers_of_interest=None, max_tries=None):
-    """Draw ``n`` valid babbling commands.
+def babble(world, n, rng, markers_of_interest=None, max_tries=None):
+    """Draw ``n`` valid babbling commands (the argument order of :func:`body_scheme_core.synthetic.babble`).
 
     Parameters
     ----------
     world : SimWorld
-    rng : numpy.random.Generator or int or None
     n : int
         Number of actions.
+    rng : numpy.random.Generator or int or None
     markers_of_interest : iterable of int or None
         Markers that must all be visible in an accepted configuration; ``None`` or empty: no visibility check.
     max_tries : int or None

@@ -249,7 +249,7 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     with SimWorld(robot=robot, camera=camera, markers_path=markers_path, seed=seed) as world:
         marker_ids = tuple(sorted(world.marker_ids))
         tracker = _tracker(world) if perception == "rendered" else None
-        actions = babble(world, rng_actions, n_steps, markers_of_interest=markers_of_interest)
+        actions = babble(world, n_steps, rng_actions, markers_of_interest=markers_of_interest)
         executed = np.zeros_like(actions)
         true_poses = np.zeros((n_steps, len(marker_ids), 4, 4))
         visible_truth = np.zeros((n_steps, len(marker_ids)), dtype=bool)

@@ -28,18 +28,18 @@ def ground_hitting_arm():
 def test_babbling_respects_the_joint_limits_and_is_reproducible():
     """Babbled commands lie within the limits, cover them, and repeat for the same seed."""
     with SimWorld("powercube_6dof", marker_texture=False) as world:
-        A = babble(world, np.random.default_rng(0), 60)
+        A = babble(world, 60, np.random.default_rng(0))
         assert A.shape == (60, 6)
         assert np.all(A >= world.action_lower) and np.all(A <= world.action_upper)
         span = world.action_upper - world.action_lower
         assert np.all(A.max(axis=0) - A.min(axis=0) > 0.6 * span)
-        np.testing.assert_array_equal(babble(world, 0, 10), babble(world, 0, 10))
+        np.testing.assert_array_equal(babble(world, 10, 0), babble(world, 10, 0))
 
 
 def test_babbling_rejects_collisions():
     """On an arm that hits the ground for a third of its range, no babbled command collides."""
     with SimWorld(ground_hitting_arm(), marker_texture=False) as world:
-        A = babble(world, np.random.default_rng(0), 40)
+        A = babble(world, 40, np.random.default_rng(0))
         assert np.all(np.abs(A[:, 0]) < 1.95)  # uniform sampling without rejection would exceed it ~14 times
         for a in A:
             world.execute(a)
@@ -51,11 +51,11 @@ def test_babbling_rejects_collisions():
 def test_babbling_keeps_markers_of_interest_visible():
     """Every babbled configuration shows the markers of interest; without them, some would not."""
     with SimWorld("powercube_6dof", marker_texture=False) as world:
-        for a in babble(world, np.random.default_rng(1), 15, markers_of_interest=[6, 7]):
+        for a in babble(world, 15, np.random.default_rng(1), markers_of_interest=[6, 7]):
             world.execute(a)
             assert {6, 7} <= world.visible_marker_ids()
         hidden = 0
-        for a in babble(world, np.random.default_rng(1), 15):
+        for a in babble(world, 15, np.random.default_rng(1)):
             world.execute(a)
             hidden += not {6, 7} <= world.visible_marker_ids()
         assert hidden > 0
@@ -67,7 +67,7 @@ def test_babbling_leaves_the_world_as_it_was():
         world.execute([0.3, -0.2, 0.4, 0.1])
         world.block_joint(1, 0.5)
         before, q = world.true_marker_poses(), world.joint_positions()
-        babble(world, 0, 5)
+        babble(world, 5, 0)
         np.testing.assert_array_equal(world.joint_positions(), q)
         for marker_id, pose in world.true_marker_poses().items():
             np.testing.assert_array_equal(pose, before[marker_id])
@@ -79,9 +79,9 @@ def test_babbling_gives_up_with_the_reasons():
     with SimWorld(ground_hitting_arm(), marker_texture=False) as world:
         world.displace_marker(2, np.diag([-1.0, 1.0, -1.0, 1.0]))  # marker 2 now faces away from the camera
         with pytest.raises(BabblingError, match=r"0 of 3 valid configurations in 50 tries.*hidden"):
-            babble(world, 0, 3, markers_of_interest=[2], max_tries=50)
+            babble(world, 3, 0, markers_of_interest=[2], max_tries=50)
         with pytest.raises(InvalidInputError, match="not markers of the robot"):
-            babble(world, 0, 3, markers_of_interest=[9])
+            babble(world, 3, 0, markers_of_interest=[9])
         with pytest.raises(InvalidInputError, match="n must be"):
-            babble(world, 0, -1)
+            babble(world, -1, 0)
         assert babble(world, 0, 0).shape == (0, 1)

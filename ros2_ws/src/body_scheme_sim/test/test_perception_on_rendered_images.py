@@ -81,7 +81,7 @@ def pose_errors(estimate, truth):
 def rendered():
     """40 rendered babbling frames of powercube_6dof: (images, true poses, geometrically visible ids, tracker)."""
     with SimWorld("powercube_6dof", seed=0) as world:
-        actions = babble(world, np.random.default_rng(0), 40, markers_of_interest=(6, 7))
+        actions = babble(world, 40, np.random.default_rng(0), markers_of_interest=(6, 7))
         frames = []
         for a in actions:
             world.execute(a)
