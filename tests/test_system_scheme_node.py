@@ -11,7 +11,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from body_scheme_core.synthetic import make_session, planar_2dof
+from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot
 from body_scheme_nodes import conversions
 

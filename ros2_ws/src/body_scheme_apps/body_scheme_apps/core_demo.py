@@ -1,6 +1,6 @@
 """``body-scheme-demo``: an end-to-end run of the lifelong learner on a simulated 6-DOF arm, without ROS.
 
-The arm (:func:`~body_scheme_core.synthetic.powercube_6dof`, 7 markers, the paper's noise, 92 % visibility)
+The arm (:func:`~body_scheme_core.world.powercube_6dof`, 7 markers, the paper's noise, 92 % visibility)
 babbles. The learner bootstraps its body scheme from scratch; then the end-effector joint gets blocked, is repaired,
 and gets blocked again in the same position (the paper's Sec. IV-B protocol). The demo prints the learned structure
 against the true one, the prediction error over time, every decision of the learner as a timeline, and a summary.
@@ -18,7 +18,7 @@ import numpy as np
 
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.synthetic import REPAIR, Fault, make_session, powercube_6dof
+from body_scheme_core.world import REPAIR, Fault, make_session, powercube_6dof
 
 __all__ = ["main", "run_demo"]
 

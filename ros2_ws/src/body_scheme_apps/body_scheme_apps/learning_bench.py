@@ -1,6 +1,6 @@
 """``body-scheme-bench``: throughput of the learner and of IK on the paper's 6-DOF arm, on one core.
 
-Workloads (all on :func:`~body_scheme_core.synthetic.powercube_6dof`: 7 markers, 6 actions, ``max_complexity`` 2,
+Workloads (all on :func:`~body_scheme_core.world.powercube_6dof`: 7 markers, 6 actions, ``max_complexity`` 2,
 i.e. 714 candidate local models (21 pairs x 1 static, 6 x (prismatic, revolute, GP), 15 two-action GPs), at the
 paper's noise and with every marker visible so that every candidate is evaluated in every step):
 
@@ -59,7 +59,6 @@ from body_scheme_core.learner import BodySchemeLearner  # noqa: E402
 from body_scheme_core.models.gp import GPModel  # noqa: E402
 from body_scheme_core.models.gp_kernel import GPHyperparameters, squared_exponential  # noqa: E402
 from body_scheme_core.structure import enumerate_candidates  # noqa: E402
-from body_scheme_core.synthetic import make_session, powercube_6dof  # noqa: E402
 from body_scheme_core.transforms import (  # noqa: E402
     concat,
     project_to_rotation,
@@ -69,6 +68,7 @@ from body_scheme_core.transforms import (  # noqa: E402
     translational_error,
     vector12_from_transform,
 )
+from body_scheme_core.world import make_session, powercube_6dof  # noqa: E402
 
 __all__ = ["main", "run_benchmarks"]
 

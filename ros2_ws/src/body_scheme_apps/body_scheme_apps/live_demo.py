@@ -26,8 +26,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_core.transforms import translational_error
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, SchemeEvent
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess

@@ -18,7 +18,7 @@ import sys
 from tqdm import tqdm
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_nodes.bag_io import write_session
 from body_scheme_sim.sessions import (
     PERCEPTION_MODES,

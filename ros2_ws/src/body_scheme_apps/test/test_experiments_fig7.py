@@ -11,8 +11,8 @@ from body_scheme_apps.experiments import fig7
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.synthetic import make_session, planar_2dof
 from body_scheme_core.transforms import invert_transform
+from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_sim.camera import Camera, look_at
 from body_scheme_sim.robots import load_robot
 from body_scheme_sim.sessions import record_session

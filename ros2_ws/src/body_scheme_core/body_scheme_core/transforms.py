@@ -12,6 +12,8 @@ Every function accepts a single transform ``(4, 4)`` or a stack ``(..., 4, 4)`` 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -360,3 +362,47 @@ def transform_from_vector12(v):
     A2B[..., :3, 3] = v[..., 9:]
     A2B[..., 3, 3] = 1.0
     return A2B
+
+
+# ---------------------------------------------------------------------- URDF's xyz / roll-pitch-yaw
+def transform_from_xyz_rpy(xyz, rpy):
+    """Transform from a translation and URDF roll-pitch-yaw (fixed axes x, y, z).
+
+    Parameters
+    ----------
+    xyz : array-like, shape (3,)
+    rpy : array-like, shape (3,)
+
+    Returns
+    -------
+    A2B : ndarray, shape (4, 4)
+    """
+    xyz = np.asarray(xyz, dtype=float)
+    rpy = np.asarray(rpy, dtype=float)
+    if xyz.shape != (3,) or rpy.shape != (3,):
+        raise InvalidInputError(f"xyz and rpy must have shape (3,), got {xyz.shape} and {rpy.shape}")
+    if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(rpy))):
+        raise InvalidInputError("xyz or rpy contains NaN or inf")
+    A2B = np.eye(4)
+    A2B[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
+    A2B[:3, 3] = xyz
+    return A2B
+
+
+def xyz_rpy_from_transform(A2B):
+    """Translation and URDF roll-pitch-yaw of a transform (inverse of :func:`transform_from_xyz_rpy`).
+
+    Parameters
+    ----------
+    A2B : array-like, shape (4, 4)
+
+    Returns
+    -------
+    xyz, rpy : ndarray, shape (3,)
+    """
+    A2B = check_transform(A2B)
+    with warnings.catch_warnings():
+        # At pitch = +-pi/2 scipy warns and sets one angle to zero; the angles still represent the same rotation.
+        warnings.simplefilter("ignore", UserWarning)
+        rpy = Rotation.from_matrix(A2B[:3, :3]).as_euler("xyz")
+    return A2B[:3, 3].copy(), rpy

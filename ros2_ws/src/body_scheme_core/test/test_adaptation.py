@@ -23,8 +23,8 @@ from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import ModelFileError
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import EngineeredModel, engineered_models
-from body_scheme_core.synthetic import REPAIR, Fault, arm_4dof, make_session, planar_2dof
 from body_scheme_core.tracked import MEMORY, TrackedModel
+from body_scheme_core.world import REPAIR, Fault, arm_4dof, make_session, planar_2dof
 
 BLOCK = Fault("block_joint", action_index=1, angle=0.8)
 

@@ -7,9 +7,9 @@ from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.pool import ModelPool
 from body_scheme_core.relative import PartPairs
 from body_scheme_core.structure import n_candidates
-from body_scheme_core.synthetic import Fault, make_session, planar_2dof
 from body_scheme_core.tracked import CANDIDATE, TREE
 from body_scheme_core.transforms import transform_from_rotvec
+from body_scheme_core.world import Fault, make_session, planar_2dof
 
 
 def _bootstrap(robot, config):

@@ -14,8 +14,8 @@ from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.models.rigid import robust_cost
 from body_scheme_core.root_pose import RootPoseEstimator
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.synthetic import Body, arm_4dof, make_session, planar_2dof
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
+from body_scheme_core.world import Body, arm_4dof, make_session, planar_2dof
 
 SIGMA_T, SIGMA_R = 0.044, math.radians(15.0)
 

@@ -8,9 +8,9 @@ from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.quality import prediction_errors
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.synthetic import arm_4dof, make_session
 from body_scheme_core.tracked import TrackedModel
 from body_scheme_core.transforms import invert_transform
+from body_scheme_core.world import arm_4dof, make_session
 
 CONFIG = BodySchemeConfig()
 

@@ -8,7 +8,7 @@ import pytest
 
 from body_scheme_core.errors import InvalidInputError, ModelFileError
 from body_scheme_core.models.engineered import EngineeredModel, engineered_models
-from body_scheme_core.synthetic import arm_4dof, branching_tree, planar_2dof, powercube_6dof, random_tree
+from body_scheme_core.world import arm_4dof, branching_tree, planar_2dof, powercube_6dof, random_tree
 
 TREES = [planar_2dof(), arm_4dof(), powercube_6dof(), branching_tree(seed=3),
          random_tree(7, seed=4, prismatic_fraction=0.4), random_tree(5, seed=5, branching=False)]

@@ -9,8 +9,8 @@ from body_scheme_core.ik import IKResult, solve_ik, trained_bounds
 from body_scheme_core.models.base import LocalModel
 from body_scheme_core.models.gp import GPModel
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.synthetic import planar_2dof
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
+from body_scheme_core.world import planar_2dof
 
 
 def rot_z(angle, derivative=False):

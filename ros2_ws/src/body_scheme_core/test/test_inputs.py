@@ -21,8 +21,8 @@ from body_scheme_core.inputs import (
     root_part,
 )
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.synthetic import planar_2dof
 from body_scheme_core.transforms import transform_from_rotvec
+from body_scheme_core.world import planar_2dof
 
 PARTS = (1, 2, 3)
 

@@ -1,4 +1,4 @@
-"""Tests of body_scheme_core.kinematics: forward kinematics, tree validation, URDF and marker files."""
+"""Tests of body_scheme_core.world: forward kinematics, tree validation, URDF and marker files."""
 
 import os
 
@@ -6,17 +6,18 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import (
+from body_scheme_core.transforms import invert_transform, transform_from_xyz_rpy, xyz_rpy_from_transform
+from body_scheme_core.world import (
     Joint,
     KinematicTree,
     Marker,
+    branching_tree,
     load_markers_yaml,
     markers_to_yaml,
-    transform_from_xyz_rpy,
-    xyz_rpy_from_transform,
+    planar_2dof,
+    powercube_6dof,
+    random_tree,
 )
-from body_scheme_core.synthetic import branching_tree, planar_2dof, powercube_6dof, random_tree
-from body_scheme_core.transforms import invert_transform
 
 
 def _planar_end_effector(q1, q2, l1=0.5, l2=0.4):

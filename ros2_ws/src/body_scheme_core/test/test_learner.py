@@ -10,7 +10,8 @@ from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError, ModelFileError, NotFittedError
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.synthetic import (
+from body_scheme_core.transforms import transform_from_rotvec
+from body_scheme_core.world import (
     REPAIR,
     Body,
     Fault,
@@ -21,7 +22,6 @@ from body_scheme_core.synthetic import (
     planar_2dof,
     powercube_6dof,
 )
-from body_scheme_core.transforms import transform_from_rotvec
 
 
 def _run(learner, session, start=0, stop=None):

@@ -10,7 +10,7 @@ from body_scheme_core import __version__
 from body_scheme_core.errors import ModelFileError
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.persistence import STATE_FILE_VERSION, STATE_FORMAT, load_state, save_state
-from body_scheme_core.synthetic import make_session, planar_2dof
+from body_scheme_core.world import make_session, planar_2dof
 
 
 @pytest.fixture(scope="module")

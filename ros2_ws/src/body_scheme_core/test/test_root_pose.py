@@ -5,8 +5,8 @@ import numpy as np
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.root_pose import RootPoseEstimator, register_points
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, make_session, powercube_6dof
 from body_scheme_core.transforms import rotational_error, transform_from_rotvec
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, make_session, powercube_6dof
 
 A0 = np.zeros(2)
 

@@ -1,4 +1,4 @@
-"""Tests of body_scheme_core.synthetic: robots, observation noise, faults, babbling and sessions."""
+"""Tests of body_scheme_core.world: robots, observation noise, faults, babbling and sessions."""
 
 import math
 
@@ -6,9 +6,16 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.kinematics import transform_from_xyz_rpy
 from body_scheme_core.models.engineered import EngineeredModel
-from body_scheme_core.synthetic import (
+from body_scheme_core.transforms import (
+    invert_transform,
+    relative_transform,
+    rotational_error,
+    transform_from_rotvec,
+    transform_from_xyz_rpy,
+    translational_error,
+)
+from body_scheme_core.world import (
     REPAIR,
     Body,
     Fault,
@@ -26,13 +33,6 @@ from body_scheme_core.synthetic import (
     planar_2dof,
     powercube_6dof,
     random_tree,
-)
-from body_scheme_core.transforms import (
-    invert_transform,
-    relative_transform,
-    rotational_error,
-    transform_from_rotvec,
-    translational_error,
 )
 
 
@@ -280,7 +280,7 @@ def test_invalid_session_input_rejected():
 
 def test_protocol_schedule_is_fault_repair_fault_and_has_schedule_entries():
     """The protocols' schedules (defined once, also recorded by the simulator) and their schedule-entry texts."""
-    from body_scheme_core.synthetic import PROTOCOL_FAULTS, protocol_schedule
+    from body_scheme_core.world import PROTOCOL_FAULTS, protocol_schedule
 
     assert set(PROTOCOL_FAULTS) == {"joint_blocked", "limb_deformed"}
     schedule = protocol_schedule("joint_blocked", 10)

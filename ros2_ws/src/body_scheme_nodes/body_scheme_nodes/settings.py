@@ -17,10 +17,10 @@ import yaml
 
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import KinematicTree, load_markers_yaml
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.pairing import CommandObservationPairer
+from body_scheme_core.world import KinematicTree, load_markers_yaml
 
 __all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "SchemeSettings", "engineered_body_scheme", "parameter_defaults"]
 

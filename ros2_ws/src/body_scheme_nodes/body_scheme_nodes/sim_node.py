@@ -62,8 +62,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.kinematics import transform_from_xyz_rpy, xyz_rpy_from_transform
-from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
+from body_scheme_core.transforms import transform_from_xyz_rpy, xyz_rpy_from_transform
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import InjectFault
 from body_scheme_sim.babbling import babble

@@ -51,8 +51,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import load_markers_yaml
 from body_scheme_core.perception import MarkerTracker
+from body_scheme_core.world import load_markers_yaml
 from body_scheme_msgs.msg import MarkerPoses
 
 from . import conversions

@@ -10,9 +10,8 @@ import yaml
 
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import markers_to_yaml
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.synthetic import powercube_6dof
+from body_scheme_core.world import markers_to_yaml, powercube_6dof
 from body_scheme_nodes.settings import NONE_SENTINELS, SchemeSettings, engineered_body_scheme, parameter_defaults
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "scheme_node.yaml"

@@ -12,7 +12,7 @@ import yaml
 from rclpy.parameter import Parameter
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import transform_from_xyz_rpy
+from body_scheme_core.transforms import transform_from_xyz_rpy
 from body_scheme_msgs.srv import InjectFault
 from body_scheme_nodes import conversions
 from body_scheme_nodes.sim_node import SimNode

@@ -22,7 +22,7 @@ DEFAULT_MAX_TRIES = 200
 
 
 def babble(world, n, rng, markers_of_interest=None, max_tries=None):
-    """Draw ``n`` valid babbling commands (the argument order of :func:`body_scheme_core.synthetic.babble`).
+    """Draw ``n`` valid babbling commands (the argument order of :func:`body_scheme_core.world.babble`).
 
     Parameters
     ----------

@@ -16,7 +16,7 @@ Time: command ``k`` is stamped ``START_STAMP_NS + k * period``; its observation 
 arm moved) :data:`IMAGE_DELAY_NS` later. Stamps are integer nanoseconds, so bags round-trip them exactly.
 
 :func:`record_protocol` records the paper's two adaptation experiments (Sec. IV-B/C, 4 blocks of 100 samples) on
-the 6-DOF arm, with the fault schedules of :func:`body_scheme_core.synthetic.protocol_schedule`.
+the 6-DOF arm, with the fault schedules of :func:`body_scheme_core.world.protocol_schedule`.
 Bags: :mod:`body_scheme_nodes.bag_io`.
 """
 
@@ -30,8 +30,8 @@ import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker
-from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, PROTOCOL_FAULTS, protocol_schedule
 from body_scheme_core.transforms import relative_transform, rotational_error, translational_error
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, PROTOCOL_FAULTS, protocol_schedule
 
 from .babbling import babble
 from .camera import Camera
@@ -315,7 +315,7 @@ def protocol_faults(protocol, n_per_block=100):
 def record_protocol(protocol, seed, n_per_block=100, perception="noise", **options):
     """Record one of the paper's adaptation protocols (Sec. IV-B/C) on the simulated 6-DOF arm.
 
-    The fault schedule is the core's (:func:`~body_scheme_core.synthetic.protocol_schedule`): four blocks of
+    The fault schedule is the core's (:func:`~body_scheme_core.world.protocol_schedule`): four blocks of
     ``n_per_block`` steps, normal; faulty (``"joint_blocked"``: end-effector joint blocked at 0.8 rad;
     ``"limb_deformed"``: ``tool_joint`` 0.1 m longer and bent by 45 deg about its parent's x axis); repaired; faulty
     again the same way (so the learner can recall the model of block 2). Commands are babbled such that markers 6

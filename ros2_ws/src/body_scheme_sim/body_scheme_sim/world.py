@@ -1,7 +1,7 @@
 """The simulated world: a robot arm in pybullet with ArUco marker plates, a ground plane and a fixed camera.
 
 Execution is kinematic (no dynamics): a command is clipped to the joint limits, blocked joints keep their angle, and
-the joints are set directly. The true geometry lives in a core :class:`~body_scheme_core.synthetic.Body` (a
+the joints are set directly. The true geometry lives in a core :class:`~body_scheme_core.world.Body` (a
 :class:`KinematicTree` plus blocked joints); faults are the core's fault functions applied to it, so the simulator
 and the synthetic sessions of the core share one definition of "block", "deform" and "displace". pybullet draws
 the robot and answers collision and line-of-sight queries; ground-truth marker poses come from the tree's forward
@@ -28,12 +28,11 @@ from pybullet_utils.bullet_client import BulletClient
 from scipy.spatial.transform import Rotation
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import KinematicTree, xyz_rpy_from_transform
-from body_scheme_core.synthetic import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, Body, ObservationModel
-from body_scheme_core.synthetic import block_joint as core_block_joint
-from body_scheme_core.synthetic import deform_limb as core_deform_limb
-from body_scheme_core.synthetic import displace_marker as core_displace_marker
-from body_scheme_core.transforms import check_transform, invert_transform
+from body_scheme_core.transforms import check_transform, invert_transform, xyz_rpy_from_transform
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, Body, KinematicTree, ObservationModel
+from body_scheme_core.world import block_joint as core_block_joint
+from body_scheme_core.world import deform_limb as core_deform_limb
+from body_scheme_core.world import displace_marker as core_displace_marker
 
 from .camera import Camera
 from .markers import PLATE_THICKNESS, marker_corners, marker_texture, plate_side, write_plate_obj
@@ -394,7 +393,7 @@ class SimWorld:
     def observe_noisy(self, sigma_trans=PAPER_SIGMA_TRANS, sigma_rot=PAPER_SIGMA_ROT, visibility=1.0, rng=None):
         """Fast noise-model perception: the visible markers' true poses, perturbed and randomly dropped.
 
-        Noise follows :class:`body_scheme_core.synthetic.ObservationModel` (``sigma_trans``, ``sigma_rot`` are 3D
+        Noise follows :class:`body_scheme_core.world.ObservationModel` (``sigma_trans``, ``sigma_rot`` are 3D
         RMS errors); each visible marker is kept with probability ``visibility``.
 
         Parameters
@@ -444,7 +443,7 @@ class SimWorld:
         self._add_fault({"kind": "block_joint", "action_index": action_index, "angle": angle})
 
     def deform_limb(self, joint_name, delta_length=0.0, delta_rotvec=(0.0, 0.0, 0.0)):
-        """Stretch and/or bend the limb ending at ``joint_name`` (see ``body_scheme_core.synthetic.deform_limb``).
+        """Stretch and/or bend the limb ending at ``joint_name`` (see ``body_scheme_core.world.deform_limb``).
 
         Parameters
         ----------

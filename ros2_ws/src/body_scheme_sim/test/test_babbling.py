@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import Joint, KinematicTree, Marker, transform_from_xyz_rpy
+from body_scheme_core.transforms import transform_from_xyz_rpy
+from body_scheme_core.world import Joint, KinematicTree, Marker
 from body_scheme_sim.babbling import babble
 from body_scheme_sim.errors import BabblingError
 from body_scheme_sim.world import SimWorld

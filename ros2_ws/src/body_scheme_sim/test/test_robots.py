@@ -8,7 +8,7 @@ import numpy as np
 import pybullet_data
 import pytest
 
-from body_scheme_core import synthetic
+from body_scheme_core import world as synthetic_world
 from body_scheme_sim.errors import RobotFileError
 from body_scheme_sim.robots import (
     MARKER_CHANGES,
@@ -51,7 +51,7 @@ def test_check_command_reports_stale_files(tmp_path, capsys):
 @pytest.mark.parametrize("name", ["arm_4dof", "powercube_6dof"])
 def test_shipped_3d_arms_equal_their_core_builders(name):
     """The 3D arms load with the core builder's joints and marker poses; only the base marker is larger."""
-    loaded, built = load_robot(name), synthetic.__dict__[name]()
+    loaded, built = load_robot(name), synthetic_world.__dict__[name]()
     assert loaded.action_joint_names == built.action_joint_names
     np.testing.assert_allclose(loaded.action_lower, built.action_lower)
     q = np.random.default_rng(0).uniform(built.action_lower, built.action_upper, size=(20, built.n_actions))

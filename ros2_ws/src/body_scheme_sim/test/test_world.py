@@ -10,9 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import Joint, KinematicTree, Marker, transform_from_xyz_rpy
-from body_scheme_core.synthetic import Body, deform_limb
-from body_scheme_core.transforms import invert_transform, transform_from_rotvec
+from body_scheme_core.transforms import invert_transform, transform_from_rotvec, transform_from_xyz_rpy
+from body_scheme_core.world import Body, Joint, KinematicTree, Marker, deform_limb
 from body_scheme_sim.camera import Camera, look_at
 from body_scheme_sim.markers import aruco_dictionary, marker_corners, plate_side
 from body_scheme_sim.world import SimWorld

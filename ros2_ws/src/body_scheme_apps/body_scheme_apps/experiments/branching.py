@@ -1,9 +1,9 @@
 """A branching body learned from scratch: does the learner find the true tree, and stay quiet on a healthy body?
 
-Protocol (one run, everything from ``seed``): :func:`~body_scheme_core.synthetic.branching_tree` ``(seed,
+Protocol (one run, everything from ``seed``): :func:`~body_scheme_core.world.branching_tree` ``(seed,
 second_torso_marker=True, dummy_action=True)``: a torso on a yaw joint with two 2-DOF arms (segment lengths drawn
 from the seed), two markers on the torso (2 and 7) and a sixth action that turns a link carrying no marker (it moves
-nothing observed). :func:`~body_scheme_core.synthetic.make_session` babbles :data:`N_STEPS` commands at the paper's
+nothing observed). :func:`~body_scheme_core.world.make_session` babbles :data:`N_STEPS` commands at the paper's
 noise (44 mm / 15 deg) with every marker dropped independently in 20 % of the steps; the body never changes. A
 :class:`~body_scheme_core.learner.BodySchemeLearner` with the default configuration learns from scratch.
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.synthetic import Body, branching_tree, make_session
+from body_scheme_core.world import Body, branching_tree, make_session
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERCEPTIONS", "N_STEPS", "robot",
            "is_true_tree", "run", "plot"]

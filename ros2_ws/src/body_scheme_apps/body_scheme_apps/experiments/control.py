@@ -2,7 +2,7 @@
 
 Protocol (one run, everything from ``seed``):
 
-- Robot :func:`~body_scheme_core.synthetic.arm_4dof` (sim robot ``"arm_4dof"``): yaw + three pitch joints, markers
+- Robot :func:`~body_scheme_core.world.arm_4dof` (sim robot ``"arm_4dof"``): yaw + three pitch joints, markers
   1-5, the end effector is marker 5 (the highest id), the root of the body scheme is marker 1 on the base.
 - Trajectory: :data:`N_WAYPOINTS` = 30 waypoints of the end-effector marker on a circle of radius 0.15 m about
   (0.3, 0, 0.8) m in the robot's base frame, its plane tilted 30 deg from vertical (x 0.23-0.37 m, y +-0.15 m,
@@ -17,7 +17,7 @@ Protocol (one run, everything from ``seed``):
 - Following: waypoint by waypoint, :func:`~body_scheme_core.ik.solve_ik` (tolerance 1 mm, 3 restarts) starts from
   the previous waypoint's solution (the first from the zero posture). The error of a waypoint is the distance
   between the target and where the end-effector marker truly is at the solution (ground-truth kinematics of the
-  arm as it is: :class:`~body_scheme_core.synthetic.Body` in noise mode, ``SimWorld.world_marker_poses`` in
+  arm as it is: :class:`~body_scheme_core.world.Body` in noise mode, ``SimWorld.world_marker_poses`` in
   rendered mode).
 
 Three conditions:
@@ -51,8 +51,8 @@ from body_scheme_core.ik import solve_ik, trained_bounds
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.synthetic import Body, Fault, arm_4dof, make_session
 from body_scheme_core.transforms import invert_transform
+from body_scheme_core.world import Body, Fault, arm_4dof, make_session
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "SANITY", "CONDITIONS", "FAULT", "N_WAYPOINTS", "N_BEFORE", "N_AFTER",
            "trajectory", "follow", "samples_to_replace", "run", "plot"]

@@ -2,12 +2,12 @@
 
 Protocol (one run, everything from ``seed``):
 
-- Robot :func:`~body_scheme_core.synthetic.planar_2dof` (sim robot ``"planar_2dof"``): two revolute joints with
+- Robot :func:`~body_scheme_core.world.planar_2dof` (sim robot ``"planar_2dof"``): two revolute joints with
   parallel axes, limits +-90 deg, markers 1 (base, the root), 2 (on joint 2), 3 (end effector, the part farthest from
   the root). A :class:`~body_scheme_core.learner.BodySchemeLearner` with no initial models (bootstrapping from
   scratch, the paper's configuration: thresholds 3 sigma, test window 15, training 30) gets one babbling sample per
   update: uniformly random commands within the limits and the markers seen after them, every marker visible.
-- Noise mode: :func:`~body_scheme_core.synthetic.make_session` with the paper's marker noise, 44 mm / 15 deg RMS (the
+- Noise mode: :func:`~body_scheme_core.world.make_session` with the paper's marker noise, 44 mm / 15 deg RMS (the
   learner's default sigmas). Rendered mode: :func:`~body_scheme_sim.sessions.record_session` with
   ``perception="rendered"`` (the simulator's camera images through the ArUco tracker), the learner with the
   tracker's sigmas (``RENDERED_SIGMA_TRANS``, ``RENDERED_SIGMA_ROT``) and a camera above the arm
@@ -48,8 +48,8 @@ from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models import RevoluteModel
 from body_scheme_core.root_pose import RootPoseEstimator
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.synthetic import PAPER_SIGMA_TRANS, Body, make_session, planar_2dof
 from body_scheme_core.transforms import invert_transform
+from body_scheme_core.world import PAPER_SIGMA_TRANS, Body, make_session, planar_2dof
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "SANITY", "NOTES", "ROBOT", "EFFECTOR", "RENDERED_EYE", "RENDERED_TARGET",
            "N_SAMPLES", "QUICK_SAMPLES", "true_positions", "noise_level_mm", "prediction_error_mm", "control_error_mm",

@@ -48,7 +48,7 @@ def write_results_md(path, experiments, noise, rendered, plots, meta, command):
              f"{meta['runs']} noise-model runs (unless an experiment says otherwise) and {meta['rendered_runs']} "
              f"rendered-camera run(s) per experiment, "
              f"{meta['jobs']} worker processes, {meta['seconds']:.0f} s. Noise model: the paper's marker noise "
-             "(44 mm / 15 deg) on the synthetic robots of `body_scheme_core.synthetic`; rendered: the pybullet "
+             "(44 mm / 15 deg) on the synthetic robots of `body_scheme_core.world`; rendered: the pybullet "
              "simulator's 640x480 camera images through the ArUco tracker (`tracker_node`'s code), the learner with "
              "the tracker's noise sigmas (10 mm / 5 deg). Ours is mean ± std over runs; all errors are against ground "
              "truth. Lower is better unless the target reads >=. The raw figures are in "

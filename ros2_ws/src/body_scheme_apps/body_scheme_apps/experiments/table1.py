@@ -1,10 +1,10 @@
 """Table I and Fig. 6 of the paper (Sec. IV-B, IV-C): how fast the 6-DOF arm's body scheme recovers from a change.
 
-Protocol (the paper's): :func:`~body_scheme_core.synthetic.powercube_6dof`, 7 markers, the learner starts from the
+Protocol (the paper's): :func:`~body_scheme_core.world.powercube_6dof`, 7 markers, the learner starts from the
 engineered body scheme (the robot's specification) and babbles through 4 blocks of 100 samples: normal; changed
 (end-effector joint blocked at 0.8 rad, or the tool displaced 0.1 m and bent 45 deg); repaired; the same change again.
 Noise mode: the paper's noise (44 mm / 15 deg) and visibility (91.9 % blocked, 79.0 % deformed) from
-:mod:`body_scheme_core.synthetic`; rendered mode: the simulator's camera images through the ArUco tracker
+:mod:`body_scheme_core.world`; rendered mode: the simulator's camera images through the ArUco tracker
 (:func:`body_scheme_sim.sessions.record_protocol`), the learner with the tracker's noise sigmas.
 
 Recovery time, two definitions:
@@ -27,7 +27,7 @@ import numpy as np
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.synthetic import joint_blocked_protocol, limb_deformed_protocol, powercube_6dof
+from body_scheme_core.world import joint_blocked_protocol, limb_deformed_protocol, powercube_6dof
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "NOTES", "PROTOCOLS", "run", "run_protocol", "recovery_times", "plot"]
 

@@ -2,8 +2,8 @@
 
 What the GP's hyperparameters and the rigid models each contribute, on a relation no rigid joint explains.
 
-Protocol (one run, everything from ``seed``): the paper's 2-DOF arm (:func:`~body_scheme_core.synthetic.planar_2dof`)
-whose elbow is driven through a nonlinear gear, ``q = 1.2 sin(1.3 a)`` (:class:`~body_scheme_core.synthetic.Body`
+Protocol (one run, everything from ``seed``): the paper's 2-DOF arm (:func:`~body_scheme_core.world.planar_2dof`)
+whose elbow is driven through a nonlinear gear, ``q = 1.2 sin(1.3 a)`` (:class:`~body_scheme_core.world.Body`
 ``gears``), babbles :data:`N_STEPS` commands at the paper's noise (44 mm / 15 deg) with 5 % dropout. Three learners
 learn the same session from scratch:
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.synthetic import Body, make_session, planar_2dof
+from body_scheme_core.world import Body, make_session, planar_2dof
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "SANITY", "PERCEPTIONS", "N_STEPS", "GEAR", "VARIANTS", "run", "plot"]
 

@@ -2,7 +2,7 @@
 
 "If an analytic model of the robot exists from its specifications, it can be used directly [...]: they are exact
 and efficient in evaluation." The model stores only the kinematic chain between the two markers, so it is
-serialisable on its own and does not depend on the :class:`~body_scheme_core.kinematics.KinematicTree` it was
+serialisable on its own and does not depend on the :class:`~body_scheme_core.world.KinematicTree` it was
 built from. It is never trained: when the robot changes (a blocked joint, a bent limb, a displaced marker) it keeps
 predicting the specification, which is exactly what lets the learner detect the mismatch.
 
@@ -144,7 +144,7 @@ class EngineeredModel(LocalModel):
 
     @classmethod
     def from_tree(cls, tree, parent_marker, child_marker):
-        """The engineered model between two markers of a :class:`~body_scheme_core.kinematics.KinematicTree`."""
+        """The engineered model between two markers of a :class:`~body_scheme_core.world.KinematicTree`."""
         return cls(parent_marker, child_marker, tree.path_actions(parent_marker, child_marker),
                    chain_from_tree(tree, parent_marker, child_marker))
 

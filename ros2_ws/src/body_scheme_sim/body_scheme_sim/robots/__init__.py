@@ -5,7 +5,7 @@ models describe exactly the same geometry. Regenerate them with ``python -m body
 keeps the shipped files equal to a fresh generation.
 
 A robot is a pair of files: ``<name>.urdf`` and ``<name>.markers.yaml`` (format:
-:func:`body_scheme_core.kinematics.load_markers_yaml`). Any other URDF works with a marker file next to it
+:func:`body_scheme_core.world.load_markers_yaml`). Any other URDF works with a marker file next to it
 (``<stem>.markers.yaml``) or given explicitly.
 """
 
@@ -16,9 +16,9 @@ import pathlib
 
 import numpy as np
 
-from body_scheme_core import synthetic
+from body_scheme_core import world as synthetic_world
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.kinematics import KinematicTree, load_markers_yaml, markers_to_yaml
+from body_scheme_core.world import KinematicTree, load_markers_yaml, markers_to_yaml
 
 from ..errors import RobotFileError
 
@@ -29,9 +29,9 @@ __all__ = ["ROBOTS_DIR", "ROBOT_BUILDERS", "robot_names", "robot_files", "load_r
 ROBOTS_DIR = pathlib.Path(__file__).resolve().parent
 #: Shipped robot name -> core builder of its :class:`KinematicTree`.
 ROBOT_BUILDERS = {
-    "planar_2dof": synthetic.planar_2dof,
-    "arm_4dof": synthetic.arm_4dof,
-    "powercube_6dof": synthetic.powercube_6dof,
+    "planar_2dof": synthetic_world.planar_2dof,
+    "arm_4dof": synthetic_world.arm_4dof,
+    "powercube_6dof": synthetic_world.powercube_6dof,
 }
 #: Changes to the core builders' markers in the shipped files: ``{robot: {"size": {id: m}, "lift": {id: m}}}``,
 #: lift along the marker's link z axis. Kinematics stay the core's; the changes only let a 640x480 camera 2 m away
@@ -49,7 +49,7 @@ MARKER_CHANGES = {
 }
 MARKERS_SUFFIX = ".markers.yaml"
 # No "--" in it: XML comments cannot hold one.
-_GENERATED_NOTE = "Generated from body_scheme_core.synthetic.{name}() by body_scheme_sim.robots (docs/sim.md); " \
+_GENERATED_NOTE = "Generated from body_scheme_core.world.{name}() by body_scheme_sim.robots (docs/sim.md); " \
                   "do not edit."
 
 

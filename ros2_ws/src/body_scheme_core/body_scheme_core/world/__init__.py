@@ -1,0 +1,39 @@
+"""The world the body scheme is learnt in, without ROS or pybullet: one kinematic-tree model of a robot and its
+markers, URDF and marker files in and out, the synthetic robots, the true body and its faults, observation noise,
+motor babbling, babbling sessions and the paper's protocols.
+
+=====================  ====================================================================================
+module                 holds
+=====================  ====================================================================================
+:mod:`.tree`           ``Joint``, ``Marker``, ``KinematicTree``: a robot's specification, forward kinematics
+:mod:`.robot_files`    URDF in and out, marker placement YAML
+:mod:`.robots`         the synthetic robots (``planar_2dof``, ``arm_4dof``, ``powercube_6dof``, ...)
+:mod:`.body`           ``Body`` (commands -> executed joints -> true poses) and the faults that change it
+:mod:`.faults`         ``Fault`` at a step, ``REPAIR``, the paper's protocols' fault schedules
+:mod:`.noise`          the paper's marker noise and ``ObservationModel``
+:mod:`.babbling`       ``babble``: random commands within the joint limits
+:mod:`.sessions`       ``Session``, ``make_session`` and the paper's two adaptation protocols
+=====================  ====================================================================================
+
+The pybullet simulator (``body_scheme_sim``) is a rendering and physics backend of this world: it builds its robot
+from a ``KinematicTree``, applies the same faults to the same ``Body`` and records the same protocols.
+"""
+
+from .babbling import babble
+from .body import Body, block_joint, deform_limb, displace_marker
+from .faults import PROTOCOL_FAULTS, REPAIR, Fault, protocol_schedule
+from .noise import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
+from .robot_files import load_markers_yaml, markers_to_yaml, tree_from_urdf, tree_to_urdf
+from .robots import arm_4dof, branching_tree, default_world2root, planar_2dof, powercube_6dof, random_tree
+from .sessions import Session, joint_blocked_protocol, limb_deformed_protocol, make_session
+from .tree import JOINT_TYPES, MOVABLE_JOINT_TYPES, Joint, KinematicTree, Marker
+
+__all__ = [
+    "JOINT_TYPES", "MOVABLE_JOINT_TYPES", "Joint", "Marker", "KinematicTree",
+    "tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml",
+    "planar_2dof", "arm_4dof", "powercube_6dof", "branching_tree", "random_tree", "default_world2root",
+    "Body", "block_joint", "deform_limb", "displace_marker",
+    "Fault", "REPAIR", "PROTOCOL_FAULTS", "protocol_schedule",
+    "PAPER_SIGMA_TRANS", "PAPER_SIGMA_ROT", "ObservationModel",
+    "babble", "Session", "make_session", "joint_blocked_protocol", "limb_deformed_protocol",
+]

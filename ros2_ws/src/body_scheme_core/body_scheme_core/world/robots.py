@@ -1,0 +1,233 @@
+r"""Synthetic robots: the paper's arms and random trees as :class:`~body_scheme_core.world.tree.KinematicTree`\ s.
+
+Marker ids start at 1 like the paper's ``X_1 .. X_n``; action indices start at 0.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..errors import InvalidInputError
+from ..transforms import transform_from_xyz_rpy
+from .tree import Joint, KinematicTree, Marker
+
+__all__ = ["planar_2dof", "arm_4dof", "powercube_6dof", "branching_tree", "random_tree", "default_world2root"]
+
+
+#: Rotation of a marker frame so that its normal (z) points along the link's +x axis, towards the default camera.
+_FACING_CAMERA = (0.0, math.pi / 2.0, 0.0)
+
+
+def _revolute(name, parent, child, xyz, axis, limit, action, rpy=(0.0, 0.0, 0.0)):
+    lower, upper = (-limit, limit) if np.isscalar(limit) else limit
+    return Joint(name, "revolute", parent, child, origin=transform_from_xyz_rpy(xyz, rpy), axis=axis,
+                 lower=lower, upper=upper, action=action)
+
+
+def _marker(marker_id, link, xyz, rpy=_FACING_CAMERA, size=0.08):
+    return Marker(marker_id, link, transform_from_xyz_rpy(xyz, rpy), size)
+
+
+# ---------------------------------------------------------------------- robots
+def planar_2dof(l1=0.5, l2=0.4, limit=math.pi / 2):
+    """The paper's 2-DOF robot (Sec. IV-A, Fig. 7): two revolute joints with parallel z axes.
+
+    Joint 1 sits 0.1 m above the base frame; link 1 has length ``l1`` along its x axis, where joint 2 sits; link 2
+    has length ``l2``. Markers (all with identity orientation relative to their link): 1 at the base origin,
+    2 on link 1 on top of joint 2, 3 at the end of link 2 (end effector). So at actions ``(q1, q2)`` marker 3 is at
+    ``(l1 cos q1 + l2 cos(q1 + q2), l1 sin q1 + l2 sin(q1 + q2), 0.1)`` with yaw ``q1 + q2``.
+
+    Parameters
+    ----------
+    l1, l2 : float
+        Link lengths, m.
+    limit : float
+        Joint limits are ``[-limit, limit]``, rad.
+
+    Returns
+    -------
+    tree : KinematicTree
+    """
+    joints = [
+        _revolute("joint1", "base", "link1", (0.0, 0.0, 0.1), (0.0, 0.0, 1.0), limit, 0),
+        _revolute("joint2", "link1", "link2", (l1, 0.0, 0.0), (0.0, 0.0, 1.0), limit, 1),
+    ]
+    markers = [
+        _marker(1, "base", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.05),
+        _marker(2, "link1", (l1, 0.0, 0.0), (0.0, 0.0, 0.0), 0.05),
+        _marker(3, "link2", (l2, 0.0, 0.0), (0.0, 0.0, 0.0), 0.05),
+    ]
+    return KinematicTree(joints, markers)
+
+
+def arm_4dof():
+    """A 4-DOF 3D arm like the paper's control experiment (Sec. IV-D): yaw, then three pitch joints.
+
+    Base height 0.2 m, shoulder module 0.1 m, upper arm ("middle limb", link 2) 0.4 m, forearm 0.35 m, hand
+    0.15 m; about 1.2 m stretched. Five markers (ids 1-5) on base, shoulder, upper arm, forearm and hand tip,
+    offset 6 cm along +x and facing +x (towards the default camera). Bend the middle limb with
+    ``deform_limb(body, "link2", delta_rotvec=(0.0, math.pi / 4, 0.0))``.
+
+    Returns
+    -------
+    tree : KinematicTree
+    """
+    joints = [
+        _revolute("joint1", "base", "link1", (0.0, 0.0, 0.2), (0.0, 0.0, 1.0), 2.0, 0),
+        _revolute("joint2", "link1", "link2", (0.0, 0.0, 0.1), (0.0, 1.0, 0.0), 1.2, 1),
+        _revolute("joint3", "link2", "link3", (0.0, 0.0, 0.4), (0.0, 1.0, 0.0), 1.5, 2),
+        _revolute("joint4", "link3", "link4", (0.0, 0.0, 0.35), (0.0, 1.0, 0.0), 1.5, 3),
+    ]
+    markers = [
+        _marker(1, "base", (0.06, 0.0, 0.1)),
+        _marker(2, "link1", (0.06, 0.0, 0.05)),
+        _marker(3, "link2", (0.06, 0.0, 0.35)),
+        _marker(4, "link3", (0.06, 0.0, 0.3)),
+        _marker(5, "link4", (0.06, 0.0, 0.15)),
+    ]
+    return KinematicTree(joints, markers)
+
+
+def powercube_6dof():
+    """A ~1.2 m 6-DOF arm like the paper's Schunk PowerCube manipulator (Sec. IV), with a tool and 7 markers.
+
+    Joints alternate yaw/roll (z) and pitch (y): base pedestal 0.2 m, joint 1 yaw, joint 2 shoulder pitch 0.1 m
+    higher, upper arm 0.3 m to joint 3 roll, joint 4 elbow pitch 0.1 m higher, forearm 0.25 m to joint 5 roll,
+    joint 6 wrist pitch (the end-effector joint, action 5) 0.1 m higher, then a 0.15 m tool on a fixed joint
+    ``tool_joint`` (link ``tool``). Markers 1-7 sit on the modules next to the joints, 7 cm out along +x facing the
+    camera (marker 2 tilted 25 deg up), like the ARToolkit markers of the paper: 1 base, 2 link1, 3 link2, 4 link3,
+    5 link4, 6 link5, 7 tool.
+    Link 6 carries no marker, so the end-effector model ``6 -> 7`` depends on the end-effector joint (action 5)
+    and contains the tool, as ``Delta_6->7`` in the paper's Figs. 1, 2 and 5.
+
+    Returns
+    -------
+    tree : KinematicTree
+    """
+    z, y = (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)
+    joints = [
+        _revolute("joint1", "base", "link1", (0.0, 0.0, 0.2), z, 1.5, 0),
+        _revolute("joint2", "link1", "link2", (0.0, 0.0, 0.1), y, 1.2, 1),
+        _revolute("joint3", "link2", "link3", (0.0, 0.0, 0.3), z, 1.5, 2),
+        _revolute("joint4", "link3", "link4", (0.0, 0.0, 0.1), y, 1.5, 3),
+        _revolute("joint5", "link4", "link5", (0.0, 0.0, 0.25), z, 1.5, 4),
+        _revolute("joint6", "link5", "link6", (0.0, 0.0, 0.1), y, 1.5, 5),
+        Joint("tool_joint", "fixed", "link6", "tool", origin=transform_from_xyz_rpy((0.0, 0.0, 0.15), (0, 0, 0))),
+    ]
+    markers = [
+        _marker(1, "base", (0.08, 0.0, 0.1)),
+        # link1 only yaws, so its plate is tilted 25 deg up towards the camera: upright, it is seen at 45-65 deg
+        # and small, and IPPE mirrored its orientation in over 10 % of rendered frames (docs/sim.md).
+        _marker(2, "link1", (0.07, 0.0, 0.05), rpy=(0.0, math.pi / 2 - math.radians(25.0), 0.0)),
+        _marker(3, "link2", (0.07, 0.0, 0.25)),
+        _marker(4, "link3", (0.07, 0.0, 0.05)),
+        _marker(5, "link4", (0.07, 0.0, 0.2)),
+        _marker(6, "link5", (0.07, 0.0, 0.05)),
+        _marker(7, "tool", (0.05, 0.0, 0.0)),
+    ]
+    return KinematicTree(joints, markers)
+
+
+def branching_tree(seed=None, second_torso_marker=False, dummy_action=False):
+    """A torso on a yaw joint with two 2-DOF arms: a kinematic tree with a fork.
+
+    Actions: 0 torso yaw, 1-2 left shoulder and elbow, 3-4 right shoulder and elbow. Markers: 1 base, 2 torso,
+    3 left upper arm, 4 left forearm, 5 right upper arm, 6 right forearm; the true marker tree forks at 2.
+
+    Parameters
+    ----------
+    seed : int or None
+        ``None``: nominal lengths (0.3 m). Otherwise arm segment lengths are drawn uniformly from [0.2, 0.4] m.
+    second_torso_marker : bool
+        Add marker 7 on the torso's back (two markers on one link: trees that connect either are equivalent).
+    dummy_action : bool
+        Add action 5, a joint turning a link that carries no marker: an action that moves nothing observed.
+
+    Returns
+    -------
+    tree : KinematicTree
+    """
+    lengths = np.full(4, 0.3) if seed is None else np.random.default_rng(seed).uniform(0.2, 0.4, size=4)
+    y = (0.0, 1.0, 0.0)
+    joints = [_revolute("torso_joint", "base", "torso", (0.0, 0.0, 0.3), (0.0, 0.0, 1.0), 1.5, 0)]
+    markers = [_marker(1, "base", (0.08, 0.0, 0.1)), _marker(2, "torso", (0.08, 0.0, 0.2))]
+    # The arms' z axes point sideways (left +y, right -y); shoulder and elbow pitch about the link y axis.
+    for side, sign, first_action, first_marker, (upper, fore) in (
+            ("left", 1.0, 1, 3, lengths[:2]), ("right", -1.0, 3, 5, lengths[2:])):
+        joints.append(_revolute(f"{side}_shoulder", "torso", f"{side}_upper_arm", (0.0, sign * 0.2, 0.3), y, 1.2,
+                                first_action, rpy=(-sign * math.pi / 2, 0.0, 0.0)))
+        joints.append(_revolute(f"{side}_elbow", f"{side}_upper_arm", f"{side}_forearm", (0.0, 0.0, upper), y, 1.5,
+                                first_action + 1))
+        markers.append(_marker(first_marker, f"{side}_upper_arm", (0.06, 0.0, 0.5 * upper)))
+        markers.append(_marker(first_marker + 1, f"{side}_forearm", (0.06, 0.0, fore)))
+    if second_torso_marker:
+        markers.append(_marker(7, "torso", (-0.08, 0.0, 0.15), rpy=(0.0, -math.pi / 2.0, 0.0)))
+    if dummy_action:
+        joints.append(_revolute("antenna_joint", "torso", "antenna", (0.0, 0.0, 0.35), (0.0, 0.0, 1.0), 1.5, 5))
+    return KinematicTree(joints, markers)
+
+
+def random_tree(n_joints, seed, branching=True, prismatic_fraction=0.0):
+    """A random kinematic tree with one marker per link.
+
+    Link ``k`` (k = 1..n_joints) hangs off a uniformly chosen earlier link (``branching``) or off link ``k-1``
+    (a chain) through joint ``k-1`` commanded by action ``k-1``: origin with a random rotation and a translation of
+    0.1-0.4 m in a random direction, random unit axis, limits ``+-U(0.5, pi)`` rad (``+-U(0.05, 0.3)`` m for
+    prismatic joints). Marker ``k+1`` sits on link ``k`` at a random offset of up to 5 cm with a random orientation.
+
+    Parameters
+    ----------
+    n_joints : int
+    seed : int
+    branching : bool
+    prismatic_fraction : float
+        Probability that a joint is prismatic instead of revolute.
+
+    Returns
+    -------
+    tree : KinematicTree
+    """
+    if not (isinstance(n_joints, (int, np.integer)) and n_joints >= 1):
+        raise InvalidInputError(f"n_joints must be an integer >= 1, got {n_joints!r}")
+    rng = np.random.default_rng(seed)
+    joints, markers = [], []
+    for k in range(n_joints + 1):
+        link = f"link{k}"
+        if k > 0:
+            parent = f"link{int(rng.integers(0, k)) if branching else k - 1}"
+            origin = np.eye(4)
+            origin[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+            direction = rng.normal(size=3)
+            origin[:3, 3] = direction / np.linalg.norm(direction) * rng.uniform(0.1, 0.4)
+            axis = rng.normal(size=3)
+            prismatic = rng.uniform() < prismatic_fraction
+            limit = rng.uniform(0.05, 0.3) if prismatic else rng.uniform(0.5, math.pi)
+            joints.append(Joint(f"joint{k - 1}", "prismatic" if prismatic else "revolute", parent, link,
+                                origin=origin, axis=axis / np.linalg.norm(axis), lower=-limit, upper=limit,
+                                action=k - 1))
+        link2marker = np.eye(4)
+        link2marker[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        link2marker[:3, 3] = rng.uniform(-0.05, 0.05, size=3)
+        markers.append(Marker(k + 1, link, link2marker, 0.05))
+    return KinematicTree(joints, markers, root_link="link0")
+
+
+
+
+def default_world2root(distance=2.0, drop=0.5):
+    """Pose of the robot's root link in a camera's optical frame (x right, y down, z forward).
+
+    The robot stands ``distance`` m in front of the camera with its base ``drop`` m below the optical axis, its
+    z axis up and its x axis pointing at the camera (so markers facing +x face the camera at the home pose).
+
+    Returns
+    -------
+    world2root : ndarray, shape (4, 4)
+    """
+    world2root = np.eye(4)
+    world2root[:3, :3] = [[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]]
+    world2root[:3, 3] = [0.0, drop, distance]
+    return world2root
