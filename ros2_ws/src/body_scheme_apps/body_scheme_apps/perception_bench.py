@@ -38,7 +38,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from body_scheme_core.perception import MarkerTracker  # noqa: E402
-from body_scheme_sim.babbling import babble  # noqa: E402
+from body_scheme_core.world import babble  # noqa: E402
+from body_scheme_sim.babbling import babbling_screen  # noqa: E402
 from body_scheme_sim.sessions import PROTOCOL_MARKERS_OF_INTEREST, record_session  # noqa: E402
 from body_scheme_sim.world import SimWorld  # noqa: E402
 
@@ -73,7 +74,7 @@ def _per_marker_errors(session):
 def _rates(n_frames, seed):
     """``(sim_render_hz, tracker_hz)`` over ``n_frames`` babbled configurations."""
     with SimWorld(seed=seed) as world:
-        actions = babble(world, n_frames, np.random.default_rng(seed))
+        actions = babble(world, n_frames, np.random.default_rng(seed), screen=babbling_screen(world))
         world.render()  # the static backdrop is rendered once per camera: not part of the per-frame cost
         frames = []
         start = time.perf_counter()

@@ -6,7 +6,7 @@ catch ours without swallowing programming errors. Input validation errors also d
 
 from __future__ import annotations
 
-__all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError"]
+__all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError", "BabblingError"]
 
 
 class BodySchemeError(Exception):
@@ -23,3 +23,7 @@ class ModelFileError(BodySchemeError):
 
 class NotFittedError(BodySchemeError):
     """A local model was asked to predict before it was fitted."""
+
+
+class BabblingError(BodySchemeError):
+    """Motor babbling found too few valid configurations within its budget of tries."""

@@ -63,10 +63,10 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
 from body_scheme_core.transforms import transform_from_xyz_rpy, xyz_rpy_from_transform
-from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel, babble
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import InjectFault
-from body_scheme_sim.babbling import babble
+from body_scheme_sim.babbling import babbling_screen
 from body_scheme_sim.camera import Camera
 from body_scheme_sim.faults import apply_fault, parse_fault_schedule
 from body_scheme_sim.world import SimWorld
@@ -218,7 +218,8 @@ class SimNode(Node):
             return
         self._apply_due_faults()
         try:
-            actions = babble(self.world, 1, self.rng_babbling, self.markers_of_interest)[0]
+            screen = babbling_screen(self.world, self.markers_of_interest)
+            actions = babble(self.world, 1, self.rng_babbling, screen=screen)[0]
         except BodySchemeError as error:
             self.get_logger().error(f"babbling failed: {error}", throttle_duration_sec=5.0)
             return

@@ -6,7 +6,7 @@ core's with one clause; bad arguments also derive from ``ValueError`` (via ``Inv
 
 from __future__ import annotations
 
-from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.errors import BabblingError, BodySchemeError, InvalidInputError
 
 __all__ = ["SimError", "RobotFileError", "BabblingError", "FaultScheduleError"]
 
@@ -17,10 +17,6 @@ class SimError(BodySchemeError):
 
 class RobotFileError(SimError, InvalidInputError):
     """A robot name is unknown, or its URDF or marker file is missing or unreadable."""
-
-
-class BabblingError(SimError):
-    """Motor babbling found too few valid configurations within its budget of tries."""
 
 
 class FaultScheduleError(SimError, InvalidInputError):

@@ -31,9 +31,9 @@ import numpy as np
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker
 from body_scheme_core.transforms import relative_transform, rotational_error, translational_error
-from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, PROTOCOL_FAULTS, protocol_schedule
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, PROTOCOL_FAULTS, babble, protocol_schedule
 
-from .babbling import babble
+from .babbling import babbling_screen
 from .camera import Camera
 from .faults import parse_fault_schedule
 from .world import SimWorld
@@ -210,7 +210,8 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     image_every : int
         Store every ``image_every``-th camera image (steps 0, N, 2N, ...); 0 stores none.
     markers_of_interest : iterable of int or None
-        Markers that must be visible in every babbled configuration (see :func:`~body_scheme_sim.babbling.babble`).
+        Markers that must be visible in every babbled configuration
+        (:func:`~body_scheme_sim.babbling.babbling_screen`).
     period : float
         Seconds between commands.
     protocol : str
@@ -249,7 +250,7 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     with SimWorld(robot=robot, camera=camera, markers_path=markers_path, seed=seed) as world:
         marker_ids = tuple(sorted(world.marker_ids))
         tracker = _tracker(world) if perception == "rendered" else None
-        actions = babble(world, n_steps, rng_actions, markers_of_interest=markers_of_interest)
+        actions = babble(world, n_steps, rng_actions, screen=babbling_screen(world, markers_of_interest))
         executed = np.zeros_like(actions)
         true_poses = np.zeros((n_steps, len(marker_ids), 4, 4))
         visible_truth = np.zeros((n_steps, len(marker_ids)), dtype=bool)

@@ -9,8 +9,8 @@ import pytest
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.transforms import transform_from_xyz_rpy
-from body_scheme_core.world import Joint, KinematicTree, Marker
-from body_scheme_sim.babbling import babble
+from body_scheme_core.world import Joint, KinematicTree, Marker, babble
+from body_scheme_sim.babbling import babbling_screen
 from body_scheme_sim.errors import BabblingError
 from body_scheme_sim.world import SimWorld
 
@@ -29,18 +29,19 @@ def ground_hitting_arm():
 def test_babbling_respects_the_joint_limits_and_is_reproducible():
     """Babbled commands lie within the limits, cover them, and repeat for the same seed."""
     with SimWorld("powercube_6dof", marker_texture=False) as world:
-        A = babble(world, 60, np.random.default_rng(0))
+        A = babble(world, 60, np.random.default_rng(0), screen=babbling_screen(world))
         assert A.shape == (60, 6)
         assert np.all(A >= world.action_lower) and np.all(A <= world.action_upper)
         span = world.action_upper - world.action_lower
         assert np.all(A.max(axis=0) - A.min(axis=0) > 0.6 * span)
-        np.testing.assert_array_equal(babble(world, 10, 0), babble(world, 10, 0))
+        first, again = (babble(world, 10, 0, screen=babbling_screen(world)) for _ in range(2))
+        np.testing.assert_array_equal(first, again)
 
 
 def test_babbling_rejects_collisions():
     """On an arm that hits the ground for a third of its range, no babbled command collides."""
     with SimWorld(ground_hitting_arm(), marker_texture=False) as world:
-        A = babble(world, 40, np.random.default_rng(0))
+        A = babble(world, 40, np.random.default_rng(0), screen=babbling_screen(world))
         assert np.all(np.abs(A[:, 0]) < 1.95)  # uniform sampling without rejection would exceed it ~14 times
         for a in A:
             world.execute(a)
@@ -52,11 +53,11 @@ def test_babbling_rejects_collisions():
 def test_babbling_keeps_markers_of_interest_visible():
     """Every babbled configuration shows the markers of interest; without them, some would not."""
     with SimWorld("powercube_6dof", marker_texture=False) as world:
-        for a in babble(world, 15, np.random.default_rng(1), markers_of_interest=[6, 7]):
+        for a in babble(world, 15, np.random.default_rng(1), screen=babbling_screen(world, [6, 7])):
             world.execute(a)
             assert {6, 7} <= world.visible_marker_ids()
         hidden = 0
-        for a in babble(world, 15, np.random.default_rng(1)):
+        for a in babble(world, 15, np.random.default_rng(1), screen=babbling_screen(world)):
             world.execute(a)
             hidden += not {6, 7} <= world.visible_marker_ids()
         assert hidden > 0
@@ -68,7 +69,7 @@ def test_babbling_leaves_the_world_as_it_was():
         world.execute([0.3, -0.2, 0.4, 0.1])
         world.block_joint(1, 0.5)
         before, q = world.true_marker_poses(), world.joint_positions()
-        babble(world, 5, 0)
+        babble(world, 5, 0, screen=babbling_screen(world))
         np.testing.assert_array_equal(world.joint_positions(), q)
         for marker_id, pose in world.true_marker_poses().items():
             np.testing.assert_array_equal(pose, before[marker_id])
@@ -80,9 +81,9 @@ def test_babbling_gives_up_with_the_reasons():
     with SimWorld(ground_hitting_arm(), marker_texture=False) as world:
         world.displace_marker(2, np.diag([-1.0, 1.0, -1.0, 1.0]))  # marker 2 now faces away from the camera
         with pytest.raises(BabblingError, match=r"0 of 3 valid configurations in 50 tries.*hidden"):
-            babble(world, 3, 0, markers_of_interest=[2], max_tries=50)
+            babble(world, 3, 0, screen=babbling_screen(world, [2]), max_draws=50)
         with pytest.raises(InvalidInputError, match="not markers of the robot"):
-            babble(world, 3, 0, markers_of_interest=[9])
+            babble(world, 3, 0, screen=babbling_screen(world, [9]))
         with pytest.raises(InvalidInputError, match="n must be"):
             babble(world, -1, 0)
-        assert babble(world, 0, 0).shape == (0, 1)
+        assert babble(world, 0, 0, screen=babbling_screen(world)).shape == (0, 1)

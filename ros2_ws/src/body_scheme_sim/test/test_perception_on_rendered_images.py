@@ -18,7 +18,8 @@ from body_scheme_core.perception import (
     marker_object_points,
 )
 from body_scheme_core.transforms import rotational_error
-from body_scheme_sim.babbling import babble
+from body_scheme_core.world import babble
+from body_scheme_sim.babbling import babbling_screen
 from body_scheme_sim.world import SimWorld
 
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
@@ -81,7 +82,7 @@ def pose_errors(estimate, truth):
 def rendered():
     """40 rendered babbling frames of powercube_6dof: (images, true poses, geometrically visible ids, tracker)."""
     with SimWorld("powercube_6dof", seed=0) as world:
-        actions = babble(world, 40, np.random.default_rng(0), markers_of_interest=(6, 7))
+        actions = babble(world, 40, np.random.default_rng(0), screen=babbling_screen(world, (6, 7)))
         frames = []
         for a in actions:
             world.execute(a)
