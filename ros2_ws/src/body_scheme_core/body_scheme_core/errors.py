@@ -6,7 +6,8 @@ catch ours without swallowing programming errors. Input validation errors also d
 
 from __future__ import annotations
 
-__all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError", "BabblingError"]
+__all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError", "BabblingError",
+           "FaultScheduleError"]
 
 
 class BodySchemeError(Exception):
@@ -27,3 +28,7 @@ class NotFittedError(BodySchemeError):
 
 class BabblingError(BodySchemeError):
     """Motor babbling found too few valid configurations within its budget of tries."""
+
+
+class FaultScheduleError(InvalidInputError):
+    """A fault schedule entry (``"step:kind:args"``) cannot be parsed."""

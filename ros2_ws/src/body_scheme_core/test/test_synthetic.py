@@ -289,5 +289,4 @@ def test_protocol_schedule_is_fault_repair_fault_and_has_schedule_entries():
     assert protocol_schedule("limb_deformed", 5)[0][1].entry == "deform_limb:tool_joint:0.1:0.7853981633974483:0.0:0.0"
     with pytest.raises(InvalidInputError, match="protocol must be one of"):
         protocol_schedule("nope")
-    with pytest.raises(InvalidInputError, match="no schedule entry form"):
-        _ = Fault("displace_marker", marker_id=3, delta=np.eye(4)).entry
+    assert Fault("displace_marker", marker_id=3, delta=np.eye(4)).entry == "displace_marker:3" + ":0.0" * 6

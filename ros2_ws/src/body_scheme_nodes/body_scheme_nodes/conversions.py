@@ -17,6 +17,7 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.transforms import pose_from_transform, transform_from_pose, transform_from_rotvec
+from body_scheme_core.world import Fault
 from body_scheme_msgs.msg import BodySchemeStructure, LocalModelInfo, MarkerPoses, ModelSnapshot, SchemeEvent
 
 __all__ = [
@@ -371,7 +372,7 @@ def joint_state_msg(stamp, joint_names, positions):
 
 
 def fault_from_request(request):
-    """A ``body_scheme_msgs/InjectFault`` request as ``(kind, params)`` for ``body_scheme_sim.faults.apply_fault``.
+    """A ``body_scheme_msgs/InjectFault`` request as a :class:`body_scheme_core.world.Fault` (for ``SimWorld.apply``).
 
     Raises
     ------
@@ -384,16 +385,16 @@ def fault_from_request(request):
         raise InvalidInputError(f"delta must be 6 finite numbers, got {delta.tolist()}")
     if kind == "block_joint":
         angle = float(request.angle)
-        return kind, {"action_index": int(request.action_index), "angle": None if math.isnan(angle) else angle}
+        return Fault(kind, action_index=int(request.action_index), angle=None if math.isnan(angle) else angle)
     if kind == "deform_limb":
         if np.any(delta[:3]):
             raise InvalidInputError("deform_limb takes the length change from delta_length and the bend from "
                                     f"delta[3:6]; delta[0:3] must be zero, got {delta[:3].tolist()}")
-        return kind, {"joint_name": request.joint_name, "delta_length": float(request.delta_length),
-                      "delta_rotvec": delta[3:].tolist()}
+        return Fault(kind, joint_or_link=request.joint_name, delta_length=float(request.delta_length),
+                     delta_rotvec=delta[3:].tolist())
     if kind == "displace_marker":
-        return kind, {"marker_id": int(request.marker_id), "delta": transform_from_rotvec(delta[3:], delta[:3])}
+        return Fault(kind, marker_id=int(request.marker_id), delta=transform_from_rotvec(delta[3:], delta[:3]))
     if kind == "repair":
-        return kind, {"repair_kind": request.repair_kind or None}
+        return Fault(kind, repair_kind=request.repair_kind or None)
     raise InvalidInputError(
         f"unknown fault kind {kind!r}; kinds: block_joint, deform_limb, displace_marker, repair")

@@ -43,7 +43,7 @@ wait_for_subscribers : int 0         babble only once joint_commands has this ma
                                      observations) and ground-truth topics one each, then 1 s more: messages sent
                                      before discovery matched them are lost (volatile QoS)
 markers_of_interest : int[] []       markers that must be visible in babbled configurations
-fault_schedule : string[] []         "step:kind:args" entries (body_scheme_sim.faults); steps count executed commands
+fault_schedule : string[] []         "step:kind:args" entries (core world.faults); steps count executed commands
 update_period : double 0.01 s        period of the timer executing subscribed commands
 """
 
@@ -63,12 +63,11 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
 from body_scheme_core.transforms import transform_from_xyz_rpy, xyz_rpy_from_transform
-from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel, babble
+from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel, babble, parse_fault_schedule
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import InjectFault
 from body_scheme_sim.babbling import babbling_screen
 from body_scheme_sim.camera import Camera
-from body_scheme_sim.faults import apply_fault, parse_fault_schedule
 from body_scheme_sim.world import SimWorld
 
 from . import conversions
@@ -240,12 +239,13 @@ class SimNode(Node):
 
     def _apply_due_faults(self):
         while self.schedule and self.schedule[0][0] <= self.n_executed:
-            _, fault = self.schedule.pop(0)
+            step, fault = self.schedule.pop(0)
             try:
-                fault(self.world)
-                self.get_logger().info(f"scheduled fault {fault.text!r} applied before command {self.n_executed}")
+                self.world.apply(fault)
+                self.get_logger().info(f"scheduled fault '{step}:{fault.entry}' applied before command "
+                                       f"{self.n_executed}")
             except BodySchemeError as error:
-                self.get_logger().error(f"scheduled fault {fault.text!r} failed: {error}")
+                self.get_logger().error(f"scheduled fault '{step}:{fault.entry}' failed: {error}")
 
     def _step(self, actions, command_stamp):
         """Execute one command and publish what the camera sees and the ground truth."""
@@ -270,14 +270,14 @@ class SimNode(Node):
 
     def _on_inject_fault(self, request, response):
         try:
-            kind, params = conversions.fault_from_request(request)
-            apply_fault(self.world, kind, **params)
+            fault = conversions.fault_from_request(request)
+            self.world.apply(fault)
         except BodySchemeError as error:
             response.success, response.message = False, f"{request.kind} refused: {error}"
         else:
             response.success = True
-            response.message = f"{kind} applied; active faults: {[f['kind'] for f in self.world.faults]}"
-            self.get_logger().info(f"fault injected: {kind} {params}")
+            response.message = f"{fault.kind} applied; active faults: {[f.kind for f in self.world.faults]}"
+            self.get_logger().info(f"fault injected: {fault.entry}")
         return response
 
     def _on_set_parameters(self, parameters):

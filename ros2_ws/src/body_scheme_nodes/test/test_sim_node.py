@@ -103,19 +103,23 @@ def test_joint_state_command_round_trip():
 
 
 def test_inject_fault_requests_map_to_fault_arguments():
-    """Each InjectFault kind maps to apply_fault's arguments; NaN angle holds; bad requests are refused."""
+    """Each InjectFault kind maps to a core Fault; NaN angle holds; bad requests are refused."""
+    def fault(request):
+        result = conversions.fault_from_request(request)
+        return result.kind, result.params
+
     request = InjectFault.Request(kind="block_joint", action_index=2, angle=math.nan)
-    assert conversions.fault_from_request(request) == ("block_joint", {"action_index": 2, "angle": None})
+    assert fault(request) == ("block_joint", {"action_index": 2, "angle": None})
     request = InjectFault.Request(kind="deform_limb", joint_name="joint3", delta_length=0.05)
     request.delta = [0.0, 0.0, 0.0, 0.0, 0.4, 0.0]
-    assert conversions.fault_from_request(request) == (
-        "deform_limb", {"joint_name": "joint3", "delta_length": 0.05, "delta_rotvec": [0.0, 0.4, 0.0]})
+    assert fault(request) == (
+        "deform_limb", {"joint_or_link": "joint3", "delta_length": 0.05, "delta_rotvec": [0.0, 0.4, 0.0]})
     request = InjectFault.Request(kind="displace_marker", marker_id=7)
     request.delta = [0.05, 0.0, 0.0, 0.0, 0.0, 0.3]
-    kind, params = conversions.fault_from_request(request)
+    kind, params = fault(request)
     assert kind == "displace_marker" and params["marker_id"] == 7
     np.testing.assert_allclose(params["delta"][:3, 3], [0.05, 0.0, 0.0])
-    assert conversions.fault_from_request(InjectFault.Request(kind="repair")) == ("repair", {"repair_kind": None})
+    assert fault(InjectFault.Request(kind="repair")) == ("repair", {"repair_kind": None})
     with pytest.raises(InvalidInputError, match="unknown fault kind"):
         conversions.fault_from_request(InjectFault.Request(kind="break"))
     request = InjectFault.Request(kind="deform_limb", joint_name="joint3")

@@ -1,13 +1,14 @@
-"""pybullet arm simulator seen by a fixed camera (issue 4): robots, rendering, babbling, faults, ground truth.
+"""The pybullet arm seen by a fixed camera: a rendering and physics backend of :mod:`body_scheme_core.world`.
 
-The library (everything but :mod:`body_scheme_nodes.sim_node`) has no ROS dependency. See docs/sim.md.
+Robots are :class:`~body_scheme_core.world.KinematicTree`\\ s with markers, faults are the core's
+:class:`~body_scheme_core.world.Fault` (``SimWorld.apply``), babbling is the core's loop with this world's screen
+(:func:`babbling_screen`), and sessions record the core's protocols. No ROS dependency (sim_node lives in
+body_scheme_nodes). See docs/sim.md.
 """
 
 from .babbling import babbling_screen
 from .camera import Camera, look_at
-from .faults import ScheduledFault, apply_fault, parse_fault_schedule
 from .robots import load_robot, robot_names
 from .world import SimWorld
 
-__all__ = ["SimWorld", "Camera", "look_at", "babbling_screen", "load_robot", "robot_names", "parse_fault_schedule",
-           "ScheduledFault", "apply_fault"]
+__all__ = ["SimWorld", "Camera", "look_at", "babbling_screen", "load_robot", "robot_names"]

@@ -6,7 +6,7 @@ core's with one clause; bad arguments also derive from ``ValueError`` (via ``Inv
 
 from __future__ import annotations
 
-from body_scheme_core.errors import BabblingError, BodySchemeError, InvalidInputError
+from body_scheme_core.errors import BabblingError, BodySchemeError, FaultScheduleError, InvalidInputError
 
 __all__ = ["SimError", "RobotFileError", "BabblingError", "FaultScheduleError"]
 
@@ -17,9 +17,3 @@ class SimError(BodySchemeError):
 
 class RobotFileError(SimError, InvalidInputError):
     """A robot name is unknown, or its URDF or marker file is missing or unreadable."""
-
-
-class FaultScheduleError(SimError, InvalidInputError):
-    """A fault schedule entry (``"step:kind:args"``) cannot be parsed."""
-
-

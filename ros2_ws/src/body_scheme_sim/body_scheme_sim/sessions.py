@@ -1,8 +1,8 @@
 """Recorded babbling sessions of the simulator: commands, what the camera saw, ground truth and the fault timeline.
 
 :func:`record_session` babbles with a :class:`~body_scheme_sim.world.SimWorld`, applies a fault schedule
-(:mod:`body_scheme_sim.faults`) at the given steps and collects per step the command, the observation and the ground
-truth. Perception is either
+(:mod:`body_scheme_core.world.faults`) at the given steps and collects per step the command, the observation and the
+ground truth. Perception is either
 
 - ``"noise"``: the visible markers' true poses perturbed with the paper's noise (``SimWorld.observe_noisy``), fast;
 - ``"rendered"``: the camera image through the ArUco tracker (:class:`body_scheme_core.perception.MarkerTracker`),
@@ -31,11 +31,17 @@ import numpy as np
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker
 from body_scheme_core.transforms import relative_transform, rotational_error, translational_error
-from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, PROTOCOL_FAULTS, babble, protocol_schedule
+from body_scheme_core.world import (
+    PAPER_SIGMA_ROT,
+    PAPER_SIGMA_TRANS,
+    PROTOCOL_FAULTS,
+    babble,
+    parse_fault_schedule,
+    protocol_schedule,
+)
 
 from .babbling import babbling_screen
 from .camera import Camera
-from .faults import parse_fault_schedule
 from .world import SimWorld
 
 __all__ = [
@@ -85,7 +91,7 @@ class Session:
     true_poses : ndarray, shape (n, n_markers, 4, 4)
         True ``camera2marker`` of every marker, in ``marker_ids`` order (evaluation only).
     faults : list of (int, str)
-        Step at which each schedule entry takes effect, and the entry.
+        Step at which each fault takes effect, and its schedule entry (``Fault.entry`` with the step).
     camera : Camera
     images : dict of int to ndarray, shape (H, W, 3), dtype uint8
         Stored camera images by step (RGB).
@@ -200,8 +206,8 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     seed : int or None
         Equal seeds give equal sessions (commands, noise, faults).
     faults : iterable of str
-        Fault schedule entries ``"step:kind:args"`` (:mod:`body_scheme_sim.faults`); a fault at step ``k`` affects
-        command ``k`` and later ones.
+        Fault schedule entries ``"step:kind:args"`` (:mod:`body_scheme_core.world.faults`); a fault at step ``k``
+        affects command ``k`` and later ones.
     perception : str
         ``"noise"`` or ``"rendered"`` (see the module docstring).
     sigma_trans, sigma_rot, visibility : float
@@ -241,7 +247,7 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     if not (math.isfinite(period) and period > 0):
         raise InvalidInputError(f"period must be > 0 s, got {period!r}")
     schedule = parse_fault_schedule(list(faults))
-    late = [fault.text for step, fault in schedule if step >= n_steps]
+    late = [f"{step}:{fault.entry}" for step, fault in schedule if step >= n_steps]
     if late:
         raise InvalidInputError(f"fault entries {late} lie outside the session's steps 0..{n_steps - 1}")
     rng_actions, rng_noise = np.random.default_rng(seed).spawn(2)
@@ -258,7 +264,7 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
         pending = list(schedule)
         for k in range(n_steps):
             while pending and pending[0][0] == k:
-                pending.pop(0)[1](world)
+                world.apply(pending.pop(0)[1])
             executed[k] = world.execute(actions[k])
             truth = world.true_marker_poses()
             true_poses[k] = [truth[marker_id] for marker_id in marker_ids]
@@ -282,7 +288,8 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     return Session(
         robot=str(robot), joint_names=joint_names, marker_ids=marker_ids, command_stamps=command_stamps,
         observation_stamps=command_stamps + IMAGE_DELAY_NS, actions=actions, executed=executed,
-        observations=observations, true_poses=true_poses, faults=[(step, f.text) for step, f in schedule],
+        observations=observations, true_poses=true_poses,
+        faults=[(step, f"{step}:{fault.entry}") for step, fault in schedule],
         camera=camera, images=images, perception=perception, seed=seed, protocol=protocol,
         sigma_trans=float(sigma_trans), sigma_rot=float(sigma_rot), visibility=float(visibility),
         tracker_rejected=dict(rejected), visible_truth=visible_truth)

@@ -14,7 +14,6 @@ Frames: the robot's root link sits at the world origin (``world2root`` is the id
 
 from __future__ import annotations
 
-import copy
 import math
 import os
 import pathlib
@@ -29,19 +28,22 @@ from scipy.spatial.transform import Rotation
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.transforms import check_transform, invert_transform, xyz_rpy_from_transform
-from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, Body, KinematicTree, ObservationModel
-from body_scheme_core.world import block_joint as core_block_joint
-from body_scheme_core.world import deform_limb as core_deform_limb
-from body_scheme_core.world import displace_marker as core_displace_marker
+from body_scheme_core.world import (
+    FAULT_KINDS,
+    PAPER_SIGMA_ROT,
+    PAPER_SIGMA_TRANS,
+    Body,
+    Fault,
+    KinematicTree,
+    ObservationModel,
+)
 
 from .camera import Camera
 from .markers import PLATE_THICKNESS, marker_corners, marker_texture, plate_side, write_plate_obj
 from .robots import ROBOT_BUILDERS, load_robot, robot_files
 
-__all__ = ["SimWorld", "FAULT_KINDS", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE"]
+__all__ = ["SimWorld", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE"]
 
-#: Fault kinds of :meth:`SimWorld.repair` and :attr:`SimWorld.faults` entries.
-FAULT_KINDS = ("block_joint", "deform_limb", "displace_marker")
 #: A marker counts as visible only if its normal is within this angle of the direction to the camera, rad.
 MAX_VIEW_ANGLE = math.radians(70.0)
 #: A marker counts as visible only if each edge of its square spans at least this many pixels in the image (2 pixels
@@ -428,8 +430,20 @@ class SimWorld:
     # ------------------------------------------------------------------ faults
     @property
     def faults(self):
-        """Active faults in the order applied, as dicts ``{"kind": ..., <arguments>}``."""
-        return copy.deepcopy(self._faults)
+        """Active faults in the order applied (:class:`body_scheme_core.world.Fault`, blocks with their angle)."""
+        return list(self._faults)
+
+    def apply(self, fault):
+        """Apply a :class:`body_scheme_core.world.Fault` (e.g. a parsed schedule entry) by its kind."""
+        p = fault.params
+        if fault.kind == "repair":
+            self.repair(p.get("repair_kind"))
+        elif fault.kind == "block_joint":
+            self.block_joint(p["action_index"], p.get("angle"))
+        elif fault.kind == "deform_limb":
+            self.deform_limb(p["joint_or_link"], p.get("delta_length", 0.0), p.get("delta_rotvec", (0.0, 0.0, 0.0)))
+        else:
+            self.displace_marker(p["marker_id"], p["delta"])
 
     def block_joint(self, action_index, angle=None):
         """Block the joint of ``action_index``: it ignores commands and stays at ``angle`` (``None``: where it is).
@@ -440,7 +454,7 @@ class SimWorld:
         if not 0 <= action_index < self.n_actions:
             raise InvalidInputError(f"action_index must be in 0..{self.n_actions - 1}, got {action_index}")
         angle = float(self._q[action_index] if angle is None else angle)
-        self._add_fault({"kind": "block_joint", "action_index": action_index, "angle": angle})
+        self._add_fault(Fault("block_joint", action_index=action_index, angle=angle))
 
     def deform_limb(self, joint_name, delta_length=0.0, delta_rotvec=(0.0, 0.0, 0.0)):
         """Stretch and/or bend the limb ending at ``joint_name`` (see ``body_scheme_core.world.deform_limb``).
@@ -455,8 +469,8 @@ class SimWorld:
             Bend, rad, in the parent link frame.
         """
         delta_rotvec = [float(v) for v in np.asarray(delta_rotvec, dtype=float).reshape(-1)]
-        self._add_fault({"kind": "deform_limb", "joint_name": str(joint_name), "delta_length": float(delta_length),
-                         "delta_rotvec": delta_rotvec})
+        self._add_fault(Fault("deform_limb", joint_or_link=str(joint_name), delta_length=float(delta_length),
+                              delta_rotvec=delta_rotvec))
 
     def displace_marker(self, marker_id, delta):
         """Move a marker on its link (a shifted marker, or a tool displaced in the gripper).
@@ -470,13 +484,13 @@ class SimWorld:
         delta = check_transform(np.array(delta, dtype=float), name="delta")
         if delta.shape != (4, 4):
             raise InvalidInputError(f"delta must have shape (4, 4), got {delta.shape}")
-        self._add_fault({"kind": "displace_marker", "marker_id": int(marker_id), "delta": delta.tolist()})
+        self._add_fault(Fault("displace_marker", marker_id=int(marker_id), delta=delta))
 
     def repair(self, kind=None):
         """Undo all faults (``kind=None``) or all faults of one kind; the rest stay in effect."""
         if kind is not None and kind not in FAULT_KINDS:
             raise InvalidInputError(f"repair kind must be None or one of {FAULT_KINDS}, got {kind!r}")
-        self._rebuild([f for f in self._faults if kind is not None and f["kind"] != kind])
+        self._rebuild([f for f in self._faults if kind is not None and f.kind != kind])
 
     def _add_fault(self, fault):
         self._rebuild(self._faults + [fault])
@@ -484,7 +498,7 @@ class SimWorld:
     def _rebuild(self, faults):
         body = self._nominal
         for fault in faults:
-            body = _apply_fault(body, fault)  # raises before anything changes if a fault is invalid
+            body = fault.apply(body, self._nominal)  # raises before anything changes if a fault is invalid
         old_joints = self._body.tree.joints
         self._body, self._faults = body, faults
         if any(a.origin.tobytes() != b.origin.tobytes() for a, b in zip(old_joints, body.tree.joints, strict=True)):
@@ -521,15 +535,6 @@ def _render(pb, camera):
     shape = (camera.height, camera.width)
     rgb = np.asarray(rgba, dtype=np.uint8).reshape(*shape, 4)[..., :3]
     return rgb, np.asarray(depth, dtype=np.float32).reshape(shape)
-
-
-def _apply_fault(body, fault):
-    kind = fault["kind"]
-    if kind == "block_joint":
-        return core_block_joint(body, fault["action_index"], fault["angle"])
-    if kind == "deform_limb":
-        return core_deform_limb(body, fault["joint_name"], fault["delta_length"], fault["delta_rotvec"])
-    return core_displace_marker(body, fault["marker_id"], np.array(fault["delta"]))
 
 
 def _deeper_than(points, tolerance=COLLISION_TOLERANCE):

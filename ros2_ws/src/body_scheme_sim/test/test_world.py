@@ -211,7 +211,7 @@ def test_block_joint_holds_its_angle_and_repair_restores_exactly():
         w.block_joint(2)  # None: stays where it is
         w.execute(np.zeros(6))
         np.testing.assert_array_equal(w.joint_positions()[[2, 5]], [-0.4, 0.8])
-        assert [f["kind"] for f in w.faults] == ["block_joint", "block_joint"]
+        assert [f.kind for f in w.faults] == ["block_joint", "block_joint"]
         w.repair()
         w.execute(a)
         assert w.faults == []
@@ -256,7 +256,7 @@ def test_displace_marker_moves_only_that_marker_and_repair_restores_exactly():
         np.testing.assert_allclose(invert_transform(before[7]) @ after[7], delta, atol=1e-12)
         for marker_id in range(1, 7):
             np.testing.assert_array_equal(after[marker_id], before[marker_id])
-        assert [f["kind"] for f in w.faults] == ["displace_marker"]
+        assert [f.kind for f in w.faults] == ["displace_marker"]
         w.repair("displace_marker")
         np.testing.assert_array_equal(w.true_marker_poses()[7], before[7])
 

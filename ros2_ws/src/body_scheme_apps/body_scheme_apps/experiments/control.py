@@ -192,7 +192,7 @@ def _noise_world(seed, n_before, n_after):
 
 def _rendered_world(seed, n_before, n_after):
     """The same from the simulator: rendered images through the ArUco tracker; truth from ``SimWorld``."""
-    from body_scheme_sim.faults import parse_fault
+    from body_scheme_core.world import parse_fault
     from body_scheme_sim.robots import load_robot
     from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
     from body_scheme_sim.world import SimWorld
@@ -206,7 +206,7 @@ def _rendered_world(seed, n_before, n_after):
         def positions(A):
             with SimWorld(ROBOT, marker_texture=False) as world:
                 if faulty:
-                    parse_fault(f"0:{SIM_FAULT}")(world)
+                    world.apply(parse_fault(f"0:{SIM_FAULT}")[1])
                 out = []
                 for a in A:
                     world.execute(a)

@@ -21,7 +21,16 @@ from a ``KinematicTree``, applies the same faults to the same ``Body`` and recor
 
 from .babbling import babble
 from .body import Body, block_joint, deform_limb, displace_marker
-from .faults import PROTOCOL_FAULTS, REPAIR, Fault, protocol_schedule
+from .faults import (
+    FAULT_KINDS,
+    PROTOCOL_FAULTS,
+    REPAIR,
+    Fault,
+    delta_from_vector,
+    parse_fault,
+    parse_fault_schedule,
+    protocol_schedule,
+)
 from .noise import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
 from .robot_files import load_markers_yaml, markers_to_yaml, tree_from_urdf, tree_to_urdf
 from .robots import arm_4dof, branching_tree, default_world2root, planar_2dof, powercube_6dof, random_tree
@@ -33,7 +42,8 @@ __all__ = [
     "tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml",
     "planar_2dof", "arm_4dof", "powercube_6dof", "branching_tree", "random_tree", "default_world2root",
     "Body", "block_joint", "deform_limb", "displace_marker",
-    "Fault", "REPAIR", "PROTOCOL_FAULTS", "protocol_schedule",
+    "Fault", "REPAIR", "FAULT_KINDS", "parse_fault", "parse_fault_schedule", "delta_from_vector", "PROTOCOL_FAULTS",
+    "protocol_schedule",
     "PAPER_SIGMA_TRANS", "PAPER_SIGMA_ROT", "ObservationModel",
     "babble", "Session", "make_session", "joint_blocked_protocol", "limb_deformed_protocol",
 ]

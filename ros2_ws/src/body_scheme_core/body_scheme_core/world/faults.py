@@ -1,4 +1,18 @@
-"""Faults: changes of the robot's physiology at a time step, and the paper's adaptation protocols.
+"""Faults: changes of the robot's physiology at a time step, their schedule entries, and the paper's protocols.
+
+A :class:`Fault` is applied to a :class:`~body_scheme_core.world.body.Body` here (synthetic sessions) and to a
+:class:`body_scheme_sim.world.SimWorld` by the simulator (``SimWorld.apply``), so both worlds break the same way.
+Schedules are lists of ``"step:kind:args"`` entries (angles in rad, lengths in m, rotation vectors in rad):
+
+==============================================  ==========================================================
+``STEP:block_joint:ACTION[:ANGLE]``             the joint of ACTION stops at ANGLE (omitted: where it is)
+``STEP:deform_limb:JOINT:DLENGTH[:RX:RY:RZ]``   the limb ending at JOINT grows by DLENGTH, bends by R
+``STEP:displace_marker:ID:X:Y:Z[:RX:RY:RZ]``    marker ID moves by (X, Y, Z), turns by R, in its own frame
+``STEP:repair[:KIND]``                          undo every fault, or every fault of KIND
+==============================================  ==========================================================
+
+A fault scheduled at step ``k`` affects command ``k`` and later ones. Example:
+``["150:block_joint:5:0.8", "250:repair", "300:deform_limb:joint6:0.1:0.785:0:0"]``.
 """
 
 from __future__ import annotations
@@ -6,26 +20,39 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from ..errors import InvalidInputError
+from ..errors import FaultScheduleError, InvalidInputError
+from ..transforms import transform_from_rotvec
 from .body import block_joint, deform_limb, displace_marker
 
-__all__ = ["Fault", "REPAIR", "PROTOCOL_FAULTS", "protocol_schedule"]
+__all__ = ["Fault", "REPAIR", "FAULT_KINDS", "parse_fault", "parse_fault_schedule", "delta_from_vector",
+           "PROTOCOL_FAULTS", "protocol_schedule"]
+
+#: Kinds of faults that change the body (``"repair"`` undoes them).
+FAULT_KINDS = ("block_joint", "deform_limb", "displace_marker")
+_USAGE = {
+    "block_joint": "STEP:block_joint:ACTION[:ANGLE]",
+    "deform_limb": "STEP:deform_limb:JOINT:DLENGTH[:RX:RY:RZ]",
+    "displace_marker": "STEP:displace_marker:ID:X:Y:Z[:RX:RY:RZ]",
+    "repair": "STEP:repair[:KIND]",
+}
 
 
 class Fault:
-    """A change of the robot's physiology at a time step of a session.
+    """A change of the robot's physiology.
 
     Parameters
     ----------
     kind : str
-        ``"block_joint"``, ``"deform_limb"``, ``"displace_marker"`` (the functions of the same names, applied to
-        the current body, so faults accumulate) or ``"repair"`` (back to the original body).
+        ``"block_joint"`` (params ``action_index``, ``angle``; ``None``: where the joint is), ``"deform_limb"``
+        (``joint_or_link``, ``delta_length``, ``delta_rotvec``), ``"displace_marker"`` (``marker_id``, ``delta``
+        (4, 4)): the functions of :mod:`body_scheme_core.world.body` of the same names, applied to the current body
+        so faults accumulate; or ``"repair"`` (``repair_kind``: ``None`` for all faults, or one kind).
     **params
-        Keyword arguments of that function (besides ``body``).
     """
 
-    KINDS = ("block_joint", "deform_limb", "displace_marker", "repair")
+    KINDS = (*FAULT_KINDS, "repair")
 
     def __init__(self, kind, **params):
         if kind not in self.KINDS:
@@ -34,31 +61,38 @@ class Fault:
         self.params = params
 
     def apply(self, current, original):
-        """The body after the fault, from the ``current`` and the ``original`` body."""
+        """The body after the fault, from the ``current`` and the ``original`` body.
+
+        Raises
+        ------
+        InvalidInputError
+            For the two forms only a world that remembers its joint positions and faults can apply (a block without
+            an angle, a repair of one kind): ``SimWorld.apply``.
+        """
         if self.kind == "repair":
+            if self.params.get("repair_kind") is not None:
+                raise InvalidInputError(f"{self.entry} needs the fault history; SimWorld.apply does it")
             return original
+        if self.kind == "block_joint" and self.params.get("angle") is None:
+            raise InvalidInputError(f"{self.entry} holds the joint where it is; give an angle, or SimWorld.apply")
         function = {"block_joint": block_joint, "deform_limb": deform_limb, "displace_marker": displace_marker}
         return function[self.kind](current, **self.params)
 
     @property
     def entry(self):
-        """The fault as a simulator schedule entry without its step (``"block_joint:5:0.8"``, ``"repair"``; see
-        :mod:`body_scheme_sim.faults`).
-
-        Raises
-        ------
-        InvalidInputError
-            For a fault the schedule syntax cannot express (a marker displacement given as a matrix).
-        """
+        """The fault as a schedule entry without its step: ``"block_joint:5:0.8"``, ``"repair"``, ..."""
         p = self.params
         if self.kind == "repair":
-            return "repair"
+            return "repair" if p.get("repair_kind") is None else f"repair:{p['repair_kind']}"
         if self.kind == "block_joint":
-            return f"block_joint:{p['action_index']}:{p['angle']}"
+            angle = p.get("angle")
+            return f"block_joint:{p['action_index']}" + ("" if angle is None else f":{angle}")
         if self.kind == "deform_limb":
             numbers = (p.get("delta_length", 0.0), *p.get("delta_rotvec", (0.0, 0.0, 0.0)))
             return f"deform_limb:{p['joint_or_link']}:" + ":".join(repr(float(v)) for v in numbers)
-        raise InvalidInputError(f"{self.describe()} has no schedule entry form")
+        delta = np.asarray(p["delta"], dtype=float)
+        numbers = (*delta[:3, 3], *Rotation.from_matrix(delta[:3, :3]).as_rotvec())
+        return f"displace_marker:{p['marker_id']}:" + ":".join(repr(float(v)) for v in numbers)
 
     def describe(self):
         """Short text like ``block_joint(action_index=5, angle=0.8)``."""
@@ -70,13 +104,97 @@ class Fault:
         return f"<Fault {self.describe()}>"
 
 
+def delta_from_vector(vector):
+    """``old_marker2new_marker`` (4, 4) from ``(x, y, z, rx, ry, rz)``: translation (m) and rotation vector (rad)."""
+    vector = np.asarray(vector, dtype=float)
+    if vector.shape != (6,) or not np.all(np.isfinite(vector)):
+        raise FaultScheduleError(f"a displacement needs 6 finite numbers (x, y, z, rx, ry, rz), got {vector}")
+    return transform_from_rotvec(vector[3:], vector[:3])
+
+
+def parse_fault(text):
+    """Parse one schedule entry ``"step:kind:args"`` (see the module docstring).
+
+    Returns
+    -------
+    step : int
+    fault : Fault
+
+    Raises
+    ------
+    FaultScheduleError
+        With the entry, what is wrong and the expected form.
+    """
+    if not isinstance(text, str):
+        raise FaultScheduleError(f"a fault schedule entry must be a string, got {text!r}")
+    fields = [part.strip() for part in text.split(":")]
+    if len(fields) < 2:
+        raise FaultScheduleError(f"fault entry {text!r} needs at least STEP:KIND; kinds: {list(_USAGE)}")
+    step_text, kind, args = fields[0], fields[1], fields[2:]
+    if kind not in _USAGE:
+        raise FaultScheduleError(f"fault entry {text!r}: unknown kind {kind!r}; kinds: {list(_USAGE)}")
+    usage = _USAGE[kind]
+    try:
+        step = int(step_text)
+    except ValueError:
+        raise FaultScheduleError(f"fault entry {text!r}: step {step_text!r} is not an integer ({usage})") from None
+    if step < 0:
+        raise FaultScheduleError(f"fault entry {text!r}: step must be >= 0")
+
+    def numbers(values):
+        try:
+            result = [float(v) for v in values]
+        except ValueError:
+            raise FaultScheduleError(f"fault entry {text!r}: {values} are not all numbers ({usage})") from None
+        if not all(math.isfinite(v) for v in result):
+            raise FaultScheduleError(f"fault entry {text!r}: numbers must be finite ({usage})")
+        return result
+
+    def integer(value, name):
+        try:
+            return int(value)
+        except ValueError:
+            raise FaultScheduleError(f"fault entry {text!r}: {name} {value!r} is not an integer ({usage})") from None
+
+    if kind == "block_joint" and len(args) in (1, 2):
+        params = {"action_index": integer(args[0], "ACTION"), "angle": numbers(args[1:])[0] if len(args) == 2
+                  else None}
+    elif kind == "deform_limb" and len(args) in (2, 5) and args[0]:
+        values = numbers(args[1:])
+        params = {"joint_or_link": args[0], "delta_length": values[0],
+                  "delta_rotvec": tuple(values[1:]) if len(values) == 4 else (0.0, 0.0, 0.0)}
+    elif kind == "displace_marker" and len(args) in (4, 7):
+        values = numbers(args[1:]) + [0.0] * (7 - len(args))
+        params = {"marker_id": integer(args[0], "ID"), "delta": delta_from_vector(values)}
+    elif kind == "repair" and len(args) <= 1:
+        repair_kind = args[0] if args else None
+        if repair_kind is not None and repair_kind not in FAULT_KINDS:
+            raise FaultScheduleError(f"fault entry {text!r}: cannot repair {repair_kind!r}; kinds: {FAULT_KINDS}")
+        params = {"repair_kind": repair_kind}
+    else:
+        raise FaultScheduleError(f"fault entry {text!r} has {len(args)} argument(s); expected {usage}")
+    return step, Fault(kind, **params)
+
+
+def parse_fault_schedule(entries):
+    """Parse a schedule into ``[(step, fault), ...]`` ordered by step (entries of one step keep their order).
+
+    Parameters
+    ----------
+    entries : iterable of str
+    """
+    if isinstance(entries, str):
+        raise FaultScheduleError(f"a fault schedule is a list of entries, got the string {entries!r}")
+    return sorted((parse_fault(entry) for entry in entries), key=lambda item: item[0])
+
+
 #: Restores the original body.
 REPAIR = Fault("repair")
 
 
 #: The paper's adaptation protocols (Sec. IV-B/C) on :func:`powercube_6dof`: name -> the fault of blocks 2 and 4.
 #: Block 1 is normal, block 3 repaired. Defined once here; the simulator records the same schedule
-#: (:func:`body_scheme_sim.sessions.record_protocol`) from :meth:`Fault.entry`.
+#: (:func:`body_scheme_sim.sessions.record_protocol`) from :attr:`Fault.entry`.
 PROTOCOL_FAULTS = {
     "joint_blocked": lambda: Fault("block_joint", action_index=5, angle=0.8),
     "limb_deformed": lambda: Fault("deform_limb", joint_or_link="tool_joint", delta_length=0.1,
