@@ -84,7 +84,7 @@ def test_faults_change_only_ground_truth_after_their_step():
     assert np.all(translational_error(healthy.true_poses[30:, 6], faulty.true_poses[30:, 6]) > 1e-3)
     np.testing.assert_array_equal(faulty.executed[30:, 5], 0.8)
     np.testing.assert_array_equal(faulty.phase, [0] * 30 + [1] * 30)
-    assert faulty.timeline == [(30, "block_joint(action_index=5, angle=0.8)")]
+    assert faulty.faults == [(30, "30:block_joint:5:0.8")]
 
 
 def test_noise_statistics_match_sigma():
@@ -214,8 +214,8 @@ def test_repair_restores_the_original_body():
         rows = slice(20 * block, 20 * (block + 1))
         np.testing.assert_allclose(root2marker[rows], truth[rows], atol=1e-12)
     np.testing.assert_array_equal(session.phase, np.repeat([0, 1, 2, 3], 20))
-    assert [step for step, _ in session.timeline] == [20, 40, 60]
-    assert session.timeline[1] == (40, "repair()")
+    assert [step for step, _ in session.faults] == [20, 40, 60]
+    assert session.faults[1] == (40, "40:repair")
 
 
 def test_protocols_break_only_the_end_effector_model():

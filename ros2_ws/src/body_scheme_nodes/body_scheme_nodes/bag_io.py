@@ -23,7 +23,7 @@ topic                          type                                  content, on
 =============================  ====================================  =============================================
 
 Readers: :func:`read_messages` (any bag, lazily, in log-time order), :func:`bag_topics`, :func:`session_info` and
-:func:`read_session` (a whole session bag back into a :class:`~body_scheme_sim.sessions.Session`). Writer:
+:func:`read_session` (a whole session bag back into a :class:`~body_scheme_core.world.Session`). Writer:
 :func:`write_session`. See ``bags/README.md``.
 """
 
@@ -50,9 +50,9 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import String
 
 from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.world import Session
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_sim.camera import Camera
-from body_scheme_sim.sessions import Session
 
 from . import conversions
 
@@ -250,7 +250,7 @@ def read_session(path):
 
     Returns
     -------
-    session : body_scheme_sim.sessions.Session
+    session : body_scheme_core.world.Session
         With everything :func:`write_session` stores (no ``visible_truth``: it is not in the bag).
 
     Raises
@@ -305,7 +305,7 @@ def write_session(session, path):
 
     Parameters
     ----------
-    session : body_scheme_sim.sessions.Session
+    session : body_scheme_core.world.Session
     path : str or os.PathLike
         Bag directory to create; it must not exist yet.
 

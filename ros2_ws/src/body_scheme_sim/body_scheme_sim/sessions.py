@@ -12,7 +12,8 @@ Both give ``{marker id: camera2marker}`` per step, so downstream code cannot tel
 babbled on the healthy robot before any fault, from their own random stream, so sessions with the same seed share
 their commands whatever the faults and the perception mode.
 
-Time: command ``k`` is stamped ``START_STAMP_NS + k * period``; its observation (the camera image taken after the
+Sessions are the core's :class:`~body_scheme_core.world.Session`. Time: command ``k`` is stamped
+``START_STAMP_NS + k * period``; its observation (the camera image taken after the
 arm moved) :data:`IMAGE_DELAY_NS` later. Stamps are integer nanoseconds, so bags round-trip them exactly.
 
 :func:`record_protocol` records the paper's two adaptation experiments (Sec. IV-B/C, 4 blocks of 100 samples) on
@@ -24,24 +25,24 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker
-from body_scheme_core.transforms import relative_transform, rotational_error, translational_error
 from body_scheme_core.world import (
+    IMAGE_DELAY_NS,
     PAPER_SIGMA_ROT,
     PAPER_SIGMA_TRANS,
     PROTOCOL_FAULTS,
+    START_STAMP_NS,
+    Session,
     babble,
     parse_fault_schedule,
     protocol_schedule,
 )
 
 from .babbling import babbling_screen
-from .camera import Camera
 from .world import SimWorld
 
 __all__ = [
@@ -49,9 +50,6 @@ __all__ = [
     "PROTOCOLS",
     "RENDERED_SIGMA_ROT",
     "RENDERED_SIGMA_TRANS",
-    "START_STAMP_NS",
-    "IMAGE_DELAY_NS",
-    "Session",
     "record_session",
     "PROTOCOL_MARKERS_OF_INTEREST",
     "protocol_faults",
@@ -59,132 +57,6 @@ __all__ = [
 ]
 
 PERCEPTION_MODES = ("noise", "rendered")
-#: Stamp of the first command: 2023-11-14T22:13:20Z, a fixed epoch so recordings are reproducible.
-START_STAMP_NS = 1_700_000_000 * 1_000_000_000
-#: Time from a command to the image showing its result (the simulator executes kinematically), ns.
-IMAGE_DELAY_NS = 5_000_000
-#: Frame of observations and ground truth: the camera optical frame (``sim_node``'s default ``frame_id``).
-FRAME_ID = "camera"
-
-
-@dataclass
-class Session:
-    """A babbling session of the simulator.
-
-    Attributes
-    ----------
-    robot : str
-        Robot name or URDF path.
-    joint_names : tuple of str
-        Joint of each action, in action order.
-    marker_ids : tuple of int
-    command_stamps : ndarray of int64, shape (n,)
-        Stamp of each command, ns.
-    observation_stamps : ndarray of int64, shape (n,)
-        Stamp of each observation (the image after the command), ns.
-    actions : ndarray, shape (n, m)
-        Commanded joint positions.
-    executed : ndarray, shape (n, m)
-        Joint positions reached (they differ from ``actions`` where a joint is blocked).
-    observations : list of dict of int to ndarray, shape (4, 4)
-        Per step ``{marker id: camera2marker}`` as perceived.
-    true_poses : ndarray, shape (n, n_markers, 4, 4)
-        True ``camera2marker`` of every marker, in ``marker_ids`` order (evaluation only).
-    faults : list of (int, str)
-        Step at which each fault takes effect, and its schedule entry (``Fault.entry`` with the step).
-    camera : Camera
-    images : dict of int to ndarray, shape (H, W, 3), dtype uint8
-        Stored camera images by step (RGB).
-    perception : str
-        ``"noise"`` or ``"rendered"``.
-    seed : int or None
-    protocol : str
-        ``"none"`` or the protocol that made the fault schedule.
-    sigma_trans, sigma_rot, visibility : float
-        Noise-mode settings (recorded for reference in rendered mode too).
-    frame_id : str
-    tracker_rejected : dict of str to int
-        Rendered mode: tracker detections that gave no pose, by reason.
-    visible_truth : ndarray of bool, shape (n, n_markers) or None
-        Markers the camera could geometrically see at each step (``SimWorld.visible_marker_ids``); not in bags.
-    """
-
-    robot: str
-    joint_names: tuple
-    marker_ids: tuple
-    command_stamps: np.ndarray
-    observation_stamps: np.ndarray
-    actions: np.ndarray
-    executed: np.ndarray
-    observations: list
-    true_poses: np.ndarray
-    faults: list = field(default_factory=list)
-    camera: Camera = field(default_factory=Camera)
-    images: dict = field(default_factory=dict)
-    perception: str = "noise"
-    seed: int | None = None
-    protocol: str = "none"
-    sigma_trans: float = PAPER_SIGMA_TRANS
-    sigma_rot: float = PAPER_SIGMA_ROT
-    visibility: float = 1.0
-    frame_id: str = FRAME_ID
-    tracker_rejected: dict = field(default_factory=dict)
-    visible_truth: np.ndarray | None = None
-
-    @property
-    def n_steps(self):
-        """Number of steps (commands)."""
-        return self.actions.shape[0]
-
-    @property
-    def stamps(self):
-        """Command stamps in seconds, shape (n,)."""
-        return self.command_stamps * 1e-9
-
-    @property
-    def phase(self):
-        """Number of schedule entries in effect at each step (0 before the first), shape (n,)."""
-        steps = np.array([step for step, _ in self.faults], dtype=int)
-        return np.searchsorted(np.sort(steps), np.arange(self.n_steps), side="right")
-
-    @property
-    def visible(self):
-        """Boolean mask (n, n_markers) of the observed markers."""
-        return np.array([[i in obs for i in self.marker_ids] for obs in self.observations], dtype=bool).reshape(
-            self.n_steps, len(self.marker_ids))
-
-    def observation_errors(self, marker_ids=None):
-        """Translational (m) and rotational (rad) errors of every observed pose against ground truth.
-
-        Parameters
-        ----------
-        marker_ids : iterable of int or None
-            Only these markers (``None``: all).
-
-        Returns
-        -------
-        errors : ndarray, shape (k, 2)
-        """
-        errors = []
-        for k, observed in enumerate(self.observations):
-            for marker_id, camera2marker in observed.items():
-                if marker_ids is None or marker_id in marker_ids:
-                    truth = self.true_poses[k, self._column(marker_id)]
-                    errors.append((translational_error(camera2marker, truth), rotational_error(camera2marker, truth)))
-        return np.array(errors).reshape(-1, 2)
-
-    def true_relative(self, id_i, id_j):
-        """True ``marker_i2marker_j`` at every step, shape (n, 4, 4)."""
-        columns = [self._column(i) for i in (id_i, id_j)]
-        return relative_transform(self.true_poses[:, columns[0]], self.true_poses[:, columns[1]])
-
-    def _column(self, marker_id):
-        try:
-            return self.marker_ids.index(int(marker_id))
-        except ValueError:
-            raise InvalidInputError(f"unknown marker id {marker_id!r}; markers: {list(self.marker_ids)}") from None
-
-
 #: The learner's noise sigmas for rendered perception: the tracker's accuracy on the sim's images (median 2-4 mm and
 #: 0.3-0.5 deg on the arm's markers, docs/sim.md). 3-sigma validity (30 mm) then rejects local models through a marker
 #: whose orientation is often mirrored, and the structure search routes around it (e.g. 1->3 instead of 1->2->3).

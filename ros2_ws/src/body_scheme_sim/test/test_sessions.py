@@ -8,11 +8,8 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_sim.sessions import (
-    IMAGE_DELAY_NS,
-    record_protocol,
-    record_session,
-)
+from body_scheme_core.world import IMAGE_DELAY_NS
+from body_scheme_sim.sessions import record_protocol, record_session
 
 REPO = pathlib.Path(__file__).resolve().parents[4]
 BAGS = REPO / "bags"

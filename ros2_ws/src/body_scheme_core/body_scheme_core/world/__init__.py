@@ -34,7 +34,16 @@ from .faults import (
 from .noise import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
 from .robot_files import load_markers_yaml, markers_to_yaml, tree_from_urdf, tree_to_urdf
 from .robots import arm_4dof, branching_tree, default_world2root, planar_2dof, powercube_6dof, random_tree
-from .sessions import Session, joint_blocked_protocol, limb_deformed_protocol, make_session
+from .sessions import (
+    DEFAULT_PERIOD,
+    FRAME_ID,
+    IMAGE_DELAY_NS,
+    START_STAMP_NS,
+    Session,
+    joint_blocked_protocol,
+    limb_deformed_protocol,
+    make_session,
+)
 from .tree import JOINT_TYPES, MOVABLE_JOINT_TYPES, Joint, KinematicTree, Marker
 
 __all__ = [
@@ -45,5 +54,6 @@ __all__ = [
     "Fault", "REPAIR", "FAULT_KINDS", "parse_fault", "parse_fault_schedule", "delta_from_vector", "PROTOCOL_FAULTS",
     "protocol_schedule",
     "PAPER_SIGMA_TRANS", "PAPER_SIGMA_ROT", "ObservationModel",
-    "babble", "Session", "make_session", "joint_blocked_protocol", "limb_deformed_protocol",
+    "babble", "Session", "make_session", "joint_blocked_protocol", "limb_deformed_protocol", "START_STAMP_NS",
+    "IMAGE_DELAY_NS", "DEFAULT_PERIOD", "FRAME_ID",
 ]
