@@ -8,7 +8,7 @@ absolute observations of the parts below it, never from its parent marker's nois
 that makes relative observations ``Y_i^-1 Y_j`` noisy (15 deg of orientation noise times the link length) is gone.
 
 The problem is solved by Levenberg-Marquardt with Huber re-weighting on the normalised residuals of
-:func:`~body_scheme_core.models.rigid.pose_residuals` (per-axis sigmas ``sigma / sqrt(3)`` of the configuration's 3D
+:func:`~body_scheme_core.models.rigid_fit.pose_residuals` (per-axis sigmas ``sigma / sqrt(3)`` of the configuration's 3D
 RMS noise), with analytic Jacobians: the twist ``[dt, w]`` of an edge (its model's ``twists``, mapped through the
 inversion for edges used backwards) moves a part at the end of the chain ``P @ T_edge @ S`` by::
 
@@ -32,16 +32,10 @@ import numpy as np
 
 from .errors import InvalidInputError
 from .models.gp import GPModel
-from .models.rigid import (
-    DEFAULT_F_SCALE,
-    RigidJointModel,
-    huber_weights,
-    pose_residuals,
-    robust_cost,
-    rotvec_matrix,
-    skew,
-)
+from .models.rigid import RigidJointModel
+from .models.rigid_fit import DEFAULT_F_SCALE, huber_weights, pose_residuals, robust_cost
 from .scheme import BodyScheme
+from .transforms import rotvec_matrix, skew
 
 __all__ = ["Calibration", "calibrate", "chain_targets", "edge_consistency"]
 

@@ -406,3 +406,107 @@ def xyz_rpy_from_transform(A2B):
         warnings.simplefilter("ignore", UserWarning)
         rpy = Rotation.from_matrix(A2B[:3, :3]).as_euler("xyz")
     return A2B[:3, 3].copy(), rpy
+
+
+# ---------------------------------------------------------------------- rotation math of the rigid-joint models
+def skew(v):
+    """Cross-product matrices ``[v]x``, shape (..., 3, 3) for ``v`` of shape (..., 3)."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def axis_angle_matrix(u, angle):
+    """Rotations about unit axes ``u`` (..., 3) by ``angle`` (..., n): Rodrigues' formula, shape (..., n, 3, 3)."""
+    u = np.asarray(u, dtype=float)[..., None, :]
+    angle = np.asarray(angle, dtype=float)[..., None, None]
+    K = skew(u)
+    uu = u[..., :, None] * u[..., None, :]
+    return np.cos(angle) * np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * uu
+
+
+def rotvec_matrix(rotvec):
+    """Rotation matrices of rotation vectors (..., 3), shape (..., 3, 3): Rodrigues' formula, vectorised."""
+    v = np.asarray(rotvec, dtype=float)
+    theta2 = np.sum(v * v, axis=-1)[..., None, None]
+    theta = np.sqrt(theta2)
+    small = theta2 < 1e-12
+    # sin(t)/t and (1 - cos(t))/t^2 with their series near 0
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(theta) / np.where(small, 1.0, theta))
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(theta)) / np.where(small, 1.0, theta2))
+    # [v]x^2 = v v^T - |v|^2 I
+    return a * skew(v) + b * (v[..., :, None] * v[..., None, :]) + (1.0 - b * theta2) * np.eye(3)
+
+
+#: Rotation angle (rad) beyond which :func:`rotation_log` leaves the closed form for scipy's quaternion route.
+_NEAR_PI = 3.0
+
+
+def rotation_log(R):
+    """Rotation vectors of rotation matrices ``R`` (..., 3, 3), shape (..., 3); angles in [0, pi].
+
+    Closed form ``angle / (2 sin angle) vee(R - R^T)`` (vectorised, the hot path of every fit); near pi, where that
+    loses precision, scipy's quaternion conversion.
+    """
+    R = np.asarray(R, dtype=float)
+    shape = R.shape[:-2]
+    if R.size == 0:
+        return np.zeros(shape + (3,))
+    cos = np.clip((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) * 0.5, -1.0, 1.0)
+    angle = np.arccos(cos)
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    sin = np.sqrt(np.maximum(1.0 - cos * cos, 0.0))
+    # angle / sin(angle) -> 1 + angle^2 / 6 for small angles
+    factor = np.where(angle < 1e-4, 0.5 * (1.0 + angle * angle / 6.0), 0.5 * angle / np.maximum(sin, 1e-300))
+    out = v * factor[..., None]
+    far = angle > _NEAR_PI
+    if np.any(far):
+        out[far] = Rotation.from_matrix(R[far].reshape(-1, 3, 3)).as_rotvec()
+    return out
+
+
+def chordal_mean(R, weights):
+    """Weighted chordal L2 mean of rotations: the rotation nearest to ``sum w R``, batched.
+
+    Parameters
+    ----------
+    R : ndarray, shape (k, n, 3, 3)
+    weights : ndarray, shape (k, n)
+
+    Returns
+    -------
+    mean : ndarray, shape (k, 3, 3)
+    """
+    M = np.einsum("kn,knij->kij", weights, R)
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0.0, 1.0, d)
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt
+
+
+def perpendicular_basis(u):
+    """Two unit vectors ``(e1, e2)`` completing unit ``u`` (..., 3) to a right-handed basis, each (..., 3).
+
+    ``e1`` is the normalised cross product of ``u`` with the coordinate axis least aligned with it, so the basis is a
+    smooth function of ``u`` away from the switching points and deterministic everywhere.
+    """
+    u = np.asarray(u, dtype=float)
+    helper = np.zeros_like(u)
+    idx = np.argmin(np.abs(u), axis=-1)
+    np.put_along_axis(helper, idx[..., None], 1.0, axis=-1)
+    e1 = cross3(u, helper)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    return e1, cross3(u, e1)
+
+
+def cross3(a, b):
+    """``np.cross`` for (..., 3) arrays without its axis bookkeeping (hot path)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out

@@ -11,7 +11,7 @@ from body_scheme_core.calibration import _Problem, calibrate, chain_targets
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.models import GPModel, RevoluteModel
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.models.rigid import robust_cost
+from body_scheme_core.models.rigid_fit import robust_cost
 from body_scheme_core.root_pose import RootPoseEstimator
 from body_scheme_core.scheme import BodyScheme
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec

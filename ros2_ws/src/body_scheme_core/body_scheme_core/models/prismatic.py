@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rigid import RigidJointModel, chordal_mean, perpendicular_basis, rotation_log, rotvec_matrix
+from ..transforms import chordal_mean, perpendicular_basis, rotation_log, rotvec_matrix
+from .rigid import RigidJointModel
 
 __all__ = ["PrismaticModel", "PrismaticForm", "UnitPrismaticForm"]
 

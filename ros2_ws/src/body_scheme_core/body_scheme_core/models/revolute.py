@@ -30,17 +30,9 @@ import math
 
 import numpy as np
 
+from ..transforms import axis_angle_matrix, chordal_mean, cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew
 from .prismatic import _check_one_action
-from .rigid import (
-    RigidJointModel,
-    _cross,
-    axis_angle_matrix,
-    chordal_mean,
-    perpendicular_basis,
-    rotation_log,
-    rotvec_matrix,
-    skew,
-)
+from .rigid import RigidJointModel
 
 __all__ = ["RevoluteModel", "RevoluteForm", "UnitRevoluteForm"]
 
@@ -93,13 +85,13 @@ class RevoluteForm:
         R0t = np.swapaxes(R0, -1, -2)
         RotT = np.swapaxes(Rot, -1, -2)
         T = np.zeros((k, n, 6, 11))
-        T[..., 0:3, 0] = _cross(e1[:, None], arm)  # e x arm
-        T[..., 0:3, 1] = _cross(e2[:, None], arm)
+        T[..., 0:3, 0] = cross3(e1[:, None], arm)  # e x arm
+        T[..., 0:3, 1] = cross3(e2[:, None], arm)
         T[..., 3:6, 0:2] = R0t @ (RotT @ E - E)  # R0^T (Rot^T - I) e
         T[..., 0:3, 2:4] = E - Rot @ E  # (I - Rot) e
         T[..., 0:3, 4:7] = np.eye(3)
         T[..., 3:6, 7:10] = np.eye(3)
-        T[..., 0:3, 10] = -x[..., None] * _cross(u[:, None], Rot_r)
+        T[..., 0:3, 10] = -x[..., None] * cross3(u[:, None], Rot_r)
         T[..., 3:6, 10] = x[..., None] * (R0t @ (RotT @ u[:, None, :, None]))[..., 0]
         return Z, T
 
@@ -197,7 +189,7 @@ class RevoluteForm:
         Rot = axis_angle_matrix(u, s[:, None] * np.array([[x]]))[0, 0]
         D = np.zeros((4, 4))
         D[:3, :3] = s[0] * skew(u[0]) @ Rot @ rotvec_matrix(w0[0])
-        D[:3, 3] = -s[0] * _cross(u[0], Rot @ r[0])
+        D[:3, 3] = -s[0] * cross3(u[0], Rot @ r[0])
         return D
 
     #: Signs of the increment components when the axis is flipped (``e1``, ``rho1`` and ``ds`` change sign).

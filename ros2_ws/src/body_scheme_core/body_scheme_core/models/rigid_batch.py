@@ -2,7 +2,7 @@
 
 The rigid counterpart of :class:`~body_scheme_core.models.gp_batch.GPBatch`: each *slot* is one candidate local model of
 one form on one action, holding at most ``capacity`` samples (|D_train|). Every :meth:`RigidBatch.add_samples` call
-appends a sample to each given slot and refits those slots together with :func:`~.rigid.gauss_newton`, grouped by
+appends a sample to each given slot and refits those slots together with :func:`~.rigid_fit.gauss_newton`, grouped by
 form, warm-started from their previous estimate. A revolute slot is (re)started from its closed-form estimate when it
 reaches :data:`RESTART_SIZES` samples and keeps whichever of the warm and the fresh fit has the lower robust cost, so
 an early poor start cannot trap it.
@@ -19,7 +19,7 @@ from ..errors import InvalidInputError, ModelFileError
 from ..transforms import check_transform, vector12_from_transform
 from .prismatic import PrismaticModel
 from .revolute import RevoluteModel
-from .rigid import DEFAULT_F_SCALE, covariance, fit_rms, fit_stack, gauss_newton
+from .rigid_fit import DEFAULT_F_SCALE, covariance, fit_rms, fit_stack, gauss_newton
 from .static import StaticModel
 
 __all__ = ["RigidBatch", "RIGID_CLASSES", "RESTART_SIZES"]
