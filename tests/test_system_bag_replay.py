@@ -7,12 +7,12 @@ import time
 
 import pytest
 import yaml
-from body_scheme_apps.replay_offline import default_params_file, replay_bag
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool
 
 from body_scheme_msgs.msg import BodySchemeStructure, SchemeEvent
+from body_scheme_nodes.offline_replay import default_params_file, replay_bag
 from body_scheme_nodes.settings import SchemeSettings
 
 pytestmark = pytest.mark.system

@@ -5,10 +5,11 @@ Examples::
     replay_offline bags/joint_blocked_seed0 --out out/replay/joint_blocked_seed0
     python -m body_scheme_apps.replay_offline BAG --params my_scheme_node.yaml --part 7
 
-The bag's ``/joint_commands`` and ``/observations`` are decoded into rclpy messages
-(:mod:`~body_scheme_nodes.bag_io`) and go through exactly scheme_node's code: settings from its parameter file
+The learning loop is :func:`body_scheme_nodes.offline_replay.replay_bag`: the bag's ``/joint_commands`` and
+``/observations`` are decoded into rclpy messages (:mod:`~body_scheme_nodes.bag_io`) and go through exactly
+scheme_node's code: settings from its parameter file
 (:meth:`~body_scheme_nodes.settings.SchemeSettings.from_yaml`, default: the shipped ``config/scheme_node.yaml``),
-:func:`~body_scheme_nodes.runner.feed_message` into the pairer, ``learner.update`` per sample, and a final
+:func:`~body_scheme_nodes.message_feed.feed_message` into the pairer, ``learner.update`` per sample, and a final
 ``flush(inf)``. So replaying the bag through the graph (``bag_replay`` -> ``scheme_node``) ends with the same body
 scheme and the same events.
 
@@ -30,197 +31,31 @@ command alone; it is compared with the ground-truth message stamped at or right 
 from __future__ import annotations
 
 import argparse
-import bisect
 import dataclasses
 import json
 import math
 import pathlib
 import sys
 import textwrap
-import time
 from collections import Counter
-from dataclasses import dataclass, field
 
 import numpy as np
-from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 from tqdm import tqdm
 
-from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.transforms import rotational_error, translational_error
-from body_scheme_nodes import conversions
-from body_scheme_nodes.bag_io import bag_topics, read_messages, session_info
-from body_scheme_nodes.runner import feed_message
+from body_scheme_core.errors import BodySchemeError
+from body_scheme_nodes.bag_io import bag_topics
+from body_scheme_nodes.offline_replay import COMMANDS, default_params_file, replay_bag
 from body_scheme_nodes.settings import SchemeSettings
 
-__all__ = ["ReplayResult", "default_params_file", "replay_bag", "build_report", "format_timeline", "format_summary",
-           "plot_errors", "main"]
+__all__ = ["build_report", "default_part", "fault_blocks", "format_timeline", "format_summary", "plot_errors",
+           "main"]
 
-COMMANDS, OBSERVATIONS, GROUND_TRUTH = "/joint_commands", "/observations", "/ground_truth/marker_poses"
 #: Events marked in the plot, with their line style.
 _MARKED_EVENTS = {"mismatch_detected": ("tab:red", "--"), "model_replaced": ("tab:blue", "-"),
                   "model_reinstated": ("tab:green", "-"), "structure_found": ("black", ":"),
                   "bootstrap_finished": ("black", "-.")}
 
 
-@dataclass
-class ReplayResult:
-    """What a replay produced.
-
-    Attributes
-    ----------
-    settings : SchemeSettings
-    learner : BodySchemeLearner
-        The learner after the last sample.
-    steps : list of dict
-        One record per learning step: ``step``, ``command_index`` (index of the paired command in the bag),
-        ``stamp`` (s), ``phase`` (after the step), ``edges`` (tree edges after the step: parent, child, model,
-        trans_error, rot_error, valid, in_mismatch) and ``prediction`` (``{part: (trans m, rot rad)}`` predicted
-        before the step, against ground truth; empty without a body scheme or ground truth).
-    events : list of Event
-    rejected : collections.Counter
-        Dropped inputs by reason, from the messages, the pairer and the learner.
-    n_commands : int
-        Command messages in the bag.
-    seconds : float
-        Wall time of the learning loop.
-    info : dict or None
-        The bag's ``/session/info``.
-    """
-
-    settings: SchemeSettings
-    learner: object
-    steps: list = field(default_factory=list)
-    events: list = field(default_factory=list)
-    rejected: Counter = field(default_factory=Counter)
-    n_commands: int = 0
-    seconds: float = 0.0
-    info: dict | None = None
-
-
-def default_params_file():
-    """scheme_node's shipped parameter file: the installed share directory, else the source tree."""
-    try:
-        installed = pathlib.Path(get_package_share_directory("body_scheme_nodes")) / "config" / "scheme_node.yaml"
-        if installed.exists():
-            return installed
-    except PackageNotFoundError:
-        pass
-    return pathlib.Path(__file__).resolve().parents[1] / "config" / "scheme_node.yaml"
-
-
-# ---------------------------------------------------------------------- the replay
-def _command_stamps_and_truth(path):
-    """Stamps of the commands (increasing, as the pairer keeps them) and the ground truth of each command.
-
-    Returns
-    -------
-    stamps : list of float
-    truth : list of dict of int to ndarray, shape (4, 4), or None
-        Per command: the ground-truth poses stamped at or right after it (and before the next command).
-    """
-    stamps, truth_stamps, truth_poses = [], [], []
-    for item in read_messages(path, [COMMANDS, GROUND_TRUTH]):
-        stamp = conversions.seconds_from_stamp(item.msg.header.stamp)
-        if item.topic == COMMANDS:
-            if not stamps or stamp > stamps[-1]:
-                stamps.append(stamp)
-        else:
-            try:
-                _, poses, _ = conversions.observations_from_msg(item.msg)
-            except InvalidInputError:  # evaluation only: a broken ground-truth message just gives no error
-                continue
-            truth_stamps.append(stamp)
-            truth_poses.append(poses)
-    order = np.argsort(truth_stamps, kind="stable")
-    truth_stamps = [truth_stamps[i] for i in order]
-    truth_poses = [truth_poses[i] for i in order]
-    truth = []
-    for k, stamp in enumerate(stamps):
-        j = bisect.bisect_left(truth_stamps, stamp)
-        following = stamps[k + 1] if k + 1 < len(stamps) else math.inf
-        truth.append(truth_poses[j] if j < len(truth_stamps) and truth_stamps[j] < following else None)
-    return stamps, truth
-
-
-def _prediction_errors(learner, actions, truth):
-    """``{part: (trans m, rot rad)}`` of the current body scheme's prediction against ground truth."""
-    if learner.body_scheme is None or not truth:
-        return {}
-    predicted = learner.predict(actions)
-    return {part: (float(translational_error(pose, truth[part])), float(rotational_error(pose, truth[part])))
-            for part, pose in predicted.items() if part in truth}
-
-
-def _edge_records(learner):
-    keys = ("parent", "child", "model", "trans_error", "rot_error", "valid", "in_mismatch")
-    return [{k: status[k] for k in keys} for status in learner.edge_status()]
-
-
-def replay_bag(path, settings, progress=None):
-    """Learn from a bag's commands and observations as scheme_node would.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        Session bag (rosbag2 directory).
-    settings : SchemeSettings
-    progress : callable, optional
-        Called with the number of command messages read so far.
-
-    Returns
-    -------
-    result : ReplayResult
-
-    Raises
-    ------
-    BagError
-        If the bag is missing, corrupt or has topics of unexpected types.
-    InvalidInputError
-        If the bag has no commands or observations, or its joints are not the settings' ``joint_names``.
-    """
-    topics = bag_topics(path)
-    missing = [t for t in (COMMANDS, OBSERVATIONS) if topics.get(t, (None, 0))[1] == 0]
-    if missing:
-        raise InvalidInputError(f"bag {path} has no messages on {missing}: nothing to learn from")
-    info = session_info(path) if "/session/info" in topics else None
-    if info is not None and "joint_names" in info and not set(settings.joint_names) <= set(info["joint_names"]):
-        raise InvalidInputError(f"the bag's joints are {info['joint_names']}, the settings' joint_names are "
-                                f"{list(settings.joint_names)}: pass the robot's parameter file with --params")
-    command_stamps, truth = _command_stamps_and_truth(path)
-    learner, pairer = settings.new_learner(), settings.new_pairer()
-    result = ReplayResult(settings=settings, learner=learner, info=info)
-
-    def learn(samples):
-        for stamp, actions, observations in samples:
-            k = bisect.bisect_right(command_stamps, stamp) - 1
-            prediction = _prediction_errors(learner, actions, truth[k] if k >= 0 else None)
-            step = learner.step
-            try:
-                events = learner.update(actions, observations, stamp=stamp)
-            except InvalidInputError:  # counted as scheme_node counts it; the learner is unchanged
-                result.rejected["bad_sample"] += 1
-                continue
-            result.events += events
-            result.steps.append({"step": step, "command_index": k, "stamp": stamp, "phase": learner.phase,
-                                 "edges": _edge_records(learner), "prediction": prediction})
-
-    start = time.perf_counter()
-    for item in read_messages(path, [COMMANDS, OBSERVATIONS]):
-        kind = "command" if item.topic == COMMANDS else "observations"
-        samples, rejections = feed_message(pairer, kind, item.msg, settings.joint_names)
-        result.rejected.update(code for code, _ in rejections)
-        learn(samples)
-        if kind == "command":
-            result.n_commands += 1
-            if progress is not None:
-                progress(result.n_commands)
-    learn(pairer.flush(math.inf))
-    result.seconds = time.perf_counter() - start
-    result.rejected += Counter(pairer.rejected) + Counter(learner.rejected)
-    return result
-
-
-# ---------------------------------------------------------------------- the report
 def default_part(edges, root):
     """The part farthest from the root in a tree given as ``[(parent, child), ...]`` (highest id on ties)."""
     depth = {root: 0}

@@ -7,10 +7,11 @@ import pathlib
 
 import pytest
 import yaml
-from body_scheme_apps.replay_offline import default_part, fault_blocks, main, replay_bag
+from body_scheme_apps.replay_offline import default_part, fault_blocks, main
 
 from body_scheme_core.transforms import translational_error
 from body_scheme_nodes.bag_io import read_session, write_session
+from body_scheme_nodes.offline_replay import replay_bag
 from body_scheme_nodes.settings import SchemeSettings
 from body_scheme_sim.robots import load_robot
 from body_scheme_sim.sessions import record_session

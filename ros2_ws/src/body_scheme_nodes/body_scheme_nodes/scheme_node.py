@@ -61,7 +61,7 @@ from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot
 from body_scheme_msgs.srv import StatePath
 
 from . import conversions
-from .runner import feed_message
+from .message_feed import feed_message
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
 
