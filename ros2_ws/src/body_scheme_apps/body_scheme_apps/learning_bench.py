@@ -44,7 +44,6 @@ for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLI
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
 import datetime  # noqa: E402
-import json  # noqa: E402
 import platform  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -52,6 +51,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from body_scheme_apps.bench_output import report  # noqa: E402
 from body_scheme_core import __version__  # noqa: E402
 from body_scheme_core.config import BodySchemeConfig  # noqa: E402
 from body_scheme_core.ik import solve_ik  # noqa: E402
@@ -326,14 +326,7 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic session (default: 0)")
     args = parser.parse_args(argv)
     result = run_benchmarks(quick=args.quick, seed=args.seed)
-    print(_table(result))
-    directory = os.path.dirname(os.path.abspath(args.out))
-    os.makedirs(directory, exist_ok=True)
-    with open(args.out, "w", encoding="utf-8") as f:
-        json.dump(result, f, indent=2)
-        f.write("\n")
-    print(f"wrote {args.out}")
-    return 0
+    return report(result, _table(result), args.out)
 
 
 if __name__ == "__main__":  # pragma: no cover

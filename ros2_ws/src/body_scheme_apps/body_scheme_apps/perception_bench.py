@@ -29,7 +29,6 @@ for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLI
 
 import argparse  # noqa: E402
 import datetime  # noqa: E402
-import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -37,6 +36,7 @@ import time  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from body_scheme_apps.bench_output import report  # noqa: E402
 from body_scheme_core.perception import MarkerTracker  # noqa: E402
 from body_scheme_core.world import babble  # noqa: E402
 from body_scheme_sim.babbling import babbling_screen  # noqa: E402
@@ -166,13 +166,7 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     result = run_benchmarks(n_frames=args.frames, n_steps=args.steps, seed=args.seed)
-    print(_table(result))
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w", encoding="utf-8") as f:
-        json.dump(result, f, indent=2)
-        f.write("\n")
-    print(f"wrote {args.out}")
-    return 0
+    return report(result, _table(result), args.out)
 
 
 if __name__ == "__main__":  # pragma: no cover
