@@ -36,9 +36,9 @@ def start_node(ros_env, tmp_path):
     """Start installed node executables; all are stopped (and their logs shown on failure) at teardown."""
     started = []
 
-    def start(package, name, parameters, env_overrides=None):
+    def start(package, name, parameters, env_overrides=None, ros_args=()):
         env = dict(ros_env, **(env_overrides or {}))
-        process = NodeProcess(package, name, parameters, tmp_path, env=env)
+        process = NodeProcess(package, name, parameters, tmp_path, env=env, ros_args=ros_args)
         started.append(process)
         return process
 

@@ -33,7 +33,7 @@ def _flat_keys(mapping, prefix=""):
 def declared_parameters(package, node):
     """Parameter names in the node's shipped YAML (``config/<node>.yaml``), dotted for nested ones."""
     data = yaml.safe_load((SRC / package / "config" / f"{node}.yaml").read_text())
-    return _flat_keys(data[node]["ros__parameters"])
+    return _flat_keys(data["/**"]["ros__parameters"])
 
 
 def launched_nodes(path):

@@ -44,7 +44,7 @@ class Collector:
 
     def _diagnostics(self, msg):
         for status in msg.status:
-            if status.name == "body_scheme: scheme":
+            if status.name == "/scheme_node: body scheme":
                 self.step = int(next(kv.value for kv in status.values if kv.key == "step"))
 
 
@@ -52,7 +52,7 @@ def test_replay_through_the_graph_equals_the_offline_replay(start_node, ros_node
     """bag_replay (rate 0, backpressure) into scheme_node gives the offline command's final structure and events."""
     params_file = default_params_file()
     collector = Collector(ros_node)
-    parameters = yaml.safe_load(params_file.read_text())["scheme_node"]["ros__parameters"]
+    parameters = yaml.safe_load(params_file.read_text())["/**"]["ros__parameters"]
     scheme = start_node("body_scheme_nodes", "scheme_node", parameters)
 
     # The offline replay runs while scheme_node starts up.

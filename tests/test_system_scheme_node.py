@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import pathlib
 import time
 
 import numpy as np
@@ -51,7 +52,7 @@ class Collector:
     @property
     def step(self):
         """scheme_node's learner step from its last /diagnostics, or None."""
-        status = self.diagnostics.get("body_scheme: scheme")
+        status = self.diagnostics.get("/scheme_node: body scheme")
         if status is None:
             return None
         return int(next(kv.value for kv in status.values if kv.key == "step"))
@@ -111,10 +112,10 @@ def test_scheme_node_learns_structure_over_dds(start_node, ros_node, spin_until)
     np.testing.assert_allclose(lower, tree.action_lower)
 
     def scheme_ok():
-        status = collector.diagnostics.get("body_scheme: scheme")
+        status = collector.diagnostics.get("/scheme_node: body scheme")
         return status is not None and status.level == DiagnosticStatus.OK
     assert spin_until(scheme_ok, timeout=10, during=babbler), collector.diagnostics
-    edge_statuses = [name for name in collector.diagnostics if name.startswith("body_scheme: local model")]
+    edge_statuses = [name for name in collector.diagnostics if name.startswith("/scheme_node: local model")]
     assert len(edge_statuses) == len(true_edges)
 
 
@@ -157,11 +158,11 @@ def test_malformed_input_is_counted_and_the_node_keeps_learning(start_node, ros_
                 "rejected.out_of_order_command": 1, "rejected.bad_command_message": 2}
 
     def counted():
-        status = collector.diagnostics.get("body_scheme: scheme")
+        status = collector.diagnostics.get("/scheme_node: body scheme")
         values = {} if status is None else {kv.key: kv.value for kv in status.values}
         return all(values.get(key) == str(count) for key, count in expected.items())
 
-    assert spin_until(counted, timeout=15), (collector.diagnostics.get("body_scheme: scheme"), process.output())
+    assert spin_until(counted, timeout=15), (collector.diagnostics.get("/scheme_node: body scheme"), process.output())
     # ... and the node still learns from the good data that follows.
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
     assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), process.output()
@@ -198,3 +199,109 @@ def test_kill_and_restart_restores_the_checkpoint(start_node, ros_node, spin_unt
         second.output()
     assert "restored checkpoint" in second.output()
     assert [(e.parent_id, e.child_id, e.description) for e in collector.structure.edges] == learned
+
+
+# ---------------------------------------------------------------------- hostile input and ROS conventions (issue 12)
+SHIPPED_YAML = pathlib.Path(__file__).resolve().parents[1] / "ros2_ws/src/body_scheme_nodes/config/scheme_node.yaml"
+
+
+def _values(collector, name="/scheme_node: body scheme"):
+    status = collector.diagnostics.get(name)
+    return {} if status is None else {kv.key: kv.value for kv in status.values}
+
+
+def test_hostile_values_and_stamps_are_counted_and_learning_goes_on(start_node, ros_node, spin_until):
+    """In steady state: a marker at 1e300 m and one at 1e150 m, a command stamped in 2033, a 50 rad command and
+    zero-stamped commands. The node stays up, counts each exactly, and keeps learning from the valid traffic."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=500, seed=5, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
+    process = start_node("body_scheme_nodes", "scheme_node", scheme_parameters(tree))
+    collector = Collector(ros_node)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    babbler = Babbler(ros_node, session)
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    names = list(tree.action_joint_names)
+
+    def publish_pair(position, poses, stamp=None):
+        now = ros_node.get_clock().now().nanoseconds * 1e-9 if stamp is None else stamp
+        command = JointState(name=names, position=[float(v) for v in position])
+        command.header.stamp = conversions.stamp_from_seconds(now)
+        babbler.commands.publish(command)
+        babbler.observations.publish(conversions.marker_poses_msg(now + 0.005, "camera", poses))
+
+    start = ros_node.get_clock().now().nanoseconds * 1e-9 + 0.1  # after the babbler's last sample, 50 ms apart
+    far = {1: np.eye(4), 2: np.eye(4), 3: np.eye(4)}
+    far[3][0, 3] = 1e300
+    publish_pair(session.actions[0], far, start)
+    far[3][0, 3] = 1e150
+    publish_pair(session.actions[1], far, start + 0.05)
+    publish_pair([50.0, 0.0], session.observations[2], start + 0.10)
+    future = JointState(name=names, position=[0.1, 0.1])
+    future.header.stamp.sec = 2_000_000_000
+    babbler.commands.publish(future)
+    spin_until(lambda: False, timeout=0.5)  # the pairs above are learnt (or refused) before zero stamps arrive
+    for _ in range(3):
+        babbler.commands.publish(JointState(name=names, position=[0.2, 0.1]))  # zero stamp: receipt time
+        spin_until(lambda: False, timeout=0.1)
+    expected = {"rejected.out_of_workspace": "2", "rejected.future_stamp": "1",
+                "rejected.command_out_of_range": "1", "restamped.unstamped": "3"}
+    spin_until(lambda: all(_values(collector).get(k) == v for k, v in expected.items()), timeout=15, during=babbler)
+    values = _values(collector)
+    assert {k: values.get(k) for k in expected} == expected, {k: v for k, v in values.items() if "." in k}
+    step = int(_values(collector)["step"])
+    assert spin_until(lambda: int(_values(collector)["step"]) >= step + 10, timeout=30, during=babbler), (
+        "learning stopped after the hostile messages", _values(collector), process.output())
+    assert process.running()
+    assert _learned(collector, true_edges)
+
+
+def test_two_namespaced_nodes_run_from_the_shipped_yaml_with_distinct_diagnostics(start_node, ros_node, spin_until):
+    """The shipped YAML is keyed /** so it applies under any namespace; diagnostics names carry the node's namespace
+    and hardware_id, so two robots in one domain do not collide."""
+    collector = Collector(ros_node)
+    processes = [start_node("body_scheme_nodes", "scheme_node", {}, ros_args=["--params-file", str(SHIPPED_YAML),
+                                                                            "-r", f"__ns:=/{robot}"])
+                 for robot in ("robot1", "robot2")]
+    names = ["/robot1/scheme_node: body scheme", "/robot2/scheme_node: body scheme"]
+    assert spin_until(lambda: all(name in collector.diagnostics for name in names), timeout=30), (
+        sorted(collector.diagnostics), [p.output() for p in processes])
+    ids = {collector.diagnostics[name].hardware_id for name in names}
+    assert ids == {"/robot1/scheme_node", "/robot2/scheme_node"}
+    assert all(p.running() for p in processes)
+
+
+def _bad_checkpoints(valid_text):
+    """Name -> content of checkpoints the node must not use: a newer version, truncated, overflowing, another robot."""
+    document = json.loads(valid_text)
+    newer = dict(document, version=99)
+    overflowing = valid_text.replace('"step":', '"step":1e999,"was_step":', 1)
+    other = json.loads(valid_text)
+    other["state"]["part_ids"] = [4, 5, 6]
+    return {"newer_version": json.dumps(newer), "truncated": valid_text[: len(valid_text) // 2],
+            "overflowing_number": overflowing, "another_robot": json.dumps(other)}
+
+
+@pytest.mark.parametrize("case", ["newer_version", "truncated", "overflowing_number", "another_robot"])
+def test_a_bad_checkpoint_is_moved_aside_never_overwritten(case, start_node, ros_node, spin_until, tmp_path):
+    """scheme_node does not use a bad checkpoint: it moves it to <path>.corrupt-<time> unchanged, starts afresh, and
+    its own checkpoints then go to the configured path."""
+    from body_scheme_core.learner import BodySchemeLearner
+    from body_scheme_core.persistence import save_state
+
+    tree = planar_2dof()
+    valid = tmp_path / "valid.json"
+    save_state(BodySchemeLearner(tree.marker_ids, tree.n_actions), valid)
+    content = _bad_checkpoints(valid.read_text())[case]
+    checkpoint = tmp_path / "state.json"
+    checkpoint.write_text(content)
+    parameters = dict(scheme_parameters(tree), checkpoint_path=str(checkpoint), checkpoint_period=0.5)
+    process = start_node("body_scheme_nodes", "scheme_node", parameters)
+    collector = Collector(ros_node)
+    assert spin_until(lambda: collector.structure is not None and checkpoint.exists()
+                      and list(tmp_path.glob("state.json.corrupt-*")), timeout=30), process.output()
+    (aside,) = tmp_path.glob("state.json.corrupt-*")
+    assert aside.read_text() == content
+    assert "not used" in process.output() and process.running()
+    assert spin_until(lambda: checkpoint.exists() and json.loads(checkpoint.read_text())["version"] == 1,
+                      timeout=10), process.output()

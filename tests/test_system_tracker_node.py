@@ -72,6 +72,6 @@ def test_tracker_node_turns_rendered_images_into_marker_poses(start_node, ros_no
     assert [(p.position.x, p.position.y) for p in listener.arrays[key].poses] == positions
 
     def tracker_ok():
-        status = listener.diagnostics.get("body_scheme: tracker")
+        status = listener.diagnostics.get("/tracker_node: tracker")
         return status is not None and status.level == DiagnosticStatus.OK
     assert spin_until(tracker_ok, timeout=5), listener.diagnostics

@@ -51,10 +51,10 @@ class DemoResult:
     true_edges: list
     learned_edges: list = field(default_factory=list)
     events: list = field(default_factory=list)          # dicts: step, kind, model, reason
-    diagnostics: list = field(default_factory=list)     # (step, level) of "body_scheme: scheme" whenever it changes
+    diagnostics: list = field(default_factory=list)   # (step, level) of "/scheme_node: body scheme" whenever it changes
     prediction_error: list = field(default_factory=list)  # (step, end-effector prediction error in m)
     ik: list = field(default_factory=list)              # dicts: target, success, reason, residual, reached_error
-    scheme_status: dict = field(default_factory=dict)  # the last "body_scheme: scheme" key-values (numbers parsed)
+    scheme_status: dict = field(default_factory=dict)  # last "/scheme_node: body scheme" key-values, parsed
     n_observations: int = 0
     wall_time_s: float = 0.0
     rates: dict = field(default_factory=dict)
@@ -107,7 +107,7 @@ class _Monitor:
 
     def _diagnostics(self, msg):
         for status in msg.status:
-            if status.name == "body_scheme: scheme":
+            if status.name == "/scheme_node: body scheme":
                 self.scheme_status = {kv.key: _number(kv.value) for kv in status.values}
                 level = _LEVELS.get(status.level, str(status.level))
                 if not self.diagnostics or self.diagnostics[-1][1] != level:
@@ -336,7 +336,7 @@ def format_summary(result):
     for e in result.events:
         lines.append(f"  {e['step']:5d}  {e['kind']:<20s} {e['reason']}")
     lines.append("")
-    lines.append("Diagnostics 'body_scheme: scheme' level changes: " + ", ".join(
+    lines.append("Diagnostics '/scheme_node: body scheme' level changes: " + ", ".join(
         f"{level}@{step}" for step, level, _ in result.diagnostics))
     lines.append("")
     verdict = "the true tree" if result.structure_learned() else f"NOT the true tree {result.true_edges}"

@@ -113,6 +113,12 @@ class BodySchemeConfig:
     root_window : int
         Number of recent root observations whose robust mean (coordinate-wise median) gives the root pose in the
         world for :meth:`BodySchemeLearner.predict`.
+    max_distance : float
+        Plausibility gate, m: an observed pose farther than this from the camera is rejected (counted as
+        ``out_of_workspace``) instead of learnt from. The default suits a table-top arm seen from a few metres.
+    action_margin : float
+        Plausibility gate on commands, as a fraction of each joint's range: actions beyond the joint limits by more
+        than this are refused (``update`` raises ``InvalidInputError``).
     """
 
     sigma_trans: float = DEFAULT_SIGMA_TRANS
@@ -147,6 +153,8 @@ class BodySchemeConfig:
     replacement_patience: int = 60
     bridge_patience: int = 15
     root_window: int = 50
+    max_distance: float = 10.0
+    action_margin: float = 0.05
 
     def __post_init__(self):
         positive = ["sigma_trans", "sigma_rot", "validity_sigmas", "gp_length_scale", "gp_signal_std_trans",
@@ -168,10 +176,13 @@ class BodySchemeConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
                 raise InvalidInputError(f"{name} must be an integer >= 0, got {value!r}")
-        for name in ["dominance_margin", "challenge_margin"]:
+        for name in ["dominance_margin", "challenge_margin", "max_distance"]:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
+        if not (isinstance(self.action_margin, (int, float)) and math.isfinite(self.action_margin)
+                and self.action_margin >= 0):
+            raise InvalidInputError(f"action_margin must be a finite number >= 0, got {self.action_margin!r}")
         if not (isinstance(self.stale_fraction, (int, float)) and 0.0 <= self.stale_fraction < 1.0):
             raise InvalidInputError(f"stale_fraction must be in [0, 1), got {self.stale_fraction!r}")
         cusum = (self.cusum_drift, self.cusum_threshold, self.cusum_clip)

@@ -7,7 +7,8 @@ catch ours without swallowing programming errors. Input validation errors also d
 from __future__ import annotations
 
 __all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError", "BabblingError",
-           "FaultScheduleError"]
+           "FaultScheduleError",
+           "ActionOutOfRangeError"]
 
 
 class BodySchemeError(Exception):
@@ -32,3 +33,7 @@ class BabblingError(BodySchemeError):
 
 class FaultScheduleError(InvalidInputError):
     """A fault schedule entry (``"step:kind:args"``) cannot be parsed."""
+
+
+class ActionOutOfRangeError(InvalidInputError):
+    """An action is beyond the joint limits by more than the configured margin."""

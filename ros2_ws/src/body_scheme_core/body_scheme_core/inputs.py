@@ -192,7 +192,7 @@ def check_observation_mapping(observations):
     return observations
 
 
-def filter_observations(observations, part_ids):
+def filter_observations(observations, part_ids, max_distance=math.inf):
     """Split observations into valid poses and rejections.
 
     Parameters
@@ -201,6 +201,8 @@ def filter_observations(observations, part_ids):
         ``world2part`` per observed part.
     part_ids : tuple of int
         The known parts.
+    max_distance : float
+        Poses whose position is farther than this from the camera (m) are rejected as ``out_of_workspace``.
 
     Returns
     -------
@@ -226,6 +228,10 @@ def filter_observations(observations, part_ids):
             rejected.append(Rejection(part, "bad_shape", f"pose of part {part} must have shape (4, 4), got {shape}"))
         elif not np.all(np.isfinite(Y)):
             rejected.append(Rejection(part, "not_finite", f"pose of part {part} contains NaN or inf"))
+        elif not _distance(Y) <= max_distance:
+            distance = _distance(Y)
+            rejected.append(Rejection(part, "out_of_workspace", f"pose of part {part} is {distance:.3g} m from the "
+                                      f"camera (max_distance {max_distance} m)"))
         else:
             valid[part] = Y
     if valid:
@@ -242,3 +248,10 @@ def filter_observations(observations, part_ids):
                                                              f"(deviation {d:.3g} > {OBSERVATION_TOLERANCE:g} or "
                                                              f"det < 0)"))
     return valid, rejected
+
+
+def _distance(Y):
+    """Distance of a pose's position from the origin, without overflow for huge coordinates."""
+    t = np.abs(Y[:3, 3])
+    scale = t.max()
+    return float(scale * np.sqrt(np.sum((t / scale) ** 2))) if scale > 0 else 0.0

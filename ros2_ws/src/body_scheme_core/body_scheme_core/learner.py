@@ -49,7 +49,7 @@ from .bootstrap import Bootstrap
 from .calibration import calibrate
 from .chain import ChainTargets
 from .config import BodySchemeConfig
-from .errors import BodySchemeError, NotFittedError
+from .errors import ActionOutOfRangeError, BodySchemeError, NotFittedError
 from .events import Event
 from .inputs import (
     check_action_bounds,
@@ -297,6 +297,7 @@ class BodySchemeLearner:
             is then unchanged.
         """
         a = check_action_vector(actions, self.n_actions).copy()
+        self._check_action_range(a)
         check_observation_mapping(observations)
         stamp = check_stamp(stamp)
         step = self.step
@@ -319,9 +320,20 @@ class BodySchemeLearner:
         self.step = step + 1
         return events
 
+    def _check_action_range(self, a):
+        """Refuse actions beyond the joint limits by more than ``config.action_margin`` of each joint's range."""
+        if self.action_lower is None or self.action_upper is None:
+            return
+        span = np.where(np.isfinite(self.action_upper - self.action_lower), self.action_upper - self.action_lower, 0.0)
+        margin = self.config.action_margin * span
+        outside = (a < self.action_lower - margin) | (a > self.action_upper + margin)
+        if np.any(outside):
+            raise ActionOutOfRangeError(f"actions {np.flatnonzero(outside).tolist()} are beyond the joint limits "
+                                    f"[{self.action_lower.tolist()}, {self.action_upper.tolist()}]: {a.tolist()}")
+
     def _accept(self, observations, step, events):
         """The valid observations ``{part: world2part}``; rejected ones are counted and reported."""
-        valid, rejections = filter_observations(observations, self.part_ids)
+        valid, rejections = filter_observations(observations, self.part_ids, self.config.max_distance)
         for part, reason, detail in rejections:
             self.rejected[reason] += 1
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))

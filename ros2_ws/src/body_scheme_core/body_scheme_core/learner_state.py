@@ -138,7 +138,7 @@ def learner_from_state(cls, state):
             self.body_scheme  # noqa: B018 - validates that the stored tree is a spanning tree of fitted models
     except ModelFileError:
         raise
-    except (KeyError, TypeError, ValueError, AttributeError, IndexError, InvalidInputError,
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError, IndexError, InvalidInputError,
             NotFittedError) as exc:
         raise ModelFileError(f"bad learner state: {type(exc).__name__}: {exc}") from exc
     return self

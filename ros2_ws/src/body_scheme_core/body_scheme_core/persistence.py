@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import math
 import os
 import tempfile
 
@@ -54,8 +55,12 @@ def save_state(learner, path):
         "saved_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "state": learner.to_state(),
     }
-    # allow_nan=False: NaN/inf are not JSON; a state containing them is a bug to surface now, not at load time.
-    text = json.dumps(document, allow_nan=False, separators=(",", ":"))
+    # allow_nan=False: NaN/inf are not JSON; a state containing them is refused here, with a clear error.
+    try:
+        text = json.dumps(document, allow_nan=False, separators=(",", ":"))
+    except ValueError as exc:
+        raise ModelFileError(f"cannot save the learner's state to {path!r}: it contains NaN or infinite values "
+                             f"({exc})") from exc
     directory = os.path.dirname(path)
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
     try:
@@ -92,6 +97,14 @@ def _reject_constant(name):
     raise ModelFileError(f"state file contains {name}, which is not valid JSON (NaN or infinite values)")
 
 
+def _finite_float(text):
+    """JSON number -> float, refusing numbers that overflow to infinity (``1e999``)."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise ModelFileError(f"state file contains the number {text}, which is not finite")
+    return value
+
+
 def load_state(path):
     """Read a state file written by :func:`save_state` and rebuild the learner.
 
@@ -120,7 +133,7 @@ def load_state(path):
     if not text.strip():
         raise ModelFileError(f"state file {path!r} is empty")
     try:
-        document = json.loads(text, parse_constant=_reject_constant)
+        document = json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float)
     except json.JSONDecodeError as exc:
         raise ModelFileError(
             f"state file {path!r} is not valid JSON (truncated or corrupt?): {exc.msg} at line {exc.lineno} "

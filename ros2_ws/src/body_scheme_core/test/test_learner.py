@@ -367,3 +367,36 @@ def test_a_state_keeps_the_rigid_models_and_old_versions_are_refused():
     np.testing.assert_array_equal(restored.root_pose, learner.root_pose)
     with pytest.raises(ModelFileError, match="version 2 is the GP-only learner"):
         BodySchemeLearner.from_state(dict(state, version=2))
+
+
+def test_implausible_poses_are_counted_and_never_learnt_from():
+    """A marker at 1e300 or 1e150 m is rejected as out_of_workspace; bootstrapping and prediction go on unharmed."""
+    robot = planar_2dof()
+    session = make_session(robot, 80, seed=4)
+    clean = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    dirty = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    for k, (a, obs) in enumerate(zip(session.actions, session.observations, strict=True)):
+        clean.update(a, obs)
+        if k in (5, 40):
+            far = dict(obs)
+            far[3] = np.eye(4)
+            far[3][0, 3] = 1e300 if k == 5 else 1e150
+            dirty.update(a, far)
+        dirty.update(a, obs)
+    assert dirty.rejected["out_of_workspace"] == 2
+    assert dirty.phase == clean.phase == "steady"
+    predicted = dirty.predict(session.actions[-1])
+    assert all(np.all(np.isfinite(pose)) for pose in predicted.values())
+
+
+def test_commands_beyond_the_joint_limits_are_refused():
+    """50 rad or 1e300 on a joint limited to +-90 deg raise InvalidInputError; the learner is unchanged."""
+    robot = planar_2dof()
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, action_lower=robot.action_lower,
+                                action_upper=robot.action_upper)
+    for bad in ([50.0, 0.0], [0.0, 1e300]):
+        with pytest.raises(InvalidInputError, match="beyond the joint limits"):
+            learner.update(bad, {})
+    assert learner.step == 0
+    learner.update([robot.action_upper[0] * 1.01, 0.0], {})  # within the 5 % margin: accepted
+    assert learner.step == 1

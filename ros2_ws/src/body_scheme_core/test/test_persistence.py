@@ -196,3 +196,19 @@ def test_infinite_action_limits_round_trip(tmp_path):
     loaded = load_state(path)
     np.testing.assert_array_equal(loaded.action_lower, [-np.inf, -1.0])
     np.testing.assert_array_equal(loaded.action_upper, [np.inf, 1.0])
+
+
+def test_numbers_that_overflow_are_refused_at_load_and_non_finite_state_at_save(trained, tmp_path):
+    """``1e999`` (infinity by overflow, valid JSON syntax) is refused when loading; a learner holding a non-finite
+    value cannot be saved (ModelFileError, not a raw ValueError), and nothing is written."""
+    learner, _ = trained
+    path, doc = _document(learner, tmp_path)
+    doc["state"]["history"][0]["actions"][0] = 12345.5
+    path.write_text(json.dumps(doc).replace("12345.5", "1e999"))
+    with pytest.raises(ModelFileError, match="not finite"):
+        load_state(path)
+    broken = load_state(_document(learner, tmp_path)[0])  # a copy: the fixture is shared
+    broken._history[0][1][0] = float("inf")
+    with pytest.raises(ModelFileError, match="NaN or infinite"):
+        save_state(broken, tmp_path / "other.json")
+    assert not (tmp_path / "other.json").exists()

@@ -198,7 +198,8 @@ class ControlNode(Node):
             level = DiagnosticStatus.WARN if stale else DiagnosticStatus.OK
             message = "model snapshot stale" if stale else "ready"
         values = dict(self.counts, model_age_s=age, last_outcome=self.last_outcome)
-        array.status.append(conversions.diagnostic_status("body_scheme: control", level, message, values))
+        name = self.get_fully_qualified_name()  # node and namespace: two robots in one domain do not collide
+        array.status.append(conversions.diagnostic_status(f"{name}: control", level, message, values, name))
         self.pub_diagnostics.publish(array)
 
 

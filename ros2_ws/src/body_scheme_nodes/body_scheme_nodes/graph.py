@@ -43,18 +43,21 @@ class NodeProcess:
     log_dir : path-like
     env : dict, optional
         Environment of the process (default: this one's).
+    ros_args : sequence of str
+        More ``--ros-args`` arguments after the parameter file (remappings, more parameter files).
     """
 
-    def __init__(self, package, name, parameters, log_dir, env=None):
+    def __init__(self, package, name, parameters, log_dir, env=None, ros_args=()):
         log_dir = pathlib.Path(log_dir)
         log_dir.mkdir(parents=True, exist_ok=True)
         self.name = name
-        self.log_path = log_dir / f"{name}.log"
-        params_path = log_dir / f"{name}.params.yaml"
+        tag = "".join(c if c.isalnum() else "_" for c in " ".join(ros_args)).strip("_")
+        self.log_path = log_dir / f"{name}{'.' + tag if tag else ''}.log"
+        params_path = log_dir / f"{name}{'.' + tag if tag else ''}.params.yaml"
         params_path.write_text(yaml.safe_dump({"/**": {"ros__parameters": parameters}}))
         self._log = open(self.log_path, "w")
         self.process = subprocess.Popen(
-            [str(executable(package, name)), "--ros-args", "--params-file", str(params_path)],
+            [str(executable(package, name)), "--ros-args", "--params-file", str(params_path), *ros_args],
             stdout=self._log, stderr=subprocess.STDOUT, env=dict(os.environ if env is None else env,
                                                                   PYTHONUNBUFFERED="1"),
             start_new_session=True)

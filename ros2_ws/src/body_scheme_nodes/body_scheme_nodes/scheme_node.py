@@ -35,12 +35,18 @@ checkpoint_path : string ""           state file; restored on start if it exists
 checkpoint_period : double 30.0 s
 urdf_path, markers_path : string ""   start from the engineered body scheme of this robot (paper Sec. IV-B/C)
                                       instead of bootstrapping; joints map to actions by ``joint_names``
+stamp_tolerance : double 1.0 s        messages stamped further ahead of the node clock are refused (future_stamp)
+unstamped_policy : "receipt_time"     zero-stamped messages: stamped with their receipt time (counted as
+                                      restamped.unstamped) or, with "reject", refused (unstamped)
+stall_timeout : double 10.0 s         input arriving but no learning step for this long: /diagnostics ERROR
+hardware_id : string ""               diagnostics hardware_id ("" = the node's fully qualified name)
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
 
 from __future__ import annotations
 
+import os
 import pathlib
 import threading
 import time
@@ -55,7 +61,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt64
 from std_srvs.srv import Trigger
 
-from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.errors import ActionOutOfRangeError, BodySchemeError, InvalidInputError
 from body_scheme_core.persistence import load_state, save_state
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import StatePath
@@ -85,10 +91,13 @@ class SchemeNode(Node):
         self.pairer = self.settings.new_pairer()
 
         self.learner = self._restore_or_create()
+        self.started = self._now()
         self.rejected = Counter()
         self.event_counts = Counter()
         self.latency = deque(maxlen=200)
-        self._inbox = deque()  # (kind, payload) from callbacks; drained by the timer
+        self._inbox = deque()  # (kind, message, receipt time) from callbacks; drained by the timer
+        self.restamped = Counter()
+        self.last_input_time = self.last_learn_time = None  # node clock, s: the watchdog's inputs
         self._lock = threading.Lock()
 
         work = MutuallyExclusiveCallbackGroup()
@@ -117,50 +126,99 @@ class SchemeNode(Node):
 
     # -- set-up -------------------------------------------------------------------------------------------------
     def _restore_or_create(self):
-        if self.checkpoint_path and pathlib.Path(self.checkpoint_path).exists():
+        """The checkpoint's learner if it is readable and of this robot; otherwise it is moved aside (never
+        overwritten: a newer version's state survives a rollback) and learning starts afresh."""
+        path = self.checkpoint_path
+        if path and pathlib.Path(path).exists():
             try:
-                learner = load_state(self.checkpoint_path)
-                self.get_logger().info(f"restored checkpoint {self.checkpoint_path} at step {learner.step}")
-                return learner
+                learner = load_state(path)
+                problem = self._foreign(learner)
             except BodySchemeError as error:
-                self.get_logger().error(f"ignoring unreadable checkpoint {self.checkpoint_path}: {error}")
+                problem = str(error)
+            if problem is None:
+                self.get_logger().info(f"restored checkpoint {path} at step {learner.step}")
+                return learner
+            aside = f"{path}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}"
+            try:
+                os.replace(path, aside)
+                self.get_logger().error(f"checkpoint {path} not used ({problem}); moved to {aside}")
+            except OSError as error:
+                self.get_logger().error(f"checkpoint {path} not used ({problem}) and cannot be moved aside "
+                                        f"({error}); checkpoints are off so that it is not overwritten")
+                self.checkpoint_path = ""
         return self.settings.new_learner()
+
+    def _foreign(self, learner):
+        """Why a loaded learner is not of this node's robot (other parts or joint count), or None."""
+        if sorted(learner.part_ids) != sorted(self.settings.part_ids) or learner.n_actions != len(self.joint_names):
+            return (f"it is another robot's state: parts {sorted(learner.part_ids)} and {learner.n_actions} "
+                    f"actions, this node has parts {sorted(self.settings.part_ids)} and {len(self.joint_names)} joints")
+        return None
 
     # -- callbacks only buffer -----------------------------------------------------------------------------------
     def _on_command(self, msg):
         with self._lock:
-            self._inbox.append(("command", msg))
+            self._inbox.append(("command", msg, self._now()))
 
     def _on_observations(self, msg):
         with self._lock:
-            self._inbox.append(("observations", msg))
+            self._inbox.append(("observations", msg, self._now()))
+
+    def _now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
 
     # -- the work ------------------------------------------------------------------------------------------------
     def _on_timer(self):
         with self._lock:
             inbox, self._inbox = self._inbox, deque()
-        samples = []
-        for kind, msg in inbox:
+        samples, now = [], self._now()
+        if inbox:
+            self.last_input_time = now
+        for kind, msg, received in inbox:
+            if not self._stamp_acceptable(msg, received, now):
+                continue
             # The same function replay_offline uses: a bag replayed offline and through the graph pairs alike.
             new_samples, rejections = feed_message(self.pairer, kind, msg, self.joint_names)
             samples += new_samples
             for code, detail in rejections:
                 self._reject(code, detail)
-        n_observations = sum(kind == "observations" for kind, _ in inbox)
+        n_observations = sum(item[0] == "observations" for item in inbox)
         if n_observations:
             self.n_observation_messages += n_observations
             self.pub_progress.publish(UInt64(data=self.n_observation_messages))
-        samples += self.pairer.flush(self.get_clock().now().nanoseconds * 1e-9)
+        samples += self.pairer.flush(now)
         for stamp, actions, observations in samples:
             self._learn(stamp, actions, observations)
+
+    def _stamp_acceptable(self, msg, received, now):
+        """Apply the stamp policy: zero stamps per ``unstamped_policy``, stamps beyond ``stamp_tolerance`` ahead of
+        the node clock refused (one such stamp would otherwise put every later message out of order)."""
+        stamp = msg.header.stamp
+        if stamp.sec == 0 and stamp.nanosec == 0:
+            if self.settings.unstamped_policy == "reject":
+                self._reject("unstamped", "zero stamp (unstamped_policy: reject)")
+                return False
+            msg.header.stamp = conversions.stamp_from_seconds(received)
+            self.restamped["unstamped"] += 1
+            return True
+        ahead = conversions.seconds_from_stamp(stamp) - now
+        if ahead > self.settings.stamp_tolerance:
+            self._reject("future_stamp", f"stamped {ahead:.3g} s ahead of the node clock (stamp_tolerance "
+                                         f"{self.settings.stamp_tolerance} s)")
+            return False
+        return True
 
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()
         try:
             events = self.learner.update(actions, observations, stamp=stamp)
+        except ActionOutOfRangeError as error:
+            self._reject("command_out_of_range", str(error))
+            return
         except InvalidInputError as error:
             self._reject("bad_sample", str(error))
             return
+        self.last_learn_time = self._now()
         self.latency.append(time.perf_counter() - start)
         for event in events:
             self.event_counts[event.kind] += 1
@@ -204,6 +262,10 @@ class SchemeNode(Node):
             level, message = DiagnosticStatus.ERROR, f"{n_invalid} local model(s) invalid ({learner.phase})"
         else:
             level, message = DiagnosticStatus.OK, f"body scheme valid ({learner.phase})"
+        stalled = self._stalled_for()
+        if stalled is not None:
+            level, message = DiagnosticStatus.ERROR, (f"input arriving but nothing learnt for {stalled:.0f} s "
+                                                      f"(see rejected.*): {message}")
         latency = sorted(self.latency)
         rejected = Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected)
         values = {"phase": learner.phase, "step": learner.step, "edges": len(edges), "invalid_edges": n_invalid,
@@ -214,14 +276,26 @@ class SchemeNode(Node):
         # Cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
         values.update({f"events.{kind}": count for kind, count in sorted(self.event_counts.items())
                        if kind != "input_rejected"})
-        array.status.append(conversions.diagnostic_status("body_scheme: scheme", level, message, values))
+        values.update({f"restamped.{reason}": count for reason, count in sorted(self.restamped.items())})
+        name = self.get_fully_qualified_name()
+        hardware_id = self.settings.hardware_id or name
+        array.status.append(conversions.diagnostic_status(f"{name}: body scheme", level, message, values,
+                                                          hardware_id))
         for e in edges:
             level = (DiagnosticStatus.ERROR if e["in_mismatch"] or not e["valid"] else DiagnosticStatus.OK)
             message = "valid" if level == DiagnosticStatus.OK else ("mismatch" if e["in_mismatch"] else "invalid")
             array.status.append(conversions.diagnostic_status(
-                f"body_scheme: local model {e['parent']}->{e['child']}", level, message,
-                {k: e[k] for k in ("model", "kind", "n_test", "trans_error", "rot_error", "theta_trans", "theta_rot")}))
+                f"{name}: local model {e['parent']}->{e['child']}", level, message,
+                {k: e[k] for k in ("model", "kind", "n_test", "trans_error", "rot_error", "theta_trans", "theta_rot")},
+                hardware_id))
         self.pub_diagnostics.publish(array)
+
+    def _stalled_for(self):
+        """Seconds since the last learning step while input keeps arriving, if beyond ``stall_timeout``; else None."""
+        if self.last_input_time is None:
+            return None
+        since = self.last_input_time - (self.last_learn_time if self.last_learn_time is not None else self.started)
+        return since if since > self.settings.stall_timeout else None
 
     def _on_set_parameters(self, parameters):
         # Everything is read once at start-up into the learner's config; changing it later would silently not apply.
@@ -245,11 +319,17 @@ class SchemeNode(Node):
     def _on_load(self, request, response):
         path = request.path or self.checkpoint_path
         try:
-            self.learner = load_state(path)
-            response.success, response.message = True, f"loaded step {self.learner.step} from {path}"
-            self._publish_structure(force=True)
+            learner = load_state(path)
+            problem = self._foreign(learner)
         except (OSError, BodySchemeError) as error:
             response.success, response.message = False, f"load failed: {error}"
+            return response
+        if problem is not None:
+            response.success, response.message = False, f"load refused: {problem}"
+            return response
+        self.learner = learner
+        response.success, response.message = True, f"loaded step {learner.step} from {path}"
+        self._publish_structure(force=True)
         return response
 
     def _on_reset(self, request, response):
@@ -259,9 +339,11 @@ class SchemeNode(Node):
         return response
 
     def _checkpoint(self):
+        if not self.checkpoint_path:
+            return
         try:
             save_state(self.learner, self.checkpoint_path)
-        except (OSError, BodySchemeError) as error:
+        except (OSError, BodySchemeError, ValueError) as error:
             self.get_logger().error(f"checkpoint to {self.checkpoint_path} failed: {error}")
 
 

@@ -38,6 +38,7 @@ def parameter_defaults(n_joints=1):
         "frame_id": "camera", "update_period": 0.02,
         "settle_time": 0.0, "max_delay": 2.0, "pairing_grace": 0.2,
         "checkpoint_path": "", "checkpoint_period": 30.0, "urdf_path": "", "markers_path": "",
+        "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
     }
     config = BodySchemeConfig()
     for field in dataclasses.fields(BodySchemeConfig):
@@ -66,6 +67,13 @@ class SchemeSettings:
     checkpoint_period: float = 30.0
     urdf_path: str = ""
     markers_path: str = ""
+    stamp_tolerance: float = 1.0
+    unstamped_policy: str = "receipt_time"
+    stall_timeout: float = 10.0
+    hardware_id: str = ""
+
+    #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
+    UNSTAMPED_POLICIES = ("receipt_time", "reject")
 
     def __post_init__(self):
         m = len(self.joint_names)
@@ -76,8 +84,17 @@ class SchemeSettings:
                                     f"{len(self.action_lower)} and {len(self.action_upper)}")
         if len(self.part_ids) < 2 or len(set(self.part_ids)) != len(self.part_ids):
             raise InvalidInputError(f"part_ids must name at least two distinct parts, got {list(self.part_ids)}")
-        if self.update_period <= 0:
-            raise InvalidInputError(f"update_period must be > 0, got {self.update_period}")
+        for name in ("update_period", "stamp_tolerance", "stall_timeout"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be a finite number > 0 s, got {value!r}")
+        if not (isinstance(self.checkpoint_period, (int, float)) and math.isfinite(self.checkpoint_period)
+                and self.checkpoint_period > 0):
+            raise InvalidInputError(f"checkpoint_period must be a finite number > 0 s (checkpoint_path \"\" turns "
+                                    f"checkpoints off), got {self.checkpoint_period!r}")
+        if self.unstamped_policy not in self.UNSTAMPED_POLICIES:
+            raise InvalidInputError(f"unstamped_policy must be one of {self.UNSTAMPED_POLICIES}, got "
+                                    f"{self.unstamped_policy!r}")
 
     @classmethod
     def from_parameters(cls, values):
@@ -101,13 +118,14 @@ class SchemeSettings:
 
     @classmethod
     def from_yaml(cls, path, node_name="scheme_node"):
-        """Read a ROS parameter file (``<node>: ros__parameters: ...``, nested ``learner:`` allowed)."""
+        """Read a ROS parameter file (``/**:`` or ``<node>:``, then ``ros__parameters:``; nested ``learner:``)."""
         try:
             document = yaml.safe_load(pathlib.Path(path).read_text())
-            parameters = document[node_name]["ros__parameters"]
-        except (OSError, yaml.YAMLError, KeyError, TypeError) as error:
-            raise InvalidInputError(f"{path}: not a parameter file with {node_name}.ros__parameters ({error})") \
-                from error
+            key = next(k for k in ("/**", node_name, f"/{node_name}") if k in document)
+            parameters = document[key]["ros__parameters"]
+        except (OSError, yaml.YAMLError, KeyError, TypeError, StopIteration) as error:
+            raise InvalidInputError(f"{path}: not a parameter file with /** (or {node_name}) and ros__parameters "
+                                    f"({type(error).__name__}: {error})") from error
         flat = {}
         for key, value in parameters.items():
             if isinstance(value, dict):

@@ -192,7 +192,8 @@ class TrackerNode(Node):
                   ("received", "processed", "dropped", "waiting_for_camera_info", "detections", "poses")}
         values["rejected_total"] = sum(self.rejected.values())
         values.update({f"rejected.{reason}": count for reason, count in sorted(self.rejected.items())})
-        array.status.append(conversions.diagnostic_status("body_scheme: tracker", level, message, values))
+        name = self.get_fully_qualified_name()  # node and namespace: two robots in one domain do not collide
+        array.status.append(conversions.diagnostic_status(f"{name}: tracker", level, message, values, name))
         self.pub_diagnostics.publish(array)
 
     def _on_set_parameters(self, parameters):

@@ -19,7 +19,7 @@ CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "scheme_node.y
 
 def test_yaml_lists_every_learner_field_with_its_default():
     """config/scheme_node.yaml has exactly the BodySchemeConfig fields, each at its default, typed alike."""
-    learner = yaml.safe_load(CONFIG.read_text())["scheme_node"]["ros__parameters"]["learner"]
+    learner = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]["learner"]
     fields = {f.name: f.default for f in dataclasses.fields(BodySchemeConfig)}
     assert set(learner) == set(fields)
     for name, default in fields.items():
@@ -74,7 +74,7 @@ def test_shipped_yaml_parses_into_settings():
 
 def test_every_node_parameter_is_in_the_yaml():
     """The YAML names every scheme_node parameter (flattening the learner block)."""
-    parameters = yaml.safe_load(CONFIG.read_text())["scheme_node"]["ros__parameters"]
+    parameters = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]
     flat = {k for k, v in parameters.items() if not isinstance(v, dict)}
     flat |= {f"learner.{k}" for k in parameters["learner"]}
     assert flat == set(parameter_defaults(6))
@@ -86,7 +86,22 @@ def test_bad_settings_are_refused_with_reasons():
     assert SchemeSettings.from_parameters(good).joint_names == ("a",)
     bad = [({"learner.sigma": 1.0}, "unknown"), ({"action_lower": [-1.0, 0.0]}, "action_lower"),
            ({"joint_names": ["a", "a"], "action_lower": [-1.0, -1.0], "action_upper": [1.0, 1.0]}, "unique"),
-           ({"part_ids": [1]}, "part_ids"), ({"learner.test_window": 0}, "test_window")]
+           ({"part_ids": [1]}, "part_ids"), ({"learner.test_window": 0}, "test_window"),
+           ({"checkpoint_period": -5.0}, "checkpoint_period"), ({"stamp_tolerance": 0.0}, "stamp_tolerance"),
+           ({"unstamped_policy": "guess"}, "unstamped_policy"), ({"learner.max_distance": -1.0}, "max_distance")]
     for change, match in bad:
         with pytest.raises(InvalidInputError, match=match):
             SchemeSettings.from_parameters(dict(good, **change))
+
+
+def test_parameter_files_keyed_by_any_node_name_or_wildcard_read_alike(tmp_path):
+    """The shipped file is keyed /** (any node name or namespace); files keyed by the node name still read."""
+    assert next(iter(yaml.safe_load(CONFIG.read_text()))) == "/**"
+    parameters = yaml.safe_load(CONFIG.read_text())["/**"]
+    named = tmp_path / "named.yaml"
+    named.write_text(yaml.safe_dump({"scheme_node": parameters}))
+    assert SchemeSettings.from_yaml(named) == SchemeSettings.from_yaml(CONFIG)
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump({"tracker_node": parameters}))
+    with pytest.raises(InvalidInputError, match="not a parameter file"):
+        SchemeSettings.from_yaml(other)

@@ -51,7 +51,7 @@ def declared_parameters(overrides=()):
 def test_yaml_holds_every_parameter_at_its_declared_default():
     """config/sim_node.yaml lists exactly the declared parameters, each at its default and of its type."""
     declared, camera = declared_parameters()
-    in_yaml = flatten(yaml.safe_load(CONFIG.read_text())["sim_node"]["ros__parameters"])
+    in_yaml = flatten(yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"])
     assert set(in_yaml) == set(declared)
     for name, value in in_yaml.items():
         default = declared[name] if declared[name] is not None else []  # typed empty lists are "not set"

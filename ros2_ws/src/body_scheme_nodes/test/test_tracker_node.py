@@ -80,7 +80,7 @@ def test_marker_sizes_come_from_the_marker_file_and_overrides(tmp_path):
 def test_config_yaml_holds_the_node_defaults():
     """config/tracker_node.yaml lists every parameter tracker_node declares, at its default value."""
     config = pathlib.Path(__file__).resolve().parents[1] / "config" / "tracker_node.yaml"
-    documented = yaml.safe_load(config.read_text())["tracker_node"]["ros__parameters"]
+    documented = yaml.safe_load(config.read_text())["/**"]["ros__parameters"]
     context = rclpy.Context()
     rclpy.init(context=context)
     try:
