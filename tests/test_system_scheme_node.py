@@ -305,3 +305,41 @@ def test_a_bad_checkpoint_is_moved_aside_never_overwritten(case, start_node, ros
     assert "not used" in process.output() and process.running()
     assert spin_until(lambda: checkpoint.exists() and json.loads(checkpoint.read_text())["version"] == 1,
                       timeout=10), process.output()
+
+
+def test_save_and_load_services_touch_only_files_inside_the_state_directory(start_node, ros_node, spin_until,
+                                                                              tmp_path):
+    """Over DDS: /etc and '..' are refused, a FIFO is refused at once (the node does not freeze), a foreign file is
+    not overwritten, another robot's state is not loaded, and a name inside the state directory round-trips."""
+    import os
+
+    from body_scheme_core.learner import BodySchemeLearner
+    from body_scheme_core.persistence import save_state
+    from body_scheme_msgs.srv import StatePath
+
+    tree = planar_2dof()
+    state_dir = tmp_path / "states"
+    state_dir.mkdir()
+    os.mkfifo(state_dir / "fifo.json")
+    (state_dir / "notes.json").write_text('{"mine": true}')
+    save_state(BodySchemeLearner([4, 5, 6], 1), state_dir / "other_robot.json")
+    process = start_node("body_scheme_nodes", "scheme_node", dict(scheme_parameters(tree), state_dir=str(state_dir)))
+    save = ros_node.create_client(StatePath, "/scheme_node/save")
+    load = ros_node.create_client(StatePath, "/scheme_node/load")
+    assert save.wait_for_service(timeout_sec=20) and load.wait_for_service(timeout_sec=10), process.output()
+
+    def call(client, path):
+        future = client.call_async(StatePath.Request(path=path))
+        assert spin_until(future.done, timeout=10), (path, process.output())
+        return future.result()
+
+    for path in ("/etc/x.json", "../x.json", "notes.json"):
+        reply = call(save, path)
+        assert not reply.success and "refused" in reply.message, (path, reply.message)
+    assert (state_dir / "notes.json").read_text() == '{"mine": true}' and not (tmp_path / "x.json").exists()
+    for path, reason in (("fifo.json", "not a regular file"), ("/dev/zero", "not a file name inside"),
+                         ("other_robot.json", "another robot")):
+        reply = call(load, path)
+        assert not reply.success and reason in reply.message, (path, reply.message)
+    assert call(save, "arm.json").success and call(load, "arm.json").success
+    assert process.running()

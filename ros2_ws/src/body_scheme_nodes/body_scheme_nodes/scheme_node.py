@@ -20,7 +20,9 @@ body_scheme/progress : std_msgs/UInt64
 
 Services
 --------
-~/save, ~/load : body_scheme_msgs/StatePath   (empty path: ``checkpoint_path``)
+~/save, ~/load : body_scheme_msgs/StatePath   (empty path: ``checkpoint_path``; else a file name inside ``state_dir``:
+                no absolute paths elsewhere, no ``..``, no symlinks out, regular files of at most
+                ``max_state_bytes`` only, and never over a file that is not a body scheme state file)
 ~/reset : std_srvs/Trigger
 
 Parameters
@@ -40,6 +42,9 @@ unstamped_policy : "receipt_time"     zero-stamped messages: stamped with their 
                                       restamped.unstamped) or, with "reject", refused (unstamped)
 stall_timeout : double 10.0 s         input arriving but no learning step for this long: /diagnostics ERROR
 hardware_id : string ""               diagnostics hardware_id ("" = the node's fully qualified name)
+state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
+                                      $ROS_HOME/body_scheme)
+max_state_bytes : int 67108864        largest state file ~/load reads
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
@@ -66,7 +71,7 @@ from body_scheme_core.persistence import load_state, save_state
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import StatePath
 
-from . import conversions
+from . import conversions, state_files
 from .message_feed import feed_message
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
@@ -131,6 +136,7 @@ class SchemeNode(Node):
         path = self.checkpoint_path
         if path and pathlib.Path(path).exists():
             try:
+                state_files.check_loadable(pathlib.Path(path), self.settings.max_state_bytes)
                 learner = load_state(path)
                 problem = self._foreign(learner)
             except BodySchemeError as error:
@@ -305,20 +311,34 @@ class SchemeNode(Node):
 
     # -- services ------------------------------------------------------------------------------------------------
     def _on_save(self, request, response):
-        path = request.path or self.checkpoint_path
-        if not path:
-            response.success, response.message = False, "no path given and checkpoint_path is empty"
-            return response
+        """Save to ``checkpoint_path`` (empty request) or to a name inside the state directory (state_files)."""
         try:
+            if request.path:
+                path = state_files.resolve(self.settings.state_directory, request.path)
+                state_files.check_overwritable(path)
+                path.parent.mkdir(parents=True, exist_ok=True)
+            elif self.checkpoint_path:
+                path = pathlib.Path(self.checkpoint_path)
+            else:
+                raise state_files.StateFileError("no file name given and checkpoint_path is empty")
             save_state(self.learner, path)
             response.success, response.message = True, f"saved step {self.learner.step} to {path}"
+        except state_files.StateFileError as error:
+            response.success, response.message = False, f"save refused: {error}"
         except (OSError, BodySchemeError) as error:
-            response.success, response.message = False, f"save failed: {error}"
+            response.success, response.message = False, f"save failed: {getattr(error, 'strerror', None) or error}"
         return response
 
     def _on_load(self, request, response):
-        path = request.path or self.checkpoint_path
+        """Load from ``checkpoint_path`` (empty request) or a name inside the state directory (state_files)."""
         try:
+            if request.path:
+                path = state_files.resolve(self.settings.state_directory, request.path)
+            elif self.checkpoint_path:
+                path = pathlib.Path(self.checkpoint_path)
+            else:
+                raise state_files.StateFileError("no file name given and checkpoint_path is empty")
+            state_files.check_loadable(path, self.settings.max_state_bytes)
             learner = load_state(path)
             problem = self._foreign(learner)
         except (OSError, BodySchemeError) as error:

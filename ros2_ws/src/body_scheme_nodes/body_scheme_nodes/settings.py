@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import pathlib
 from dataclasses import dataclass
 
@@ -39,6 +40,7 @@ def parameter_defaults(n_joints=1):
         "settle_time": 0.0, "max_delay": 2.0, "pairing_grace": 0.2,
         "checkpoint_path": "", "checkpoint_period": 30.0, "urdf_path": "", "markers_path": "",
         "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
+        "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
     }
     config = BodySchemeConfig()
     for field in dataclasses.fields(BodySchemeConfig):
@@ -71,6 +73,8 @@ class SchemeSettings:
     unstamped_policy: str = "receipt_time"
     stall_timeout: float = 10.0
     hardware_id: str = ""
+    state_dir: str = ""
+    max_state_bytes: int = 64 * 1024 * 1024
 
     #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
     UNSTAMPED_POLICIES = ("receipt_time", "reject")
@@ -92,6 +96,9 @@ class SchemeSettings:
                 and self.checkpoint_period > 0):
             raise InvalidInputError(f"checkpoint_period must be a finite number > 0 s (checkpoint_path \"\" turns "
                                     f"checkpoints off), got {self.checkpoint_period!r}")
+        if isinstance(self.max_state_bytes, bool) or not isinstance(self.max_state_bytes, int) or \
+                self.max_state_bytes < 1:
+            raise InvalidInputError(f"max_state_bytes must be an integer >= 1, got {self.max_state_bytes!r}")
         if self.unstamped_policy not in self.UNSTAMPED_POLICIES:
             raise InvalidInputError(f"unstamped_policy must be one of {self.UNSTAMPED_POLICIES}, got "
                                     f"{self.unstamped_policy!r}")
@@ -133,6 +140,16 @@ class SchemeSettings:
             else:
                 flat[key] = value
         return cls.from_parameters(flat)
+
+    @property
+    def state_directory(self):
+        """Where ``~/save`` and ``~/load`` names live: ``state_dir``, else the checkpoint's directory, else
+        ``$ROS_HOME/body_scheme`` (``~/.ros/body_scheme``)."""
+        if self.state_dir:
+            return pathlib.Path(self.state_dir).expanduser()
+        if self.checkpoint_path:
+            return pathlib.Path(self.checkpoint_path).expanduser().resolve().parent
+        return pathlib.Path(os.environ.get("ROS_HOME", "~/.ros")).expanduser() / "body_scheme"
 
     def new_learner(self):
         """A fresh learner: engineered start if ``urdf_path`` is set, else bootstrapping from scratch."""
