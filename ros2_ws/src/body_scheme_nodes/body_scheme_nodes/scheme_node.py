@@ -45,6 +45,10 @@ hardware_id : string ""               diagnostics hardware_id ("" = the node's f
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
                                       $ROS_HOME/body_scheme)
 max_state_bytes : int 67108864        largest state file ~/load reads
+max_inbox : int 2000, max_pending_samples : int 500, tick_budget : double 0.2 s
+                                      overload: messages and paired samples beyond the bounds are shed oldest
+                                      first and counted (shed.*); the timer learns for at most tick_budget per
+                                      tick; diagnostics and checkpoints run in their own callback group and thread
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
@@ -101,11 +105,15 @@ class SchemeNode(Node):
         self.event_counts = Counter()
         self.latency = deque(maxlen=200)
         self._inbox = deque()  # (kind, message, receipt time) from callbacks; drained by the timer
+        self._pending = deque()  # paired samples not learnt yet (the timer works within tick_budget per tick)
+        self.shed = Counter()  # messages and samples dropped under overload, by kind (oldest first)
+        self._learner_lock = threading.Lock()  # the learner between the work and the housekeeping threads
         self.restamped = Counter()
         self.last_input_time = self.last_learn_time = None  # node clock, s: the watchdog's inputs
         self._lock = threading.Lock()
 
         work = MutuallyExclusiveCallbackGroup()
+        housekeeping = MutuallyExclusiveCallbackGroup()  # diagnostics and checkpoints: the learner cannot starve them
         self.create_subscription(JointState, "joint_commands", self._on_command, 100)
         self.create_subscription(MarkerPoses, "observations", self._on_observations, 100)
         self.pub_predicted = self.create_publisher(MarkerPoses, "predicted_poses", 10)
@@ -119,9 +127,9 @@ class SchemeNode(Node):
         self.create_service(StatePath, "~/load", self._on_load, callback_group=work)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=work)
         self.create_timer(self.settings.update_period, self._on_timer, callback_group=work)
-        self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
-        if self.checkpoint_path and self.settings.checkpoint_period > 0:
-            self.create_timer(self.settings.checkpoint_period, self._checkpoint, callback_group=work)
+        self.create_timer(1.0, self._publish_diagnostics, callback_group=housekeeping)
+        if self.checkpoint_path:
+            self.create_timer(self.settings.checkpoint_period, self._checkpoint, callback_group=housekeeping)
         self._last_structure_key = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_structure(force=True)
@@ -163,12 +171,17 @@ class SchemeNode(Node):
 
     # -- callbacks only buffer -----------------------------------------------------------------------------------
     def _on_command(self, msg):
-        with self._lock:
-            self._inbox.append(("command", msg, self._now()))
+        self._buffer("command", msg)
 
     def _on_observations(self, msg):
+        self._buffer("observations", msg)
+
+    def _buffer(self, kind, msg):
+        """Queue a message for the timer; beyond ``max_inbox`` the oldest is shed and counted."""
         with self._lock:
-            self._inbox.append(("observations", msg, self._now()))
+            self._inbox.append((kind, msg, self._now()))
+            if len(self._inbox) > self.settings.max_inbox:
+                self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
@@ -192,9 +205,14 @@ class SchemeNode(Node):
         if n_observations:
             self.n_observation_messages += n_observations
             self.pub_progress.publish(UInt64(data=self.n_observation_messages))
-        samples += self.pairer.flush(now)
-        for stamp, actions, observations in samples:
-            self._learn(stamp, actions, observations)
+        self._pending.extend(samples)
+        self._pending.extend(self.pairer.flush(now))
+        while len(self._pending) > self.settings.max_pending_samples:
+            self._pending.popleft()
+            self.shed["samples"] += 1
+        deadline = time.perf_counter() + self.settings.tick_budget
+        while self._pending and time.perf_counter() < deadline:
+            self._learn(*self._pending.popleft())
 
     def _stamp_acceptable(self, msg, received, now):
         """Apply the stamp policy: zero stamps per ``unstamped_policy``, stamps beyond ``stamp_tolerance`` ahead of
@@ -215,6 +233,10 @@ class SchemeNode(Node):
         return True
 
     def _learn(self, stamp, actions, observations):
+        with self._learner_lock:
+            self._learn_locked(stamp, actions, observations)
+
+    def _learn_locked(self, stamp, actions, observations):
         start = time.perf_counter()
         try:
             events = self.learner.update(actions, observations, stamp=stamp)
@@ -257,6 +279,10 @@ class SchemeNode(Node):
             learner.root_pose))
 
     def _publish_diagnostics(self):
+        with self._learner_lock:
+            self._publish_diagnostics_locked()
+
+    def _publish_diagnostics_locked(self):
         learner = self.learner
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
@@ -283,6 +309,8 @@ class SchemeNode(Node):
         values.update({f"events.{kind}": count for kind, count in sorted(self.event_counts.items())
                        if kind != "input_rejected"})
         values.update({f"restamped.{reason}": count for reason, count in sorted(self.restamped.items())})
+        values.update({f"shed.{kind}": count for kind, count in sorted(self.shed.items())})
+        values["pending_samples"] = len(self._pending)
         name = self.get_fully_qualified_name()
         hardware_id = self.settings.hardware_id or name
         array.status.append(conversions.diagnostic_status(f"{name}: body scheme", level, message, values,
@@ -362,13 +390,14 @@ class SchemeNode(Node):
         if not self.checkpoint_path:
             return
         try:
-            save_state(self.learner, self.checkpoint_path)
+            with self._learner_lock:
+                save_state(self.learner, self.checkpoint_path)
         except (OSError, BodySchemeError, ValueError) as error:
             self.get_logger().error(f"checkpoint to {self.checkpoint_path} failed: {error}")
 
 
 def main(args=None):
-    return run_node(SchemeNode, args)
+    return run_node(SchemeNode, args, threads=3)  # subscriptions, the learning timer and services, housekeeping
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ def parameter_defaults(n_joints=1):
         "checkpoint_path": "", "checkpoint_period": 30.0, "urdf_path": "", "markers_path": "",
         "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
+        "max_inbox": 2000, "max_pending_samples": 500, "tick_budget": 0.2,
     }
     config = BodySchemeConfig()
     for field in dataclasses.fields(BodySchemeConfig):
@@ -75,6 +76,9 @@ class SchemeSettings:
     hardware_id: str = ""
     state_dir: str = ""
     max_state_bytes: int = 64 * 1024 * 1024
+    max_inbox: int = 2000
+    max_pending_samples: int = 500
+    tick_budget: float = 0.2
 
     #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
     UNSTAMPED_POLICIES = ("receipt_time", "reject")
@@ -88,7 +92,7 @@ class SchemeSettings:
                                     f"{len(self.action_lower)} and {len(self.action_upper)}")
         if len(self.part_ids) < 2 or len(set(self.part_ids)) != len(self.part_ids):
             raise InvalidInputError(f"part_ids must name at least two distinct parts, got {list(self.part_ids)}")
-        for name in ("update_period", "stamp_tolerance", "stall_timeout"):
+        for name in ("update_period", "stamp_tolerance", "stall_timeout", "tick_budget"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be a finite number > 0 s, got {value!r}")
@@ -96,9 +100,10 @@ class SchemeSettings:
                 and self.checkpoint_period > 0):
             raise InvalidInputError(f"checkpoint_period must be a finite number > 0 s (checkpoint_path \"\" turns "
                                     f"checkpoints off), got {self.checkpoint_period!r}")
-        if isinstance(self.max_state_bytes, bool) or not isinstance(self.max_state_bytes, int) or \
-                self.max_state_bytes < 1:
-            raise InvalidInputError(f"max_state_bytes must be an integer >= 1, got {self.max_state_bytes!r}")
+        for name in ("max_state_bytes", "max_inbox", "max_pending_samples"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
         if self.unstamped_policy not in self.UNSTAMPED_POLICIES:
             raise InvalidInputError(f"unstamped_policy must be one of {self.UNSTAMPED_POLICIES}, got "
                                     f"{self.unstamped_policy!r}")
