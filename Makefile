@@ -74,6 +74,7 @@ demo-core: build
 bench: build
 	$(RUN) python -m body_scheme_apps.learning_bench --out out/bench/core.json
 	$(RUN) python -m body_scheme_apps.perception_bench --out out/bench/sim.json
+	$(RUN) python -m body_scheme_apps.load_bench --out out/bench/load.json
 
 # The sample sessions; the commands are the ones in bags/README.md (a test regenerates them and compares).
 bags: build

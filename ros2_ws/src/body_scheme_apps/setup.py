@@ -27,6 +27,7 @@ setup(
             "replay_offline = body_scheme_apps.replay_offline:main",
             "learning_bench = body_scheme_apps.learning_bench:main",
             "perception_bench = body_scheme_apps.perception_bench:main",
+            "load_bench = body_scheme_apps.load_bench:main",
         ],
     },
 )

@@ -45,9 +45,10 @@ hardware_id : string ""               diagnostics hardware_id ("" = the node's f
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
                                       $ROS_HOME/body_scheme)
 max_state_bytes : int 67108864        largest state file ~/load reads
-max_inbox : int 2000, max_pending_samples : int 500, tick_budget : double 0.2 s
+max_inbox : int 2000, max_pending_samples : int 500, tick_budget : double 0.2 s, max_sample_age : double 5.0 s
                                       overload: messages and paired samples beyond the bounds are shed oldest
-                                      first and counted (shed.*); the timer learns for at most tick_budget per
+                                      first and counted (shed.*), samples older than max_sample_age when their turn
+                                      comes are shed (shed.stale_samples); the timer learns for at most tick_budget per
                                       tick; diagnostics and checkpoints run in their own callback group and thread
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
@@ -57,6 +58,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import sys
 import threading
 import time
 from collections import Counter, deque
@@ -107,6 +109,7 @@ class SchemeNode(Node):
         self._inbox = deque()  # (kind, message, receipt time) from callbacks; drained by the timer
         self._pending = deque()  # paired samples not learnt yet (the timer works within tick_budget per tick)
         self.shed = Counter()  # messages and samples dropped under overload, by kind (oldest first)
+        self.received = Counter()  # messages taken in by the callbacks, by kind
         self._learner_lock = threading.Lock()  # the learner between the work and the housekeeping threads
         self.restamped = Counter()
         self.last_input_time = self.last_learn_time = None  # node clock, s: the watchdog's inputs
@@ -179,6 +182,7 @@ class SchemeNode(Node):
     def _buffer(self, kind, msg):
         """Queue a message for the timer; beyond ``max_inbox`` the oldest is shed and counted."""
         with self._lock:
+            self.received[kind] += 1
             self._inbox.append((kind, msg, self._now()))
             if len(self._inbox) > self.settings.max_inbox:
                 self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
@@ -205,14 +209,17 @@ class SchemeNode(Node):
         if n_observations:
             self.n_observation_messages += n_observations
             self.pub_progress.publish(UInt64(data=self.n_observation_messages))
-        self._pending.extend(samples)
-        self._pending.extend(self.pairer.flush(now))
+        self._pending.extend((now, sample) for sample in samples + self.pairer.flush(now))
         while len(self._pending) > self.settings.max_pending_samples:
             self._pending.popleft()
             self.shed["samples"] += 1
         deadline = time.perf_counter() + self.settings.tick_budget
         while self._pending and time.perf_counter() < deadline:
-            self._learn(*self._pending.popleft())
+            paired_at, sample = self._pending.popleft()
+            if self._now() - paired_at > self.settings.max_sample_age:
+                self.shed["stale_samples"] += 1  # too old to predict for: learn from the freshest data instead
+                continue
+            self._learn(*sample)
 
     def _stamp_acceptable(self, msg, received, now):
         """Apply the stamp policy: zero stamps per ``unstamped_policy``, stamps beyond ``stamp_tolerance`` ahead of
@@ -310,6 +317,7 @@ class SchemeNode(Node):
                        if kind != "input_rejected"})
         values.update({f"restamped.{reason}": count for reason, count in sorted(self.restamped.items())})
         values.update({f"shed.{kind}": count for kind, count in sorted(self.shed.items())})
+        values.update({f"received.{kind}": count for kind, count in sorted(self.received.items())})
         values["pending_samples"] = len(self._pending)
         name = self.get_fully_qualified_name()
         hardware_id = self.settings.hardware_id or name
@@ -397,6 +405,9 @@ class SchemeNode(Node):
 
 
 def main(args=None):
+    # The learning thread holds the GIL for long stretches of Python; switching more often than every 5 ms lets the
+    # subscription thread take messages in (otherwise DDS overwrites them unseen under load).
+    sys.setswitchinterval(2e-4)
     return run_node(SchemeNode, args, threads=3)  # subscriptions, the learning timer and services, housekeeping
 
 
