@@ -5,7 +5,7 @@ a function of a batch of candidate commands that gives, per candidate, the reaso
 synthetic world screens kinematically (:func:`above_ground`, a cheap stand-in for the paper's collision check); the
 pybullet simulator executes each candidate and rejects collisions and hidden markers
 (:func:`body_scheme_sim.babbling.babbling_screen`). Candidates are drawn in batches from one stream, so the accepted
-commands do not depend on the batch size.
+commands do not depend on the batch size, and no candidate is drawn after the last one needed.
 """
 
 from __future__ import annotations
@@ -66,7 +66,9 @@ def babble(robot, n, rng, screen=None, max_draws=None, above_ground=None, ground
             reasons = ", ".join(f"{count} {reason}" for reason, count in rejected.most_common())
             raise BabblingError(f"babbling found {n_accepted} of {n} valid configurations in {drawn} tries "
                                 f"(rejected: {reasons or 'none'})")
-        batch = min(max(2 * (n - n_accepted), 16), max_draws - drawn)
+        # Exactly as many candidates as are still needed: the stream is never drawn beyond the last accepted one
+        # (a world that babbles one command at a time keeps its stream), and a costly screen sees no extras.
+        batch = min(n - n_accepted, max_draws - drawn)
         A = rng.uniform(lower, upper, size=(batch, robot.n_actions))
         drawn += batch
         if screen is not None:
