@@ -345,3 +345,17 @@ def test_save_and_load_services_touch_only_files_inside_the_state_directory(star
         assert not reply.success and reason in reply.message, (path, reply.message)
     assert call(save, "arm.json").success and call(load, "arm.json").success
     assert process.running()
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"part_ids": []}, "part_ids must name at least two distinct parts"),
+    ({"checkpoint_period": -5.0}, "checkpoint_period must be"),
+    ({"frame_id": 5}, "frame_id"),
+])
+def test_bad_parameters_are_refused_in_one_line_without_a_traceback(bad, message, start_node):
+    """Wrongly typed or out-of-range parameters end the node with exit code 1 and one FATAL line naming them."""
+    parameters = dict({"part_ids": [1, 2], "joint_names": ["a"], "action_lower": [-1.0], "action_upper": [1.0]}, **bad)
+    process = start_node("body_scheme_nodes", "scheme_node", parameters)
+    assert process.process.wait(timeout=30) == 1
+    output = process.output()
+    assert message in output and "FATAL" in output and "Traceback" not in output, output

@@ -138,10 +138,13 @@ def actions_from_joint_state(msg, joint_names):
     Raises
     ------
     InvalidInputError
-        If a joint is missing, names and positions differ in length, or a value is not finite.
+        If a joint is missing or named twice, names and positions differ in length, or a value is not finite.
     """
     if len(msg.name) != len(msg.position):
         raise InvalidInputError(f"JointState has {len(msg.name)} names but {len(msg.position)} positions")
+    repeated = sorted({name for name in msg.name if list(msg.name).count(name) > 1})
+    if repeated:
+        raise InvalidInputError(f"JointState names joint(s) {repeated} more than once")
     by_name = dict(zip(msg.name, msg.position, strict=True))
     missing = [name for name in joint_names if name not in by_name]
     if missing:

@@ -123,11 +123,18 @@ class SchemeSettings:
                 field = name[len(LEARNER_PREFIX):]
                 learner[field] = None if field in NONE_SENTINELS and value == NONE_SENTINELS[field] else value
         plain = {k: v for k, v in merged.items() if not k.startswith(LEARNER_PREFIX)}
-        return cls(part_ids=tuple(int(p) for p in plain.pop("part_ids")),
-                   joint_names=tuple(str(n) for n in plain.pop("joint_names")),
-                   action_lower=tuple(float(v) for v in plain.pop("action_lower")),
-                   action_upper=tuple(float(v) for v in plain.pop("action_upper")),
-                   config=BodySchemeConfig(**learner), **plain)
+        lists = {}
+        for name, kind in (("part_ids", int), ("joint_names", str), ("action_lower", float), ("action_upper", float)):
+            value = plain.pop(name)
+            try:  # an empty list in a YAML file arrives untyped, as None
+                lists[name] = tuple(kind(v) for v in ([] if value is None else value))
+            except (TypeError, ValueError) as error:
+                raise InvalidInputError(f"{name} must be a list of {kind.__name__}, got {value!r} ({error})") from None
+        for name, default in parameter_defaults(len(lists["joint_names"]) or 1).items():
+            if name in plain and type(plain[name]) is not type(default) and not (
+                    isinstance(default, float) and isinstance(plain[name], int) and not isinstance(plain[name], bool)):
+                raise InvalidInputError(f"{name} must be a {type(default).__name__}, got {plain[name]!r}")
+        return cls(**lists, config=BodySchemeConfig(**learner), **plain)
 
     @classmethod
     def from_yaml(cls, path, node_name="scheme_node"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 
 from body_scheme_core.errors import BodySchemeError
@@ -38,8 +39,8 @@ def run_node(node_class, args=None, threads=2):
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except BodySchemeError as error:
-        rclpy.logging.get_logger(node_class.__name__).fatal(str(error))
+    except (BodySchemeError, ParameterException) as error:  # a refused parameter: one line, no traceback
+        rclpy.logging.get_logger(node_class.__name__).fatal(f"{type(error).__name__}: {error}")
         return 1
     finally:
         if node is not None:

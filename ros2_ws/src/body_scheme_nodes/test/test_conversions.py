@@ -86,3 +86,10 @@ def test_event_msg_maps_missing_values():
     msg = conversions.event_msg(1.0, Event(step=4, kind="structure_found", reason="spanning tree found"))
     assert (msg.step, msg.kind, msg.parent_id, msg.child_id) == (4, "structure_found", -1, -1)
     assert math.isnan(msg.trans_error) and math.isnan(msg.rot_error)
+
+
+def test_a_joint_named_twice_is_refused_not_last_wins():
+    """Duplicate joint names in one JointState make the command ambiguous: refused, never the last value."""
+    msg = JointState(name=["a", "b", "a"], position=[1.0, 2.0, 3.0])
+    with pytest.raises(InvalidInputError, match=r"\['a'\] more than once"):
+        conversions.actions_from_joint_state(msg, ["a", "b"])
