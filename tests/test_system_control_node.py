@@ -29,8 +29,8 @@ def test_control_node_solves_reports_and_refuses(start_node, ros_node, spin_unti
     targets = ros_node.create_publisher(IKTarget, "ik_target", 10)
     snapshots = ros_node.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
 
-    def send(position):
-        msg = IKTarget(part_id=-1)
+    def send(position, part_id=-1):
+        msg = IKTarget(part_id=part_id)
         msg.header.frame_id = "camera"
         msg.position.x, msg.position.y, msg.position.z = (float(v) for v in position)
         targets.publish(msg)
@@ -40,6 +40,7 @@ def test_control_node_solves_reports_and_refuses(start_node, ros_node, spin_unti
     send([0.0, 0.0, 1.0])
     assert spin_until(lambda: len(results) == 1, timeout=10), process.output()
     assert not results[0].success and "no body scheme yet" in results[0].reason and commands == []
+    assert np.isnan(results[0].residual) and list(results[0].actions) == []  # refused: nothing evaluated
 
     # The engineered body scheme of the 2-DOF arm, in a camera frame 2 m away.
     world2root = default_world2root()
@@ -62,3 +63,9 @@ def test_control_node_solves_reports_and_refuses(start_node, ros_node, spin_unti
     assert spin_until(lambda: len(results) == 3, timeout=20), process.output()
     assert not results[2].success and "unreachable" in results[2].reason
     assert results[2].residual > 1.0 and len(commands) == n_commands
+
+    # A part the body scheme does not have: refused without evaluating, so no residual and no actions.
+    send(target, part_id=99)
+    assert spin_until(lambda: len(results) == 4, timeout=20), process.output()
+    assert not results[3].success and "not in body scheme" in results[3].reason
+    assert np.isnan(results[3].residual) and list(results[3].actions) == [] and len(commands) == n_commands

@@ -142,7 +142,8 @@ class ControlNode(Node):
             self.get_logger().warn(text)
 
     def _solve(self, header, part, target, model):
-        result = IKResult(header=header, part_id=part, success=False)
+        # Refused before any evaluation: residual NaN and no actions, whatever the reason.
+        result = IKResult(header=header, part_id=part, success=False, residual=float("nan"))
         result.target.x, result.target.y, result.target.z = (float(v) for v in target)
         if not np.all(np.isfinite(target)):
             result.reason = "target contains NaN or inf"
@@ -168,7 +169,8 @@ class ControlNode(Node):
         result.reason = outcome.reason
         result.iterations = int(outcome.iterations)
         result.residual = float(outcome.residual)
-        result.actions = [float(v) for v in outcome.actions]
+        # Not evaluated (e.g. the part is not in the body scheme): no actions, as IKResult.msg says.
+        result.actions = [float(v) for v in outcome.actions] if np.isfinite(outcome.residual) else []
         if outcome.success:
             steps = np.linspace(0.0, 1.0, self.trajectory_steps + 1)[1:]
             with self._lock:
