@@ -21,7 +21,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..errors import InvalidInputError, NotFittedError
+from ..errors import InvalidInputError, ModelFileError, NotFittedError
 from ..transforms import check_transform
 
 __all__ = ["LocalModel", "check_action_batch", "check_observations"]
@@ -164,3 +164,10 @@ class LocalModel(ABC):
     @abstractmethod
     def from_dict(cls, data):
         """Rebuild a model from :meth:`to_dict` output; raises ``ModelFileError`` on bad content."""
+
+    @classmethod
+    def _unfitted_from_dict(cls, data):
+        """The model of ``data``'s kind, parts, actions and hyperparameters, before its learned state is restored."""
+        if data["kind"] != cls.kind:
+            raise ModelFileError(f"expected kind {cls.kind!r}, got {data['kind']!r}")
+        return cls(data["parent"], data["child"], data["actions"], **data["hyperparameters"])

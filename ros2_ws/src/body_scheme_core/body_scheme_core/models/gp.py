@@ -212,9 +212,7 @@ class GPModel(LocalModel):
     @classmethod
     def from_dict(cls, data):
         try:
-            if data["kind"] != cls.kind:
-                raise ModelFileError(f"expected kind {cls.kind!r}, got {data['kind']!r}")
-            model = cls(data["parent"], data["child"], data["actions"], **data["hyperparameters"])
+            model = cls._unfitted_from_dict(data)
             if "X" in data:
                 d = len(model.actions)
                 X, Y = _training_arrays(data["X"], data["Y"], d)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..transforms import chordal_mean, perpendicular_basis, rotation_log, rotvec_matrix
-from .rigid import RigidJointModel
+from .rigid import OneActionJointModel
 
 __all__ = ["PrismaticModel", "PrismaticForm", "UnitPrismaticForm"]
 
@@ -167,7 +167,7 @@ class UnitPrismaticForm(PrismaticForm):
         return params
 
 
-class PrismaticModel(RigidJointModel):
+class PrismaticModel(OneActionJointModel):
     """One-action prismatic joint ``Z(a) = [R0, p0 + a v]`` (see the module docstring).
 
     Parameters
@@ -182,22 +182,9 @@ class PrismaticModel(RigidJointModel):
     """
 
     kind = "prismatic"
-    form = UnitPrismaticForm
+    form = unit_form = UnitPrismaticForm
+    scaled_form = PrismaticForm
     class_rank = 0
-
-    def __init__(self, parent, child, actions, fit_scale=False, **hyperparameters):
-        super().__init__(parent, child, actions, **hyperparameters)
-        _check_one_action(self)
-        self.fit_scale = bool(fit_scale)
-        self.form = self.form_for(self.fit_scale)
-
-    @staticmethod
-    def form_for(fit_scale):
-        """The form with or without the scale."""
-        return PrismaticForm if fit_scale else UnitPrismaticForm
-
-    def _hyperparameters(self):
-        return {**super()._hyperparameters(), "fit_scale": self.fit_scale}
 
     @property
     def axis_(self):
@@ -218,10 +205,3 @@ class PrismaticModel(RigidJointModel):
         """``parent2child`` at ``a = 0`` (4, 4)."""
         self._check_fitted()
         return PrismaticForm.transforms(self.params_[None], np.zeros((1, 1)))[0, 0]
-
-
-def _check_one_action(model):
-    from ..errors import InvalidInputError
-
-    if len(model.actions) != 1:
-        raise InvalidInputError(f"a {model.kind} model depends on exactly one action, got {model.actions!r}")

@@ -31,8 +31,7 @@ import math
 import numpy as np
 
 from ..transforms import axis_angle_matrix, chordal_mean, cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew
-from .prismatic import _check_one_action
-from .rigid import RigidJointModel
+from .rigid import OneActionJointModel
 
 __all__ = ["RevoluteModel", "RevoluteForm", "UnitRevoluteForm"]
 
@@ -250,7 +249,7 @@ class UnitRevoluteForm(RevoluteForm):
         return RevoluteForm.validate(params)
 
 
-class RevoluteModel(RigidJointModel):
+class RevoluteModel(OneActionJointModel):
     """One-action revolute joint (see the module docstring).
 
     Parameters
@@ -266,22 +265,9 @@ class RevoluteModel(RigidJointModel):
     """
 
     kind = "revolute"
-    form = UnitRevoluteForm
+    form = unit_form = UnitRevoluteForm
+    scaled_form = RevoluteForm
     class_rank = 1
-
-    def __init__(self, parent, child, actions, fit_scale=False, **hyperparameters):
-        super().__init__(parent, child, actions, **hyperparameters)
-        _check_one_action(self)
-        self.fit_scale = bool(fit_scale)
-        self.form = self.form_for(self.fit_scale)
-
-    @staticmethod
-    def form_for(fit_scale):
-        """The form with or without the scale."""
-        return RevoluteForm if fit_scale else UnitRevoluteForm
-
-    def _hyperparameters(self):
-        return {**super()._hyperparameters(), "fit_scale": self.fit_scale}
 
     def _set_fit(self, params, cov, n, rms):
         if self.fit_scale:

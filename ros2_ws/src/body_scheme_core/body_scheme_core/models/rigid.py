@@ -31,7 +31,7 @@ from ..transforms import check_transform
 from .base import LocalModel, check_action_batch, check_observations
 from .rigid_fit import DEFAULT_F_SCALE, fit_rms, least_squares_fit
 
-__all__ = ["RigidJointModel", "check_pose_stack"]
+__all__ = ["RigidJointModel", "OneActionJointModel", "check_pose_stack"]
 
 #: Default per-axis noise of an observed relative transform: the paper's 50 mm / 15 deg 3D RMS per marker.
 _SIGMA_TRANS = 0.05 / math.sqrt(3.0)
@@ -215,9 +215,7 @@ class RigidJointModel(LocalModel):
     @classmethod
     def from_dict(cls, data):
         try:
-            if data["kind"] != cls.kind:
-                raise ModelFileError(f"expected kind {cls.kind!r}, got {data['kind']!r}")
-            model = cls(data["parent"], data["child"], data["actions"], **data["hyperparameters"])
+            model = cls._unfitted_from_dict(data)
             if "params" in data:
                 params = np.asarray(data["params"], dtype=float)
                 cov = np.asarray(data["param_cov"], dtype=float)
@@ -239,6 +237,31 @@ class RigidJointModel(LocalModel):
             keys = sorted(data) if isinstance(data, dict) else data
             raise ModelFileError(f"cannot read {cls.kind} model from {keys!r}: {exc}") from exc
         return model
+
+
+class OneActionJointModel(RigidJointModel):
+    """A joint driven by exactly one action, its scale assumed 1 or fitted (``fit_scale``): prismatic, revolute.
+
+    Subclasses name their two forms, ``unit_form`` (``s = 1``) and ``scaled_form``.
+    """
+
+    unit_form: ClassVar[type]
+    scaled_form: ClassVar[type]
+
+    def __init__(self, parent, child, actions, fit_scale=False, **hyperparameters):
+        super().__init__(parent, child, actions, **hyperparameters)
+        if len(self.actions) != 1:
+            raise InvalidInputError(f"a {self.kind} model depends on exactly one action, got {self.actions!r}")
+        self.fit_scale = bool(fit_scale)
+        self.form = self.form_for(self.fit_scale)
+
+    @classmethod
+    def form_for(cls, fit_scale):
+        """The form with or without the scale."""
+        return cls.scaled_form if fit_scale else cls.unit_form
+
+    def _hyperparameters(self):
+        return {**super()._hyperparameters(), "fit_scale": self.fit_scale}
 
 
 def check_pose_stack(Z, name="Z"):

@@ -2,8 +2,8 @@
 
 :func:`babble` is the one babbling loop. What makes a command acceptable depends on the backend, so it is a *screen*:
 a function of a batch of candidate commands that gives, per candidate, the reason it is rejected (or ``None``). The
-synthetic world screens kinematically (:func:`above_ground`, a cheap stand-in for the paper's collision check); the
-pybullet simulator executes each candidate and rejects collisions and hidden markers
+synthetic world screens kinematically (:func:`above_ground_screen`, a cheap stand-in for the paper's collision
+check); the pybullet simulator executes each candidate and rejects collisions and hidden markers
 (:func:`body_scheme_sim.babbling.babbling_screen`). Candidates are drawn in batches from one stream, so the accepted
 commands do not depend on the batch size, and no candidate is drawn after the last one needed.
 """
@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import BabblingError, InvalidInputError
 from .body import Body
 
-__all__ = ["babble", "above_ground", "DEFAULT_DRAWS_PER_ACTION"]
+__all__ = ["babble", "above_ground_screen", "DEFAULT_DRAWS_PER_ACTION"]
 
 #: Default budget of candidates per requested command.
 DEFAULT_DRAWS_PER_ACTION = 200
@@ -39,7 +39,8 @@ def babble(robot, n, rng, screen=None, max_draws=None, above_ground=None, ground
     max_draws : int or None
         Candidates to draw in total before giving up; ``None``: ``DEFAULT_DRAWS_PER_ACTION * max(n, 1)``.
     above_ground, ground_z
-        Shorthand for ``screen=above_ground(robot, above_ground, ground_z)`` (``None`` or ``False``: no screen).
+        Shorthand for ``screen=above_ground_screen(robot, above_ground, ground_z)`` (``None`` or ``False``: no
+        screen).
 
     Returns
     -------
@@ -56,7 +57,7 @@ def babble(robot, n, rng, screen=None, max_draws=None, above_ground=None, ground
     if above_ground is not None and above_ground is not False:
         if screen is not None:
             raise InvalidInputError("give either screen or above_ground, not both")
-        screen = globals()["above_ground"](robot, above_ground, ground_z)
+        screen = above_ground_screen(robot, above_ground, ground_z)
     max_draws = DEFAULT_DRAWS_PER_ACTION * max(int(n), 1) if max_draws is None else int(max_draws)
     rng = np.random.default_rng(rng)
     lower, upper = robot.action_lower, robot.action_upper
@@ -80,7 +81,7 @@ def babble(robot, n, rng, screen=None, max_draws=None, above_ground=None, ground
     return np.concatenate(accepted, axis=0)[:n] if accepted else np.zeros((0, robot.n_actions))
 
 
-def above_ground(tree, marker_ids=True, ground_z=0.0):
+def above_ground_screen(tree, marker_ids=True, ground_z=0.0):
     """A screen rejecting commands that put a marker at or below ``z = ground_z`` in the root frame.
 
     Parameters
