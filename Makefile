@@ -4,6 +4,7 @@
 #   make test-fast  the inner loop: every test but the DDS system tests and the slow ones (under 90 s)
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
+#   make fuzz    scheme_node under 10,000+ hostile and valid messages over DDS (writes out/fuzz/fuzz.json)
 #   make bags    regenerate the sample babbling sessions in bags/ (see bags/README.md)
 #   make replay  learn offline from bags/joint_blocked_seed0, write out/replay/joint_blocked_seed0 (report + plot)
 #
@@ -23,7 +24,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test test-fast unit lint demo bench bags replay experiments experiments-quick clean distclean
+.PHONY: all setup build test test-fast unit lint demo bench fuzz bags replay experiments experiments-quick clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -75,6 +76,10 @@ bench: build
 	$(RUN) python -m body_scheme_apps.learning_bench --out out/bench/core.json
 	$(RUN) python -m body_scheme_apps.perception_bench --out out/bench/sim.json
 	$(RUN) python -m body_scheme_apps.load_bench --out out/bench/load.json
+
+# Hostile input over DDS: every refusal counted exactly, the same tree as without it (tests run a 3,000-message one).
+fuzz: build
+	$(RUN) python -m body_scheme_apps.fuzz --messages 11000 --steps 600 --out out/fuzz/fuzz.json
 
 # The sample sessions; the commands are the ones in bags/README.md (a test regenerates them and compares).
 bags: build

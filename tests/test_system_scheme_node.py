@@ -359,3 +359,45 @@ def test_bad_parameters_are_refused_in_one_line_without_a_traceback(bad, message
     assert process.process.wait(timeout=30) == 1
     output = process.output()
     assert message in output and "FATAL" in output and "Traceback" not in output, output
+
+
+def test_fuzz_every_hostile_message_is_counted_exactly_and_learning_is_unharmed(domain_id, ros_env, monkeypatch,
+                                                                                tmp_path):
+    """About 3,000 messages over DDS (``make fuzz`` runs 11,000): a babbling session with every kind of hostile
+    message in between (body_scheme_apps.fuzz.CASES). The node stays up, takes in every message, counts exactly
+    what the plan adds up with nothing else refused or shed, and learns the tree it learns without the fuzz."""
+    from body_scheme_apps.fuzz import CASES, run_fuzz
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    result = run_fuzz(n_messages=3000, n_steps=300, seed=1, domain=domain_id, env=ros_env, log_dir=tmp_path)
+    assert result["ok"], {k: v for k, v in result.items() if k != "cases"}
+    assert set(result["cases"]) == set(CASES) and result["published_messages"] >= 2500
+    assert result["counted"] == result["expected"] and result["structure"] == result["baseline_structure"]
+
+
+def test_input_without_learning_turns_diagnostics_to_error_until_learning_resumes(start_node, ros_node, spin_until):
+    """The stall watchdog: commands keep arriving but none can be learnt (unknown joints); after stall_timeout the
+    status is ERROR naming the stall; valid pairs bring it back."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=100, seed=3, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
+    process = start_node("body_scheme_nodes", "scheme_node", dict(scheme_parameters(tree), stall_timeout=2.0))
+    collector = Collector(ros_node)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    publisher = ros_node.create_publisher(JointState, "joint_commands", 10)
+
+    def useless_command():
+        command = JointState(name=["elbow_of_another_robot"], position=[0.0])
+        command.header.stamp = ros_node.get_clock().now().to_msg()
+        publisher.publish(command)
+
+    def status():
+        return collector.diagnostics.get("/scheme_node: body scheme")
+
+    assert spin_until(lambda: status() is not None and status().level == DiagnosticStatus.WARN, timeout=10)
+    assert spin_until(lambda: status().level == DiagnosticStatus.ERROR, timeout=15, during=useless_command), \
+        (status(), process.output())
+    assert "nothing learnt" in status().message
+    babbler = Babbler(ros_node, session)
+    assert spin_until(lambda: status().level != DiagnosticStatus.ERROR and babbler.k > 0, timeout=15, during=babbler), \
+        status()
+    assert "nothing learnt" not in status().message

@@ -116,6 +116,11 @@ class BodySchemeConfig:
     max_distance : float
         Plausibility gate, m: an observed pose farther than this from the camera is rejected (counted as
         ``out_of_workspace``) instead of learnt from. The default suits a table-top arm seen from a few metres.
+    workspace_margin : float
+        Plausibility gate derived from the robot, m: once the body scheme is calibrated, an observed pose farther
+        from the root part than the robot's learned reach (the largest root-to-part distance the calibrated scheme
+        predicts over the history's actions) plus this margin is rejected as ``out_of_workspace``. Faults (a bent
+        limb, a tool) move parts by less than this; a 5 m outlier is refused. ``inf`` turns the gate off.
     action_margin : float
         Plausibility gate on commands, as a fraction of each joint's range: actions beyond the joint limits by more
         than this are refused (``update`` raises ``InvalidInputError``).
@@ -154,6 +159,7 @@ class BodySchemeConfig:
     bridge_patience: int = 15
     root_window: int = 50
     max_distance: float = 10.0
+    workspace_margin: float = 0.5
     action_margin: float = 0.05
 
     def __post_init__(self):
@@ -180,6 +186,8 @@ class BodySchemeConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
+        if not (isinstance(self.workspace_margin, (int, float)) and self.workspace_margin > 0):  # inf allowed
+            raise InvalidInputError(f"workspace_margin must be a number > 0 (inf: off), got {self.workspace_margin!r}")
         if not (isinstance(self.action_margin, (int, float)) and math.isfinite(self.action_margin)
                 and self.action_margin >= 0):
             raise InvalidInputError(f"action_margin must be a finite number >= 0, got {self.action_margin!r}")

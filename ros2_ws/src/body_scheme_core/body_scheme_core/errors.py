@@ -7,8 +7,7 @@ catch ours without swallowing programming errors. Input validation errors also d
 from __future__ import annotations
 
 __all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError", "BabblingError",
-           "FaultScheduleError",
-           "ActionOutOfRangeError"]
+           "FaultScheduleError", "ActionOutOfRangeError", "StampOrderError"]
 
 
 class BodySchemeError(Exception):
@@ -37,3 +36,7 @@ class FaultScheduleError(InvalidInputError):
 
 class ActionOutOfRangeError(InvalidInputError):
     """An action is beyond the joint limits by more than the configured margin."""
+
+
+class StampOrderError(InvalidInputError):
+    """A time step is stamped before the previous one (for a node: older than the state it restored)."""

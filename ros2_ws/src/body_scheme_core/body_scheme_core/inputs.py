@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .config import BodySchemeConfig
-from .errors import InvalidInputError
+from .errors import InvalidInputError, StampOrderError
 from .scheme import BodyScheme
 
 __all__ = [
@@ -84,9 +84,12 @@ def check_part_ids(part_ids):
     parts : tuple of int
     """
     try:
-        parts = tuple(int(p) for p in part_ids)
-    except (TypeError, ValueError) as exc:
+        parts = tuple(part_ids)
+    except TypeError as exc:
         raise InvalidInputError(f"part_ids must be integer ids, got {part_ids!r}") from exc
+    if not all(_is_id(p) for p in parts):  # a float id would be truncated, a bool taken for 0 or 1
+        raise InvalidInputError(f"part_ids must be integer ids, got {parts!r}")
+    parts = tuple(int(p) for p in parts)
     if not parts or len(set(parts)) != len(parts):
         raise InvalidInputError(f"part_ids must be non-empty and unique, got {parts}")
     return parts
@@ -163,7 +166,7 @@ def check_action_vector(actions, n_actions):
     a : ndarray, shape (m,)
         Not necessarily a copy.
     """
-    a = np.asarray(actions, dtype=float)
+    a = _real_array(actions, "actions")
     if a.shape != (n_actions,):
         raise InvalidInputError(f"actions must have shape ({n_actions},), got {a.shape}")
     if not np.all(np.isfinite(a)):
@@ -171,16 +174,31 @@ def check_action_vector(actions, n_actions):
     return a
 
 
-def check_stamp(stamp):
-    """A time stamp as a finite float, or ``None``."""
+def _real_array(values, name):
+    """``values`` as a float array; strings, objects and complex numbers are refused (numpy would raise a bare
+    ``ValueError`` or drop the imaginary part with only a warning)."""
+    try:
+        array = np.asarray(values)
+    except (TypeError, ValueError) as exc:  # ragged nesting
+        raise InvalidInputError(f"{name} must be real numbers, got {values!r}") from exc
+    if array.dtype.kind not in "biuf":
+        raise InvalidInputError(f"{name} must be real numbers, got {array.dtype} values: {values!r}")
+    return array.astype(float, copy=False)
+
+
+def check_stamp(stamp, previous=None):
+    """A time stamp as a finite float, or ``None``; not before ``previous`` (the last step's stamp) if both are
+    given."""
     if stamp is None:
         return None
-    try:
-        stamp = float(stamp)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"stamp must be a number or None, got {stamp!r}") from exc
+    if isinstance(stamp, (bool, complex, np.complexfloating)) or not isinstance(stamp, (int, float, np.number)):
+        raise InvalidInputError(f"stamp must be a real number or None, got {stamp!r}")
+    stamp = float(stamp)
     if not math.isfinite(stamp):
         raise InvalidInputError(f"stamp must be finite, got {stamp!r}")
+    if previous is not None and stamp < previous:
+        raise StampOrderError(f"stamp {stamp!r} is before the last step's stamp {previous!r}: steps must come in "
+                                f"time order")
     return stamp
 
 
@@ -192,7 +210,7 @@ def check_observation_mapping(observations):
     return observations
 
 
-def filter_observations(observations, part_ids, max_distance=math.inf):
+def filter_observations(observations, part_ids, max_distance=math.inf, reach=None):
     """Split observations into valid poses and rejections.
 
     Parameters
@@ -203,6 +221,9 @@ def filter_observations(observations, part_ids, max_distance=math.inf):
         The known parts.
     max_distance : float
         Poses whose position is farther than this from the camera (m) are rejected as ``out_of_workspace``.
+    reach : tuple of (ndarray, shape (3,), float), optional
+        ``(centre, radius)``: poses whose position is farther than ``radius`` from ``centre`` (the root part's
+        position and the robot's reach plus a margin) are rejected as ``out_of_workspace`` too.
 
     Returns
     -------
@@ -232,6 +253,10 @@ def filter_observations(observations, part_ids, max_distance=math.inf):
             distance = _distance(Y)
             rejected.append(Rejection(part, "out_of_workspace", f"pose of part {part} is {distance:.3g} m from the "
                                       f"camera (max_distance {max_distance} m)"))
+        elif reach is not None and not _distance(Y[:3, 3] - reach[0]) <= reach[1]:
+            rejected.append(Rejection(part, "out_of_workspace", f"pose of part {part} is "
+                                      f"{_distance(Y[:3, 3] - reach[0]):.3g} m from the root part, beyond the "
+                                      f"robot's reach ({reach[1]:.3g} m with the margin)"))
         else:
             valid[part] = Y
     if valid:
@@ -251,7 +276,7 @@ def filter_observations(observations, part_ids, max_distance=math.inf):
 
 
 def _distance(Y):
-    """Distance of a pose's position from the origin, without overflow for huge coordinates."""
-    t = np.abs(Y[:3, 3])
+    """Distance of a pose's position (or of a point) from the origin, without overflow for huge coordinates."""
+    t = np.abs(Y[:3, 3] if Y.ndim == 2 else Y)
     scale = t.max()
     return float(scale * np.sqrt(np.sum((t / scale) ** 2))) if scale > 0 else 0.0

@@ -160,6 +160,7 @@ class BodySchemeLearner:
         self._adaptation = Adaptation(self.config, pool, self._history, self.part_ids, self.root, mismatch, refining)
         self._calibrated = calibrated
         self._upstream_of = None  # (scheme, upstream map) cache
+        self._reach = None  # (the Calibrated it belongs to, reach in m) cache: see _workspace
         self._just_finished = False
 
     # ------------------------------------------------------------------ queries
@@ -284,7 +285,7 @@ class BodySchemeLearner:
         observations : mapping of int to array-like, shape (4, 4)
             ``world2part`` per observed part; missing parts are normal. Invalid entries are rejected one by one.
         stamp : float, optional
-            Time stamp, kept as :attr:`last_stamp`.
+            Time stamp, kept as :attr:`last_stamp`; not before the previous step's.
 
         Returns
         -------
@@ -293,13 +294,13 @@ class BodySchemeLearner:
         Raises
         ------
         InvalidInputError
-            If ``actions`` has the wrong shape or is not finite, or ``observations`` is not a mapping; the learner
-            is then unchanged.
+            If ``actions`` are not real numbers of the right shape or not finite, ``stamp`` is not a finite real
+            number or goes back in time, or ``observations`` is not a mapping; the learner is then unchanged.
         """
         a = check_action_vector(actions, self.n_actions).copy()
         self._check_action_range(a)
         check_observation_mapping(observations)
-        stamp = check_stamp(stamp)
+        stamp = check_stamp(stamp, self.last_stamp)
         step = self.step
         events = []
         obs = self._accept(observations, step, events)
@@ -333,11 +334,25 @@ class BodySchemeLearner:
 
     def _accept(self, observations, step, events):
         """The valid observations ``{part: world2part}``; rejected ones are counted and reported."""
-        valid, rejections = filter_observations(observations, self.part_ids, self.config.max_distance)
+        valid, rejections = filter_observations(observations, self.part_ids, self.config.max_distance,
+                                                self._workspace())
         for part, reason, detail in rejections:
             self.rejected[reason] += 1
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))
         return valid
+
+    def _workspace(self):
+        """``(root position, reach + workspace_margin)`` once a joint fit exists, else None (only ``max_distance``
+        applies). The reach is the largest root-to-part distance the calibrated scheme predicts over the history's
+        actions, computed once per joint fit."""
+        cal = self._calibrated
+        if cal is None or not math.isfinite(self.config.workspace_margin):
+            return None
+        if self._reach is None or self._reach[0] is not cal:
+            A = np.stack([a for _, a, _ in self._history]) if self._history else np.zeros((1, self.n_actions))
+            root2part = cal.scheme.predict_batch(A)
+            self._reach = (cal, float(np.linalg.norm(root2part[:, :, :3, 3], axis=-1).max()))
+        return cal.world2root[:3, 3], self._reach[1] + self.config.workspace_margin
 
     def _bootstrap_step(self, a, obs, step, events):
         """Search the tree over the candidates, then end bootstrapping if it is ready; returns whether the tree

@@ -145,3 +145,30 @@ def test_initial_models_must_be_a_spanning_tree_within_the_actions():
     with pytest.raises(InvalidInputError, match="uses action 1 but n_actions is 1"):
         check_initial_models(models, robot.marker_ids, 1, 1)
     assert math.isfinite(OBSERVATION_TOLERANCE)
+
+
+def test_actions_must_be_real_numbers():
+    """Strings, objects and complex numbers are refused with InvalidInputError, not numpy's bare errors or a
+    ComplexWarning that drops the imaginary part."""
+    for bad in ("abc", ["a", "b"], [1 + 2j, 0.0], [None, 0.0], [[0.1], [0.2, 0.3]]):
+        with pytest.raises(InvalidInputError, match="real numbers"):
+            check_action_vector(bad, 2)
+    np.testing.assert_array_equal(check_action_vector(np.array([1, 0], dtype=np.int8), 2), [1.0, 0.0])
+
+
+def test_float_and_bool_part_ids_are_refused_not_truncated():
+    """1.5 would become part 1 and True part 1: both are refused; numpy integers are ids."""
+    assert check_part_ids([np.int64(1), 2]) == (1, 2)
+    for bad in ([1.5, 2], [True, 2], ["1", 2], 3):
+        with pytest.raises(InvalidInputError, match="integer ids"):
+            check_part_ids(bad)
+
+
+def test_stamps_must_not_go_back_in_time():
+    """A stamp before the previous one is refused; an equal one passes (two steps may share a camera frame)."""
+    assert check_stamp(2.0, previous=2.0) == 2.0
+    with pytest.raises(InvalidInputError, match="before the last step"):
+        check_stamp(1.0, previous=2.0)
+    for bad in (True, 1 + 0j, "3"):
+        with pytest.raises(InvalidInputError, match="stamp"):
+            check_stamp(bad)

@@ -217,7 +217,16 @@ def test_bad_actions_raise_and_change_nothing():
         learner.update([0.1, 0.2], [session.observations[0][1]])
     with pytest.raises(InvalidInputError, match="stamp"):
         learner.update([0.1, 0.2], session.observations[0], stamp=float("nan"))
+    with pytest.raises(InvalidInputError, match="real numbers"):
+        learner.update("ab", session.observations[0])
+    with pytest.raises(InvalidInputError, match="real numbers"):
+        learner.update([0.1 + 1j, 0.2], session.observations[0])
     assert json.dumps(learner.to_state()) == before
+    learner.update([0.1, 0.2], session.observations[0], stamp=5.0)
+    after_one = json.dumps(learner.to_state())
+    with pytest.raises(InvalidInputError, match="before the last step"):
+        learner.update([0.1, 0.2], session.observations[1], stamp=4.0)
+    assert json.dumps(learner.to_state()) == after_one
     with pytest.raises(NotFittedError):
         learner.predict([0.0, 0.0])
 
@@ -227,6 +236,8 @@ def test_constructor_validates_its_arguments():
     robot = planar_2dof()
     with pytest.raises(InvalidInputError):
         BodySchemeLearner([1, 1, 2], 2)
+    with pytest.raises(InvalidInputError, match="integer ids"):
+        BodySchemeLearner([1.5, 2], 2)
     with pytest.raises(InvalidInputError, match="root"):
         BodySchemeLearner([1, 2], 2, BodySchemeConfig(root=7))
     models = engineered_models(robot)
@@ -387,6 +398,36 @@ def test_implausible_poses_are_counted_and_never_learnt_from():
     assert dirty.phase == clean.phase == "steady"
     predicted = dirty.predict(session.actions[-1])
     assert all(np.all(np.isfinite(pose)) for pose in predicted.values())
+
+
+def test_outliers_beyond_the_robots_reach_are_refused_once_calibrated():
+    """Three steps of 5 m outliers (inside the camera's 10 m) in steady state: refused as beyond the learned reach,
+    so no edge is flagged and nothing is replaced; poses a bent limb could produce (20 cm off) still get through."""
+    robot = planar_2dof()
+    session = make_session(robot, 120, seed=6)
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    for a, obs in zip(session.actions[:100], session.observations[:100], strict=True):
+        learner.update(a, obs)
+    assert learner.phase == "steady"
+    tree_before = [(e["parent"], e["child"], e["model"]) for e in learner.edge_status()]
+    centre, radius = learner._workspace()
+    root = robot.marker_ids[0]
+    seen = max(np.linalg.norm(obs[p][:3, 3] - obs[root][:3, 3]) for obs in session.observations[:100] if root in obs
+               for p in obs)
+    assert abs(radius - (seen + 0.5)) < 0.1, (radius, seen)
+    shift = np.eye(4)
+    shift[:3, 3] = (5.0, 0.0, 0.0)
+    events = []
+    for a, obs in zip(session.actions[100:103], session.observations[100:103], strict=True):
+        events += learner.update(a, {part: shift @ Y for part, Y in obs.items()})
+    assert learner.rejected["out_of_workspace"] == sum(len(obs) for obs in session.observations[100:103])
+    assert [(e["parent"], e["child"], e["model"]) for e in learner.edge_status()] == tree_before
+    assert not any(e.kind in ("mismatch", "replaced") for e in events)
+    bent = {part: Y.copy() for part, Y in session.observations[103].items()}
+    bent[max(bent)][:3, 3] += (0.2, 0.0, 0.0)
+    rejected = learner.rejected["out_of_workspace"]
+    learner.update(session.actions[103], bent)
+    assert learner.rejected["out_of_workspace"] == rejected
 
 
 def test_commands_beyond_the_joint_limits_are_refused():

@@ -72,7 +72,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import UInt64
 from std_srvs.srv import Trigger
 
-from body_scheme_core.errors import ActionOutOfRangeError, BodySchemeError, InvalidInputError
+from body_scheme_core.errors import ActionOutOfRangeError, BodySchemeError, InvalidInputError, StampOrderError
 from body_scheme_core.persistence import load_state, save_state
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import StatePath
@@ -249,6 +249,9 @@ class SchemeNode(Node):
             events = self.learner.update(actions, observations, stamp=stamp)
         except ActionOutOfRangeError as error:
             self._reject("command_out_of_range", str(error))
+            return
+        except StampOrderError as error:  # older than a restored state (e.g. a bag replayed with restamp: false)
+            self._reject("older_than_state", str(error))
             return
         except InvalidInputError as error:
             self._reject("bad_sample", str(error))

@@ -1,0 +1,356 @@
+"""``fuzz``: scheme_node under hostile input over DDS, every refusal counted exactly, learning unharmed.
+
+    python -m body_scheme_apps.fuzz [--messages 10000] [--steps 600] [--seed 0] [--out out/fuzz/fuzz.json]
+
+The installed scheme_node runs as its own process in this process's ROS domain (``ROS_DOMAIN_ID``). This process
+publishes a babbling session of the 2-DOF arm (a valid command and its observation every ``PERIOD`` s) and, in the
+gaps, hostile messages of every kind (:data:`CASES`): NaN, inf and 1e300 in positions and joint values, zero,
+NaN and non-unit quaternions, empty and mismatched arrays, unknown, negative, repeated and duplicate ids and joint
+names, stamps in the future, in the past, zero and going backwards, and bursts of them. The valid traffic's ignored
+fields (JointState velocity and effort, pose covariances) carry NaN, inf and 1e300 too.
+
+Every hostile message is built so that the node's reaction is certain, and the plan adds up what the node must count
+(``rejected.*``, ``restamped.*``, the learning steps). The run passes when the node is alive, took in every message
+(``received.*``), counts exactly the plan's figures with nothing else refused or shed, and learnt the same tree (pairs
+and model kinds) as the same settings learn in-process from the valid samples alone. Figures: printed, and written as
+JSON (``ok``, ``published_messages``, ``hostile_messages``, ``expected``, ``counted``, ``differences``,
+``structure``, ``baseline_structure``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import pathlib
+import tempfile
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovariance
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Header
+
+from body_scheme_apps.bench_output import report
+from body_scheme_apps.live_demo import domain_id
+from body_scheme_core.world import make_session, planar_2dof
+from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses
+from body_scheme_nodes import conversions
+from body_scheme_nodes.graph import NodeProcess
+from body_scheme_nodes.settings import SchemeSettings
+
+__all__ = ["PERIOD", "CASES", "Plan", "make_plan", "run_fuzz", "main"]
+
+#: Seconds between two valid samples; hostile messages go in between.
+PERIOD = 0.05
+#: Valid samples before backwards-stamped messages start (they are stamped 1 s back, behind every decided sample).
+BACKWARDS_FROM = 2 * int(1.0 / PERIOD)
+BURST = 40
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _pose(x=0.1, y=0.0, z=1.0, q=(0.0, 0.0, 0.0, 1.0)):
+    """A ``PoseWithCovariance`` with arbitrary (possibly invalid) numbers, unlike ``marker_poses_msg``."""
+    item = PoseWithCovariance()
+    item.pose.position.x, item.pose.position.y, item.pose.position.z = float(x), float(y), float(z)
+    item.pose.orientation.x, item.pose.orientation.y, item.pose.orientation.z, item.pose.orientation.w = \
+        (float(v) for v in q)
+    return item
+
+
+def _header(stamp):
+    return Header(stamp=conversions.stamp_from_seconds(stamp), frame_id="camera")
+
+
+def _observations(stamp, markers=(), ids=None):
+    """``MarkerPoses`` stamped ``stamp`` from ``[(id, PoseWithCovariance)]`` as given (no checks); ``ids`` replaces
+    the ids (arrays of different lengths)."""
+    markers = list(markers)
+    return MarkerPoses(header=_header(stamp), marker_ids=[int(i) for i, _ in markers] if ids is None else ids,
+                       poses=[item for _, item in markers])
+
+
+def _command(stamp, names, positions):
+    return JointState(header=_header(stamp), name=list(names), position=[float(v) for v in positions])
+
+
+# ---------------------------------------------------------------------- the hostile messages
+# Each case: (kind, build(stamp, names, valid actions) -> message, what the node counts). ``stamp`` is the slot's time.
+NAN, INF, HUGE = float("nan"), float("inf"), 1e300
+
+#: Refused before pairing, whatever else happens: safe anywhere, in any number (bursts).
+REFUSED_ANYWHERE = {
+    "command_nan": ("command", lambda t, n, a: _command(t, n, [NAN, a[1]]), {"rejected.bad_command_message": 1}),
+    "command_inf": ("command", lambda t, n, a: _command(t, n, [a[0], -INF]), {"rejected.bad_command_message": 1}),
+    "command_more_names_than_positions": ("command", lambda t, n, a: _command(t, n, [a[0]]),
+                                          {"rejected.bad_command_message": 1}),
+    "command_empty": ("command", lambda t, n, a: _command(t, [], []), {"rejected.bad_command_message": 1}),
+    "command_unknown_joint": ("command", lambda t, n, a: _command(t, [n[0], "elbow_of_another_robot"], a),
+                              {"rejected.bad_command_message": 1}),
+    "command_joint_named_twice": ("command", lambda t, n, a: _command(t, [n[0], n[0], n[1]], [a[0], 0.3, a[1]]),
+                                  {"rejected.bad_command_message": 1}),
+    "command_future_stamp": ("command", lambda t, n, a: _command(t + 5.0, n, a), {"rejected.future_stamp": 1}),
+    "command_far_future_stamp": ("command", lambda t, n, a: _command(t + 1e8, n, a), {"rejected.future_stamp": 1}),
+    "observations_ids_without_poses": ("observations", lambda t, n, a: _observations(t, ids=[1, 2]),
+                                       {"rejected.bad_observations_message": 1}),
+    "observations_poses_without_ids": ("observations", lambda t, n, a: _observations(t, [(1, _pose()), (2, _pose())],
+                                                                                     ids=[]),
+                                       {"rejected.bad_observations_message": 1}),
+    "observations_future_stamp": ("observations", lambda t, n, a: _observations(t + 30.0, [(1, _pose())]),
+                                  {"rejected.future_stamp": 1}),
+}
+#: Stamped 1 s back: behind the last command and every decided observation (only after ``BACKWARDS_FROM`` samples).
+BACKWARDS = {
+    "command_backwards_stamp": ("command", lambda t, n, a: _command(t - 1.0, n, a),
+                                {"rejected.out_of_order_command": 1}),
+    "command_negative_stamp": ("command", lambda t, n, a: JointState(
+        header=Header(stamp=Time(sec=-5, nanosec=0)), name=list(n), position=[float(v) for v in a]),
+        {"rejected.out_of_order_command": 1}),
+    "observations_backwards_stamp": ("observations", lambda t, n, a: _observations(t - 1.0, [(1, _pose())]),
+                                     {"rejected.out_of_order_observation": 1}),
+}
+#: An observation in the slot after a valid sample: its command is used, so it is a ``duplicate`` besides its markers.
+IN_SLOT = {
+    "observations_bad_markers": ("observations", lambda t, n, a: _observations(t, [
+        (1, _pose(x=NAN)), (2, _pose(y=INF)), (3, _pose(q=(0, 0, 0, 0))), (4, _pose(q=(0, 0, 0, 2))),
+        (5, _pose(q=(NAN, 0, 0, 1)))]), {"rejected.invalid_pose": 5, "rejected.duplicate": 1}),
+    "observations_repeated_ids": ("observations", lambda t, n, a: _observations(t, [
+        (1, _pose()), (1, _pose()), (2, _pose()), (2, _pose()), (2, _pose())]),
+        {"rejected.repeated_id": 3, "rejected.duplicate": 1}),
+    "observations_empty": ("observations", lambda t, n, a: _observations(t, []), {"rejected.duplicate": 1}),
+}
+#: A command and its observation in the slot: a learning sample the learner refuses (whole or marker by marker).
+PAIRS = {
+    "pair_command_beyond_limits": (lambda t, n, a: _command(t, n, [50.0, a[1]]),
+                                   lambda t: _observations(t, [(1, _pose())]),
+                                   {"rejected.command_out_of_range": 1}, 0),
+    "pair_command_1e300": (lambda t, n, a: _command(t, n, [a[0], HUGE]),
+                           lambda t: _observations(t, [(1, _pose())]), {"rejected.command_out_of_range": 1}, 0),
+    "pair_markers_out_of_workspace": (lambda t, n, a: _command(t, n, a), lambda t: _observations(t, [
+        (1, _pose(x=HUGE)), (2, _pose(y=1e150)), (3, _pose(z=20.0))]), {"rejected.out_of_workspace": 3}, 1),
+    "pair_unknown_and_negative_ids": (lambda t, n, a: _command(t, n, a), lambda t: _observations(t, [
+        (99, _pose()), (-5, _pose()), (2**40, _pose())]), {"rejected.unknown_id": 3}, 1),
+}
+#: Every case name (for the report).
+CASES = sorted([*REFUSED_ANYWHERE, *BACKWARDS, *IN_SLOT, *PAIRS, "zero_stamp_command", "zero_stamp_observations"])
+
+
+@dataclass
+class Plan:
+    """What to publish when (offsets from the start, s) and what the node must then count."""
+
+    messages: list = field(default_factory=list)  # (offset s, kind, build(t0) -> message), in publishing order
+    expected: Counter = field(default_factory=Counter)
+    cases: Counter = field(default_factory=Counter)  # hostile messages by case
+    learning_steps: int = 0
+    valid_samples: list = field(default_factory=list)  # (actions, observations) the learner must see
+
+    def add(self, offset, kind, build, case=None):
+        self.messages.append((offset, kind, build))
+        if case is not None:
+            self.cases[case] += 1
+
+
+def make_plan(session, n_messages, seed=0):
+    """Interleave ``session`` (one valid command and observation per ``PERIOD``) with hostile messages, about
+    ``n_messages`` in all, and add up the node's expected counts."""
+    rng = np.random.default_rng(seed)
+    names = list(session.tree.action_joint_names)
+    n = session.n_steps
+    plan = Plan()
+    # Refusals per slot so that the total comes near n_messages (a slot holds 1.2 pair or slot messages on average).
+    per_slot = max(0.0, (n_messages - 2 * n - 7) / n - 1.2 - BURST * 0.03)
+    for k in range(n):
+        t, a, obs = k * PERIOD, session.actions[k], session.observations[k]
+        ignored = k % 7 == 3  # NaN, inf and 1e300 in fields the node does not use
+        plan.add(t, "command", lambda t0, t=t, a=a, ignored=ignored: _valid_command(t0 + t, names, a, ignored))
+        plan.add(t + 0.005, "observations", lambda t0, t=t, obs=obs, ignored=ignored: _valid_observations(
+            t0 + t + 0.005, obs, ignored))
+        plan.valid_samples.append((a, obs))
+        plan.learning_steps += 1
+        mid = t + PERIOD / 2
+        cases = dict(REFUSED_ANYWHERE, **(BACKWARDS if k >= BACKWARDS_FROM else {}))
+        count = int(rng.poisson(per_slot)) + (BURST if rng.random() < 0.03 else 0)
+        for j, name in enumerate(rng.choice(sorted(cases), size=count)):
+            kind, build, counts = cases[name]
+            plan.add(mid - 0.01 + 1e-5 * j, kind, lambda t0, t=mid, b=build, a=a: b(t0 + t, names, a), name)
+            plan.expected.update(counts)
+        slot = rng.choice(["none", "observations", "pair"], p=[0.2, 0.4, 0.4])
+        if slot == "observations":
+            name = str(rng.choice(sorted(IN_SLOT)))
+            kind, build, counts = IN_SLOT[name]
+            plan.add(mid, kind, lambda t0, t=mid, b=build, a=a: b(t0 + t, names, a), name)
+            plan.expected.update(counts)
+        elif slot == "pair":
+            name = str(rng.choice(sorted(PAIRS)))
+            command, observations, counts, steps = PAIRS[name]
+            plan.add(mid, "command", lambda t0, t=mid, b=command, a=a: b(t0 + t, names, a), name)
+            plan.add(mid + 0.005, "observations", lambda t0, t=mid, b=observations: b(t0 + t + 0.005), name)
+            plan.expected.update(counts)
+            plan.learning_steps += steps
+    # Zero stamps, after the session: commands take their receipt time (no observation follows them), then
+    # observations of an unknown marker take theirs: the first pairs with the last command (a learning step whose only
+    # marker is unknown), the others are duplicates of it.
+    end = n * PERIOD + 1.0
+    for j in range(3):
+        plan.add(end + 0.05 * j, "command", lambda t0, a=session.actions[-1]: JointState(
+            name=names, position=[float(v) for v in a]), "zero_stamp_command")
+    for j in range(4):
+        plan.add(end + 0.2 + 0.05 * j, "observations", lambda t0: MarkerPoses(marker_ids=[77], poses=[_pose()]),
+                 "zero_stamp_observations")
+    plan.expected.update({"restamped.unstamped": 7, "rejected.unknown_id": 1, "rejected.duplicate": 3})
+    plan.learning_steps += 1
+    plan.messages.sort(key=lambda item: item[0])
+    return plan
+
+
+def _valid_command(stamp, names, actions, ignored):
+    msg = _command(stamp, names, actions)
+    if ignored:
+        msg.velocity, msg.effort = [NAN, INF], [HUGE, -HUGE]
+    return msg
+
+
+def _valid_observations(stamp, observations, ignored):
+    msg = conversions.marker_poses_msg(stamp, "camera", observations)
+    if ignored:
+        for item in msg.poses:
+            item.covariance = [NAN] * 36
+    return msg
+
+
+# ---------------------------------------------------------------------- the run
+def fuzz_parameters(tree):
+    """scheme_node's parameters for the run; the in-process baseline learns with the same settings."""
+    return {"part_ids": [int(i) for i in tree.marker_ids], "joint_names": list(tree.action_joint_names),
+            "action_lower": [float(v) for v in tree.action_lower],
+            "action_upper": [float(v) for v in tree.action_upper],
+            "pairing_grace": 0.2, "learner.train_window": 20,
+            # Nothing may be shed for load here: the count must be exact, however slow the machine.
+            "max_sample_age": 600.0, "max_pending_samples": 100000, "max_inbox": 100000}
+
+
+def baseline_structure(settings, samples):
+    """Edges ``(parent, child, kind)`` the node's settings learn in-process from ``samples`` alone."""
+    learner = settings.new_learner()
+    for actions, observations in samples:
+        learner.update(actions, observations)
+    return sorted((e["parent"], e["child"], e["kind"]) for e in learner.edge_status())
+
+
+def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_dir=None, timeout=120.0):
+    """Run the fuzz and return the report (a dict; ``ok`` says whether it passed)."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps, seed=seed, sigma_trans=0.02, sigma_rot=math.radians(5.0), visibility=0.9)
+    plan = make_plan(session, n_messages, seed)
+    parameters = fuzz_parameters(tree)
+    baseline = baseline_structure(SchemeSettings.from_parameters(parameters), plan.valid_samples)
+    with tempfile.TemporaryDirectory() as tmp:
+        process = NodeProcess("body_scheme_nodes", "scheme_node", parameters, log_dir or tmp, env=env)
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=domain_id(env) if domain is None else domain)
+        node = rclpy.create_node("fuzz", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        last, structure = {}, []
+
+        def on_diagnostics(msg):
+            for status in msg.status:
+                if status.name == "/scheme_node: body scheme":
+                    last.clear()
+                    last.update({kv.key: kv.value for kv in status.values})
+
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+        node.create_subscription(BodySchemeStructure, "body_scheme/structure",
+                                 structure.append, LATCHED)
+        publishers = {"command": node.create_publisher(JointState, "joint_commands", 1000),
+                      "observations": node.create_publisher(MarkerPoses, "observations", 1000)}
+        published = Counter()
+        try:
+            deadline = time.monotonic() + 60
+            while not (last and structure) and time.monotonic() < deadline:  # up and discovered
+                executor.spin_once(timeout_sec=0.05)
+            if not (last and structure):
+                raise RuntimeError(f"scheme_node did not come up within 60 s:\n{process.output()}")
+            t0 = node.get_clock().now().nanoseconds * 1e-9 + 0.2
+            start = time.monotonic() + 0.2
+            for offset, kind, build in plan.messages:
+                while time.monotonic() < start + offset:
+                    executor.spin_once(timeout_sec=max(0.0, min(0.005, start + offset - time.monotonic())))
+                publishers[kind].publish(build(t0))
+                published[kind] += 1
+
+            def done():
+                return (int(last.get("step", -1)) >= plan.learning_steps
+                        and all(int(last.get(k, 0)) >= v for k, v in plan.expected.items())
+                        and all(int(last.get(f"received.{k}", 0)) >= v for k, v in published.items()))
+
+            deadline = time.monotonic() + timeout
+            while not done() and time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.1)
+            settle = time.monotonic() + 2.5  # one more diagnostics message: nothing else arrives late
+            while time.monotonic() < settle:
+                executor.spin_once(timeout_sec=0.1)
+            alive = process.running()
+        finally:
+            process.stop()
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown(context=context)
+            output = process.output()
+
+    counted = {k: int(v) for k, v in last.items() if k.startswith(("rejected.", "restamped.", "shed."))
+               and k != "rejected_total" and int(v)}
+    expected = dict(plan.expected)
+    differences = {k: {"expected": expected.get(k, 0), "counted": counted.get(k, 0)}
+                   for k in sorted(set(expected) | set(counted)) if expected.get(k, 0) != counted.get(k, 0)}
+    received = {k: int(last.get(f"received.{k}", 0)) for k in published}
+    learnt = sorted((e.parent_id, e.child_id, e.kind) for e in structure[-1].edges) if structure else []
+    result = {
+        "ok": bool(alive and not differences and received == dict(published) and learnt == baseline
+                   and int(last.get("step", -1)) == plan.learning_steps),
+        "node_alive": alive, "published_messages": sum(published.values()),
+        "hostile_messages": sum(plan.cases.values()), "published": dict(published), "received": received,
+        "learning_steps": {"expected": plan.learning_steps, "counted": int(last.get("step", -1))},
+        "expected": expected, "counted": counted, "differences": differences,
+        "structure": [list(e) for e in learnt], "baseline_structure": [list(e) for e in baseline],
+        "cases": dict(sorted(plan.cases.items())),
+    }
+    if not result["ok"]:
+        result["node_output_tail"] = output[-4000:]
+    return result
+
+
+def _table(result):
+    lines = [f"scheme_node fuzz: {result['published_messages']} messages, {result['hostile_messages']} hostile "
+             f"({len(result['cases'])} kinds); node alive: {result['node_alive']}",
+             f"  received {result['received']} of {result['published']}",
+             "  learning steps {counted} (expected {expected})".format(**result["learning_steps"]),
+             f"  counts {'exact' if not result['differences'] else 'DIFFER: ' + str(result['differences'])}",
+             f"  structure {result['structure']} (without fuzz: {result['baseline_structure']})",
+             f"  {'PASSED' if result['ok'] else 'FAILED'}"]
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    """Console entry point: run, print, write the JSON file; exit code 1 if the run failed."""
+    parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.fuzz", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--messages", type=int, default=10000, help="messages in all (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=600, help="valid samples (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=os.path.join("out", "fuzz", "fuzz.json"), help="JSON file to write")
+    args = parser.parse_args(argv)
+    result = run_fuzz(args.messages, args.steps, args.seed, log_dir=pathlib.Path(args.out).parent)
+    status = report(result, _table(result), args.out)
+    return status or (0 if result["ok"] else 1)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
