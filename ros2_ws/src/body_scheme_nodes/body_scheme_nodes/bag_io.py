@@ -352,7 +352,19 @@ def write_session(session, path):
                       conversions.camera_info_msg(0.0, frame, camera.width, camera.height, camera.K))
     finally:
         writer.close()
+    _name_the_distro(path)
     return path
+
+
+#: The ROS distribution our bags are written for (rosbags writes its own name into ``metadata.yaml``).
+ROS_DISTRO = "jazzy"
+
+
+def _name_the_distro(path):
+    """Put ``ros_distro: jazzy`` into the bag's ``metadata.yaml`` (rosbags writes ``rosbags`` there)."""
+    metadata = pathlib.Path(path) / "metadata.yaml"
+    text = metadata.read_text()
+    metadata.write_text(text.replace("ros_distro: rosbags", f"ros_distro: {ROS_DISTRO}"))
 
 
 def _info(session):

@@ -165,6 +165,7 @@ def test_bag_reads_back_with_expected_topics_and_counts(blocked, tmp_path):
     path = write_session(blocked, tmp_path / "session")
     with Reader(path) as reader:
         counts = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        assert reader.ros_distro == "jazzy"  # not rosbags' own name
     n = blocked.n_steps
     assert counts == {
         "/session/info": ("std_msgs/msg/String", 1),

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import pathlib
 import tempfile
 import xml.etree.ElementTree as ET
@@ -60,6 +61,19 @@ _RAY_STANDOFF = 2e-3
 _GROUND_HALF_SIZE = 1.4  # m; the floor ends behind the robot (a white wall beyond)
 _GROUND_RGBA = (0.55, 0.6, 0.5, 1.0)
 _PLAIN_PLATE_RGBA = (0.9, 0.9, 0.9, 1.0)
+
+
+def direct_client():
+    """A pybullet ``DIRECT`` client, without the bare ``argv[0]=`` line pybullet's C code prints on stdout."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            return BulletClient(connection_mode=pybullet.DIRECT)
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 class SimWorld:
@@ -114,7 +128,7 @@ class SimWorld:
         self._body = self._nominal
         self._faults = []
         try:
-            self._pb = BulletClient(connection_mode=pybullet.DIRECT)
+            self._pb = direct_client()
             self._robot_id = self._load_robot(tree)
             self._index_links(tree)
             self._ground_id = self._create_ground()
@@ -332,7 +346,7 @@ class SimWorld:
     def _backdrop(self):
         key = (self.camera.width, self.camera.height, self.camera.view_matrix, self.camera.projection_matrix)
         if self._backdrop_cache is None or self._backdrop_cache[0] != key:
-            scene = BulletClient(connection_mode=pybullet.DIRECT)
+            scene = direct_client()
             try:
                 half = _GROUND_HALF_SIZE
                 visual = scene.createVisualShape(pybullet.GEOM_BOX, halfExtents=(half, half, 0.0005),

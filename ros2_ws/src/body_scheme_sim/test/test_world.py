@@ -315,3 +315,15 @@ def test_render_gives_an_rgb_image_of_the_camera_size():
         image = w.render()
         assert image.shape == (240, 320, 3) and image.dtype == np.uint8
         assert image.std() > 10  # not blank
+
+
+def test_creating_worlds_prints_no_argv_line():
+    """pybullet's C code prints a bare ``argv[0]=`` for every client; our worlds and renderings print nothing."""
+    import subprocess
+    import sys
+
+    code = ("from body_scheme_sim.world import SimWorld\n"
+            "world = SimWorld('planar_2dof')\nworld.render()\nSimWorld('planar_2dof').close()\nprint('done')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "argv[0]=" not in out.stdout and "done" in out.stdout, out.stdout
