@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import pathlib
+import sys
 import tempfile
 import xml.etree.ElementTree as ET
 

@@ -1,0 +1,258 @@
+"""The learned body scheme as a robot description, and how it differs from the robot's specification.
+
+:func:`learned_tree` turns a :class:`~body_scheme_core.scheme.BodyScheme` into a
+:class:`~body_scheme_core.world.tree.KinematicTree` (and :func:`learned_urdf` into URDF text for
+robot_state_publisher, MoveIt or pybullet):
+
+- a link ``<prefix>part_<id>`` per body part and a link ``<prefix>marker_<id>`` on a fixed joint for its marker; the
+  root part's link is its marker's frame;
+- a ``revolute`` or ``prismatic`` joint per one-action rigid-joint edge, named after the action's joint (so the
+  commands drive it), its axis through the learned axis line, its limits the trained range; the joint frame has the
+  parent marker's orientation, and for a revolute joint its origin is the axis point nearest to the child marker;
+- a ``fixed`` joint per static edge;
+- an edge no URDF joint can express (a GP, or a model of several actions) becomes a fixed joint at its prediction for
+  mid-range actions, and is named in the notes (:attr:`LearnedBody.notes`, a comment at the top of the URDF).
+
+:func:`calibration_report` compares a learned body with a nominal one (a URDF and its marker file, as a
+``KinematicTree``): per learned joint, the axis deviation (deg), the origin offset (mm: the distance of the nominal
+joint origin from the learned axis line, for revolute joints; a prismatic joint's line has no position) and the child
+marker's placement (its pose relative to the parent marker at zero actions: mm and deg).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InvalidInputError
+from .scheme import BodyScheme
+from .transforms import invert_transform, rotation_log
+from .world.robot_files import tree_to_urdf
+from .world.tree import Joint, KinematicTree, Marker
+
+__all__ = ["LearnedJoint", "LearnedBody", "learned_tree", "learned_urdf", "calibration_report", "format_report"]
+
+#: Below this |s - 1| a joint's learned scale is 1 (the command is the joint position).
+_UNIT_SCALE = 1e-6
+
+
+@dataclass(frozen=True)
+class LearnedJoint:
+    """One tree edge as exported: ``parent -> child`` parts, URDF joint type, name, action and scale."""
+
+    parent: int
+    child: int
+    type: str  # "revolute", "prismatic" or "fixed"
+    name: str
+    action: int | None
+    model: str  # the local model's kind: static, prismatic, revolute, gp
+    scale: float = 1.0  # joint position per action unit
+    axis: tuple = ()  # unit axis in the parent marker frame
+    point: tuple = ()  # a point of the axis line in the parent marker frame (revolute)
+
+
+@dataclass
+class LearnedBody:
+    """:func:`learned_tree`'s result: the tree, the exported joints, the action of each tree action, the notes."""
+
+    tree: KinematicTree
+    joints: list
+    actions: tuple  # tree action index -> body scheme action index
+    n_actions: int
+    notes: list = field(default_factory=list)
+
+    def marker_poses(self, a):
+        """``root_marker2marker`` per part for body-scheme action vector(s) ``a`` (forward kinematics of the
+        tree; equals the body scheme's prediction for every rigid edge)."""
+        a = np.asarray(a, dtype=float)
+        scale = np.array([j.scale for j in self.joints if j.action is not None])  # in tree action order
+        return self.tree.marker_poses(a[..., list(self.actions)] * scale)
+
+
+def _one_action_transform(scheme, edge, n_actions, action, values):
+    """The edge's parent2child for the given values of ``action`` (others zero), shape (n, 4, 4)."""
+    A = np.zeros((len(values), n_actions))
+    if action is not None:
+        A[:, action] = values
+    _, _, model, inverted = edge
+    return BodyScheme._local(model, inverted, A)
+
+
+def _screw(Z0, Z1, kind):
+    """Axis, scale and (revolute) axis point of ``Z(a) = J(a) Z0`` from ``Z0 = Z(0)`` and ``Z1 = Z(1)``."""
+    J = Z1 @ invert_transform(Z0)
+    if kind == "prismatic":
+        v = J[:3, 3]
+        scale = float(np.linalg.norm(v))
+        return v / scale, scale, None
+    rotvec = rotation_log(J[None, :3, :3])[0]
+    scale = float(np.linalg.norm(rotvec))
+    u = rotvec / scale
+    # The axis line: (I - R) c = t, solved in the least-squares sense; then the point nearest to the child at a = 0.
+    c = np.linalg.lstsq(np.eye(3) - J[:3, :3], J[:3, 3], rcond=None)[0]
+    c = c + u * float(np.dot(Z0[:3, 3] - c, u))
+    return u, scale, c
+
+
+def learned_tree(scheme, joint_names, lower, upper, prefix=""):
+    """The body scheme as a kinematic tree (see the module docstring).
+
+    Parameters
+    ----------
+    scheme : BodyScheme
+    joint_names : sequence of str
+        The action's joint names, in action order.
+    lower, upper : array-like, shape (m,)
+        The trained range of each action (the joints' limits; mid-range actions fix GP edges).
+    prefix : str
+        Prefix of every link and joint name (two robots in one TF tree).
+
+    Returns
+    -------
+    LearnedBody
+    """
+    n_actions = len(joint_names)
+    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    if lower.shape != (n_actions,) or upper.shape != (n_actions,) or np.any(lower > upper):
+        raise InvalidInputError(f"need {n_actions} lower <= upper limits, got {lower.tolist()}, {upper.tolist()}")
+    if scheme.min_n_actions > n_actions:
+        raise InvalidInputError(f"the body scheme uses {scheme.min_n_actions} actions, got {n_actions} joint names")
+    mid = np.where(np.isfinite(lower + upper), (lower + upper) / 2.0, 0.0)
+    part = {p: f"{prefix}part_{p}" for p in scheme.parts}
+    link2marker = {scheme.root: np.eye(4)}  # part link -> marker, filled parent before child
+    joints, exported, used, notes = [], [], [], []
+    for edge in scheme.edges:
+        parent, child, model, _ = edge
+        kind = model.kind if len(model.actions) <= 1 else "multi"
+        action = model.actions[0] if len(model.actions) == 1 else None
+        rigid_joint = kind in ("revolute", "prismatic") and action not in used
+        if rigid_joint:
+            Z0, Z1 = _one_action_transform(scheme, edge, n_actions, action, [0.0, 1.0])
+            u, scale, c = _screw(Z0, Z1, kind)
+            scale = 1.0 if abs(scale - 1.0) < _UNIT_SCALE else scale
+            joint_frame = np.eye(4)
+            if c is not None:
+                joint_frame[:3, 3] = c
+            limits = sorted((scale * lower[action], scale * upper[action]))
+            joints.append(Joint(prefix + joint_names[action], kind, part[parent], part[child],
+                                origin=link2marker[parent] @ joint_frame, axis=u, lower=limits[0], upper=limits[1],
+                                action=len(used)))
+            used.append(action)
+            link2marker[child] = invert_transform(joint_frame) @ Z0
+            exported.append(LearnedJoint(parent, child, kind, prefix + joint_names[action], action, model.kind,
+                                         scale, tuple(u), () if c is None else tuple(c)))
+            if scale != 1.0:
+                notes.append(f"{parent}->{child}: joint {joint_names[action]} turns {scale:.6g} per action unit; "
+                             f"its position is {scale:.6g} x the command")
+            continue
+        values = [mid[action]] if action is not None else [0.0]
+        if len(model.actions) > 1:  # fixed at mid-range for all of its actions
+            A = np.zeros((1, n_actions))
+            A[0, list(model.actions)] = mid[list(model.actions)]
+            Z = BodyScheme._local(model, edge[3], A)[0]
+        else:
+            Z = _one_action_transform(scheme, edge, n_actions, action, values)[0]
+        name = f"{prefix}part_{parent}_to_part_{child}"
+        joints.append(Joint(name, "fixed", part[parent], part[child], origin=link2marker[parent] @ Z))
+        link2marker[child] = np.eye(4)
+        exported.append(LearnedJoint(parent, child, "fixed", name, None, model.kind))
+        if kind != "static":
+            why = "a second joint of the same action" if action in used else f"a {model.kind} model"
+            notes.append(f"{parent}->{child}: {why} over actions {list(model.actions)} is no URDF joint; fixed at "
+                         f"its prediction for mid-range actions {mid[list(model.actions)].round(4).tolist()}")
+    markers = []
+    for p in scheme.parts:
+        joints.append(Joint(f"{prefix}marker_{p}_joint", "fixed", part[p], f"{prefix}marker_{p}",
+                            origin=link2marker[p]))
+        markers.append(Marker(p, f"{prefix}marker_{p}"))
+    tree = KinematicTree(joints, markers, root_link=part[scheme.root])
+    return LearnedBody(tree, exported, tuple(used), n_actions, notes)
+
+
+def learned_urdf(scheme, joint_names, lower, upper, prefix="", name="learned_body_scheme"):
+    """URDF text of :func:`learned_tree`, with its notes (GP edges, scaled joints) in a comment at the top."""
+    body = learned_tree(scheme, joint_names, lower, upper, prefix)
+    xml = tree_to_urdf(body.tree, name=name)
+    lines = ["Learned by body_scheme from camera observations: a link per part, a fixed marker link per part,",
+             "a joint per rigid one-action local model (named after its action), limits = the trained range."]
+    lines += [f"NOTE {note}" for note in body.notes] or ["Every edge is a rigid joint or fixed."]
+    comment = "<!--\n  " + "\n  ".join(line.replace("--", "- -") for line in lines) + "\n-->\n"
+    head, _, rest = xml.partition("\n")
+    return f"{head}\n{comment}{rest}"
+
+
+# ---------------------------------------------------------------------- the calibration report
+def _angle_deg(u, v):
+    return math.degrees(math.acos(float(np.clip(np.dot(u, v) / (np.linalg.norm(u) * np.linalg.norm(v)), -1, 1))))
+
+
+def calibration_report(body, nominal):
+    """Compare a :class:`LearnedBody` with the nominal robot (a ``KinematicTree`` with its markers).
+
+    The nominal joint of a learned joint is the nominal joint commanded by the same action; frames are compared in
+    the parent marker's frame at zero actions.
+
+    Returns
+    -------
+    report : dict
+        ``joints``: per learned joint ``{parent, child, joint, type, axis_deg, origin_mm, marker_mm, marker_deg}``
+        (``origin_mm`` None for prismatic joints); ``fixed``: per fixed edge ``{parent, child, model, marker_mm,
+        marker_deg}``; ``max_axis_deg``, ``max_origin_mm``, ``max_marker_mm``; ``notes``.
+    """
+    zero_nominal = np.zeros(nominal.n_actions)
+    nominal_markers = nominal.marker_poses(zero_nominal)
+    nominal_links = nominal.link_poses(zero_nominal)
+    learned_markers = body.marker_poses(np.zeros(body.n_actions))
+    rows, fixed = [], []
+    for joint in body.joints:
+        for part in (joint.parent, joint.child):
+            if part not in nominal_markers:
+                raise InvalidInputError(f"marker {part} of the learned body is not in the nominal robot")
+        nominal2parent = invert_transform(nominal_markers[joint.parent])
+        nominal_rel = nominal2parent @ nominal_markers[joint.child]
+        learned_rel = invert_transform(learned_markers[joint.parent]) @ learned_markers[joint.child]
+        placement = {"marker_mm": 1e3 * float(np.linalg.norm(learned_rel[:3, 3] - nominal_rel[:3, 3])),
+                     "marker_deg": math.degrees(float(np.linalg.norm(rotation_log(
+                         (nominal_rel[:3, :3].T @ learned_rel[:3, :3])[None])[0])))}
+        if joint.type == "fixed":
+            fixed.append({"parent": joint.parent, "child": joint.child, "model": joint.model, **placement})
+            continue
+        if joint.action >= nominal.n_actions:
+            raise InvalidInputError(f"the nominal robot has no joint for action {joint.action}")
+        spec = nominal.action_joint(joint.action)
+        parent2frame = nominal2parent @ nominal_links[spec.parent] @ spec.origin
+        axis = parent2frame[:3, :3] @ spec.axis
+        origin_mm = None
+        if joint.type == "revolute":
+            d = parent2frame[:3, 3] - np.asarray(joint.point)
+            u = np.asarray(joint.axis)
+            origin_mm = 1e3 * float(np.linalg.norm(d - u * np.dot(d, u)))
+        rows.append({"parent": joint.parent, "child": joint.child, "joint": joint.name, "nominal_joint": spec.name,
+                     "type": joint.type, "axis_deg": _angle_deg(np.asarray(joint.axis), axis),
+                     "origin_mm": origin_mm, **placement})
+
+    def biggest(key, items):
+        values = [r[key] for r in items if r[key] is not None]
+        return max(values) if values else None
+
+    return {"joints": rows, "fixed": fixed, "max_axis_deg": biggest("axis_deg", rows),
+            "max_origin_mm": biggest("origin_mm", rows), "max_marker_mm": biggest("marker_mm", rows + fixed),
+            "notes": list(body.notes)}
+
+
+def format_report(report):
+    """The report as a text table."""
+    lines = ["learned vs nominal, in the parent marker's frame at zero actions",
+             f"{'edge':>8s}  {'joint':<22s} {'type':<10s} {'axis deg':>9s} {'origin mm':>10s} {'marker mm':>10s} "
+             f"{'marker deg':>10s}"]
+    for r in report["joints"]:
+        origin = "-" if r["origin_mm"] is None else f"{r['origin_mm']:.2f}"
+        lines.append(f"{r['parent']:>3d}->{r['child']:<3d}  {r['joint']:<22s} {r['type']:<10s} {r['axis_deg']:>9.3f} "
+                     f"{origin:>10s} {r['marker_mm']:>10.2f} {r['marker_deg']:>10.3f}")
+    for r in report["fixed"]:
+        lines.append(f"{r['parent']:>3d}->{r['child']:<3d}  {'(fixed: ' + r['model'] + ')':<22s} {'fixed':<10s} "
+                     f"{'-':>9s} {'-':>10s} {r['marker_mm']:>10.2f} {r['marker_deg']:>10.3f}")
+    lines += [f"note: {note}" for note in report["notes"]]
+    return "\n".join(lines)

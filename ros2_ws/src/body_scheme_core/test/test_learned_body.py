@@ -1,0 +1,74 @@
+"""The learned body scheme as a kinematic tree and URDF (body_scheme_core.learned_body)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.learned_body import calibration_report, format_report, learned_tree, learned_urdf
+from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.world import make_session, planar_2dof, random_tree
+
+
+def _learn(robot, config=None, n=200, seed=0):
+    session = make_session(robot, n, seed=seed, sigma_trans=0.005, sigma_rot=math.radians(2.0), visibility=0.95)
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, config, action_lower=robot.action_lower,
+                                action_upper=robot.action_upper)
+    for actions, observations in zip(session.actions, session.observations, strict=True):
+        learner.update(actions, observations)
+    assert learner.body_scheme is not None
+    return learner, session
+
+
+def _fk_error(body, scheme, A):
+    fk = body.marker_poses(A)
+    predicted = scheme.predict_batch(A)
+    return max(float(np.abs(fk[p] - predicted[:, k]).max()) for k, p in enumerate(scheme.parts))
+
+
+@pytest.mark.parametrize("root", [1, 3])
+def test_forward_kinematics_of_the_tree_equal_the_body_schemes_prediction(root):
+    """Rooted at the base or at the end effector (every edge inverted), the tree predicts what the scheme does."""
+    robot = planar_2dof()
+    learner, session = _learn(robot)
+    scheme = BodyScheme(learner.body_scheme.parts, root, [model for _, _, model, _ in learner.body_scheme.edges])
+    assert all(inverted == (root == 3) for _, _, _, inverted in scheme.edges)
+    body = learned_tree(scheme, robot.action_joint_names, robot.action_lower, robot.action_upper)
+    assert [j.type for j in body.joints] == ["revolute", "revolute"] and body.notes == []
+    assert _fk_error(body, scheme, session.actions[:30]) < 1e-9
+
+
+def test_prismatic_joints_are_exported_as_prismatic():
+    """A robot with sliding joints gets prismatic URDF joints whose FK matches."""
+    robot = random_tree(3, seed=4, branching=False, prismatic_fraction=1.0)
+    learner, session = _learn(robot, n=150)
+    body = learned_tree(learner.body_scheme, robot.action_joint_names, robot.action_lower, robot.action_upper)
+    assert {j.type for j in body.joints} == {"prismatic"}
+    assert _fk_error(body, learner.body_scheme, session.actions[:30]) < 1e-9
+    report = calibration_report(body, robot)
+    assert all(r["origin_mm"] is None for r in report["joints"]) and report["max_axis_deg"] < 2.0
+
+
+def test_gp_edges_are_fixed_at_mid_range_and_flagged():
+    """Without rigid-joint candidates the edges are GPs: fixed joints, each named in a note and the URDF comment."""
+    robot = planar_2dof()
+    learner, _ = _learn(robot, BodySchemeConfig(candidate_kinds=("static", "gp")), n=120)
+    urdf = learned_urdf(learner.body_scheme, robot.action_joint_names, robot.action_lower, robot.action_upper,
+                        prefix="robot2/")
+    assert urdf.count("NOTE ") == 2 and "gp model" in urdf and 'type="revolute"' not in urdf
+    assert 'name="robot2/part_1"' in urdf
+    body = learned_tree(learner.body_scheme, robot.action_joint_names, robot.action_lower, robot.action_upper)
+    report = calibration_report(body, robot)
+    assert report["joints"] == [] and len(report["fixed"]) == 2 and "gp" in format_report(report)
+
+
+def test_bad_limits_and_too_few_joint_names_are_refused():
+    robot = planar_2dof()
+    learner, _ = _learn(robot, n=100)
+    with pytest.raises(InvalidInputError, match="limits"):
+        learned_tree(learner.body_scheme, robot.action_joint_names, [1.0, 1.0], [0.0, 0.0])
+    with pytest.raises(InvalidInputError, match="joint names"):
+        learned_tree(learner.body_scheme, ["only_one"], [0.0], [1.0])
