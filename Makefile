@@ -42,11 +42,17 @@ $(STAMPS)/cmake-fixed: $(STAMPS)/deps tools/fix_cmake_paths.py
 	$(VENV)/bin/python tools/fix_cmake_paths.py
 	touch $@
 
+# Interface packages ROS has but PyPI has not (tf2_msgs): built with ours only when the venv lacks them, from outside
+# src/ so that a workspace on an apt install never builds them (tools/pypi_interfaces/README.md).
+PYPI_INTERFACES := $(CURDIR)/tools/pypi_interfaces
+PYPI_INTERFACE_SOURCES := $(shell find tools/pypi_interfaces -type f 2>/dev/null)
+
 build: $(STAMPS)/build
-$(STAMPS)/build: $(STAMPS)/cmake-fixed $(PKG_SOURCES)
+$(STAMPS)/build: $(STAMPS)/cmake-fixed $(PKG_SOURCES) $(PYPI_INTERFACE_SOURCES)
 	source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
+	  extra=$$(python -c "import tf2_msgs" 2>/dev/null || echo "$(PYPI_INTERFACES)") && \
 	  cd $(WS) && colcon --log-level error build --symlink-install --event-handlers console_cohesion- summary+ \
-	  --cmake-args -DBUILD_TESTING=OFF
+	  --base-paths src $$extra --cmake-args -DBUILD_TESTING=OFF
 	touch $@
 
 # Every test (pytest over each package's test/ and the cross-package tests/) plus lint.

@@ -1,4 +1,6 @@
-"""System tests of scheme_node: the installed executable as its own process, our messages over real DDS."""
+"""System tests of scheme_node: the installed executable as its own process, our messages over real DDS.
+
+The last test reads the body scheme as the ROS toolbox does: markers, PoseArray, /tf and the learned URDF."""
 
 from __future__ import annotations
 
@@ -9,12 +11,19 @@ import time
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
+from urdf_parser_py.urdf import URDF
+from visualization_msgs.msg import Marker, MarkerArray
 
 from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot
+from body_scheme_msgs.srv import GetRobotDescription
 from body_scheme_nodes import conversions
+from body_scheme_nodes.view import EDGE_COLOURS
 
 pytestmark = pytest.mark.system
 
@@ -401,3 +410,83 @@ def test_input_without_learning_turns_diagnostics_to_error_until_learning_resume
     assert spin_until(lambda: status().level != DiagnosticStatus.ERROR and babbler.k > 0, timeout=15, during=babbler), \
         status()
     assert "nothing learnt" not in status().message
+
+
+# ---------------------------------------------------------------------- the ROS toolbox view (issue 13)
+class RecordingBabbler(Babbler):
+    """A Babbler that remembers which step each observation stamp belongs to."""
+
+    def __init__(self, node, session):
+        super().__init__(node, session)
+        self.step_of = {}
+        publish = self.observations.publish
+
+        def remember(msg):
+            self.step_of[round(conversions.seconds_from_stamp(msg.header.stamp), 6)] = self.k
+            publish(msg)
+        self.observations.publish = remember
+
+
+def test_markers_poses_tf_and_urdf_show_the_learned_body(start_node, ros_node, spin_until):
+    """After learning the 2-DOF arm: the PoseArray and /tf frames are within 3 cm of the true marker poses of the
+    step they predict, the markers show axes, green edges, labels with the model kind, uncertainty and observations,
+    and the latched robot_description and ~/get_urdf hold a URDF with a revolute joint per action."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=400, seed=4, sigma_trans=0.01, sigma_rot=np.radians(3.0), visibility=0.95)
+    parameters = dict(scheme_parameters(tree), tf_prefix="robot1/", view_period=0.05)
+    process = start_node("body_scheme_nodes", "scheme_node", parameters)
+    collector = Collector(ros_node)
+    got = {"markers": None, "poses": [], "tf": [], "description": None}
+    ros_node.create_subscription(MarkerArray, "body_scheme/markers", lambda m: got.update(markers=m), 10)
+    ros_node.create_subscription(PoseArray, "body_scheme/poses", got["poses"].append, 10)
+    ros_node.create_subscription(TFMessage, "/tf", got["tf"].append, 10)
+    ros_node.create_subscription(String, "body_scheme/robot_description", lambda m: got.update(description=m),
+                                 LATCHED)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    babbler = RecordingBabbler(ros_node, session)
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    assert spin_until(lambda: _learned(collector, true_edges) and collector.structure.phase == "steady",
+                      timeout=60, during=babbler), process.output()
+    got["poses"].clear()
+    got["tf"].clear()
+    assert spin_until(lambda: len(got["poses"]) >= 5 and len(got["tf"]) >= 5 and got["description"] is not None,
+                      timeout=20, during=babbler), process.output()
+
+    ids = sorted(tree.marker_ids)
+    for msg in got["poses"][-3:]:
+        k = babbler.step_of[round(conversions.seconds_from_stamp(msg.header.stamp), 6)]
+        assert msg.header.frame_id == "camera" and len(msg.poses) == len(ids)
+        for j, pose in zip(ids, msg.poses, strict=True):
+            truth = session.true_poses[k, list(tree.marker_ids).index(j)]
+            assert np.linalg.norm([pose.position.x - truth[0, 3], pose.position.y - truth[1, 3],
+                                   pose.position.z - truth[2, 3]]) < 0.03, (k, j)
+    for msg in got["tf"][-3:]:
+        assert [t.child_frame_id for t in msg.transforms] == [f"robot1/marker_{j}" for j in ids]
+        assert all(t.header.frame_id == "camera" for t in msg.transforms)
+        k = babbler.step_of[round(conversions.seconds_from_stamp(msg.transforms[0].header.stamp), 6)]
+        for j, t in zip(ids, msg.transforms, strict=True):
+            truth = session.true_poses[k, list(tree.marker_ids).index(j)]
+            assert np.linalg.norm([t.transform.translation.x - truth[0, 3], t.transform.translation.y - truth[1, 3],
+                                   t.transform.translation.z - truth[2, 3]]) < 0.03
+
+    markers = got["markers"].markers
+    assert markers[0].action == Marker.DELETEALL
+    by_ns = {}
+    for m in markers[1:]:
+        by_ns.setdefault(m.ns, []).append(m)
+    assert set(by_ns) == {"axes", "edges", "uncertainty", "labels", "observed"}
+    assert len(by_ns["axes"][0].points) == 6 * len(ids)
+    green = EDGE_COLOURS["valid"]
+    assert len(by_ns["edges"]) == 2 and all((e.color.r, e.color.g, e.color.b) == pytest.approx(green)
+                                            for e in by_ns["edges"])
+    assert sorted(m.text for m in by_ns["labels"]) == ["1", "2: revolute a0", "3: revolute a1"]
+    assert all(0 < m.scale.x < 0.2 for m in by_ns["uncertainty"])
+
+    urdf = URDF.from_xml_string(got["description"].data)
+    assert sorted(j.name for j in urdf.joints if j.type == "revolute") == ["robot1/joint1", "robot1/joint2"]
+    client = ros_node.create_client(GetRobotDescription, "/scheme_node/get_urdf")
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(GetRobotDescription.Request())
+    assert spin_until(future.done, timeout=10)
+    reply = future.result()
+    assert reply.success and URDF.from_xml_string(reply.urdf).name == "learned_body_scheme", reply.message

@@ -28,6 +28,8 @@ setup(
             "learning_bench = body_scheme_apps.learning_bench:main",
             "perception_bench = body_scheme_apps.perception_bench:main",
             "load_bench = body_scheme_apps.load_bench:main",
+            "calibrate = body_scheme_apps.calibrate:main",
+            "fuzz = body_scheme_apps.fuzz:main",
         ],
     },
 )

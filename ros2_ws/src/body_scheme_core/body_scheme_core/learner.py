@@ -239,6 +239,16 @@ class BodySchemeLearner:
         world2part = {part: world2root @ T for part, T in root2part.items()}
         return (world2part, std) if return_std else world2part
 
+    def trained_range(self):
+        """``(lower, upper)`` (m,): the smallest and largest value of each action in the history (the joint fit's
+        window), where the learned models are trustworthy; the action limits (or 0) while the history is empty."""
+        if not self._history:
+            lower = np.zeros(self.n_actions) if self.action_lower is None else np.nan_to_num(self.action_lower)
+            upper = np.zeros(self.n_actions) if self.action_upper is None else np.nan_to_num(self.action_upper)
+            return lower, upper
+        A = np.stack([a for _, a, _ in self._history])
+        return A.min(axis=0), A.max(axis=0)
+
     @property
     def calibration_rms(self):
         """Root mean square normalised residual of the last joint fit (about 1 when the noise model holds), or NaN."""

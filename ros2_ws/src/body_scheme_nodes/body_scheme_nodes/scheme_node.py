@@ -17,6 +17,10 @@ body_scheme/events : body_scheme_msgs/SchemeEvent
 /diagnostics : diagnostic_msgs/DiagnosticArray
 body_scheme/progress : std_msgs/UInt64
     Number of observation messages taken in so far (bag_replay's backpressure signal).
+body_scheme/markers : visualization_msgs/MarkerArray, body_scheme/poses : geometry_msgs/PoseArray, /tf
+    The latest prediction for RViz, Foxglove and tf2 (at most every ``view_period``; see body_scheme_nodes.view).
+body_scheme/robot_description : std_msgs/String  (transient local)
+    The learned body scheme as URDF (body_scheme_core.learned_body), republished when it changes.
 
 Services
 --------
@@ -24,6 +28,7 @@ Services
                 no absolute paths elsewhere, no ``..``, no symlinks out, regular files of at most
                 ``max_state_bytes`` only, and never over a file that is not a body scheme state file)
 ~/reset : std_srvs/Trigger
+~/get_urdf : body_scheme_msgs/GetRobotDescription    the learned URDF now
 
 Parameters
 ----------
@@ -42,6 +47,8 @@ unstamped_policy : "receipt_time"     zero-stamped messages: stamped with their 
                                       restamped.unstamped) or, with "reject", refused (unstamped)
 stall_timeout : double 10.0 s         input arriving but no learning step for this long: /diagnostics ERROR
 hardware_id : string ""               diagnostics hardware_id ("" = the node's fully qualified name)
+tf_prefix : string ""                 prefix of the TF frames and URDF links (two robots in one TF tree)
+view_period : double 0.1 s            markers, poses and /tf at most this often
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
                                       $ROS_HOME/body_scheme)
 max_state_bytes : int 67108864        largest state file ~/load reads
@@ -64,20 +71,24 @@ import time
 from collections import Counter, deque
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import UInt64
+from std_msgs.msg import String, UInt64
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
+from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import ActionOutOfRangeError, BodySchemeError, InvalidInputError, StampOrderError
+from body_scheme_core.learned_body import learned_urdf
 from body_scheme_core.persistence import load_state, save_state
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
-from body_scheme_msgs.srv import StatePath
+from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
-from . import conversions, state_files
+from . import conversions, state_files, view
 from .message_feed import feed_message
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
@@ -125,10 +136,18 @@ class SchemeNode(Node):
         self.pub_events = self.create_publisher(SchemeEvent, "body_scheme/events", 100)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", 10)
+        self.pub_markers = self.create_publisher(MarkerArray, "body_scheme/markers", 10)
+        self.pub_poses = self.create_publisher(PoseArray, "body_scheme/poses", 10)
+        self.pub_tf = self.create_publisher(TFMessage, "/tf", 100)
+        self.pub_description = self.create_publisher(String, "body_scheme/robot_description", LATCHED)
+        self._last_view = -float("inf")
+        self._last_description = None
+        self._recent_events = {}  # child part -> (kind, node time) of the latest replacement or reinstatement
         self.n_observation_messages = 0
         self.create_service(StatePath, "~/save", self._on_save, callback_group=work)
         self.create_service(StatePath, "~/load", self._on_load, callback_group=work)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=work)
+        self.create_service(GetRobotDescription, "~/get_urdf", self._on_get_urdf, callback_group=work)
         self.create_timer(self.settings.update_period, self._on_timer, callback_group=work)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=housekeeping)
         if self.checkpoint_path:
@@ -261,12 +280,41 @@ class SchemeNode(Node):
         for event in events:
             self.event_counts[event.kind] += 1
             self.pub_events.publish(conversions.event_msg(stamp, event))
+            if event.kind in ("model_replaced", "model_reinstated") and event.child is not None:
+                self._recent_events[event.child] = (event.kind, self._now())
             if event.kind != "input_rejected":
                 self.get_logger().info(f"[step {event.step}] {event.kind}: {event.reason}")
         if self.learner.body_scheme is not None:
             poses, std = self.learner.predict(actions, return_std=True)
             self.pub_predicted.publish(conversions.marker_poses_msg(stamp, self.frame_id, poses, std))
+            self._publish_view(stamp, poses, std, observations)
         self._publish_structure()
+
+    def _publish_view(self, stamp, poses, std, observations):
+        """Markers, PoseArray and /tf of a prediction, at most every ``view_period`` (body_scheme_nodes.view)."""
+        now = self._now()
+        if now - self._last_view < self.settings.view_period:
+            return
+        self._last_view = now
+        recent = {child: kind for child, (kind, when) in self._recent_events.items() if now - when < 5.0}
+        self.pub_markers.publish(view.markers_msg(stamp, self.frame_id, poses, std, self.learner.edge_status(),
+                                                  observations, recent))
+        self.pub_poses.publish(view.pose_array_msg(stamp, self.frame_id, poses))
+        self.pub_tf.publish(view.tf_msg(stamp, self.frame_id, poses, self.settings.tf_prefix))
+
+    def _urdf(self):
+        """The learned URDF, or None while there is no body scheme."""
+        scheme = self.learner.body_scheme
+        if scheme is None:
+            return None
+        lower, upper = self.learner.trained_range()
+        return learned_urdf(scheme, self.joint_names, lower, upper, prefix=self.settings.tf_prefix)
+
+    def _publish_description(self):
+        text = self._urdf()
+        if text is not None and text != self._last_description:
+            self._last_description = text
+            self.pub_description.publish(String(data=text))
 
     def _reject(self, code, detail):
         """Count a rejected input under a stable reason code (reported on /diagnostics) and log it, throttled."""
@@ -291,6 +339,7 @@ class SchemeNode(Node):
     def _publish_diagnostics(self):
         with self._learner_lock:
             self._publish_diagnostics_locked()
+            self._publish_description()
 
     def _publish_diagnostics_locked(self):
         learner = self.learner
@@ -389,6 +438,18 @@ class SchemeNode(Node):
         self.learner = learner
         response.success, response.message = True, f"loaded step {learner.step} from {path}"
         self._publish_structure(force=True)
+        return response
+
+    def _on_get_urdf(self, request, response):
+        with self._learner_lock:
+            text = self._urdf()
+        if text is None:
+            response.success, response.message = False, f"no body scheme yet ({self.learner.phase})"
+            return response
+        response.success, response.urdf = True, text
+        notes = [line.strip()[5:] for line in text.splitlines() if line.strip().startswith("NOTE ")]
+        response.message = f"learned body scheme at step {self.learner.step}" + (
+            f"; {len(notes)} note(s): " + " | ".join(notes) if notes else "")
         return response
 
     def _on_reset(self, request, response):

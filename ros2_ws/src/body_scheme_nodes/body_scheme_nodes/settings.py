@@ -42,6 +42,7 @@ def parameter_defaults(n_joints=1):
         "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
         "max_inbox": 2000, "max_pending_samples": 500, "tick_budget": 0.2, "max_sample_age": 5.0,
+        "tf_prefix": "", "view_period": 0.1,
     }
     config = BodySchemeConfig()
     for field in dataclasses.fields(BodySchemeConfig):
@@ -80,6 +81,8 @@ class SchemeSettings:
     max_pending_samples: int = 500
     tick_budget: float = 0.2
     max_sample_age: float = 5.0
+    tf_prefix: str = ""
+    view_period: float = 0.1
 
     #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
     UNSTAMPED_POLICIES = ("receipt_time", "reject")
@@ -93,7 +96,8 @@ class SchemeSettings:
                                     f"{len(self.action_lower)} and {len(self.action_upper)}")
         if len(self.part_ids) < 2 or len(set(self.part_ids)) != len(self.part_ids):
             raise InvalidInputError(f"part_ids must name at least two distinct parts, got {list(self.part_ids)}")
-        for name in ("update_period", "stamp_tolerance", "stall_timeout", "tick_budget", "max_sample_age"):
+        for name in ("update_period", "stamp_tolerance", "stall_timeout", "tick_budget", "max_sample_age",
+                     "view_period"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be a finite number > 0 s, got {value!r}")
