@@ -68,3 +68,23 @@ def test_launch_file_is_installed_and_starts_existing_nodes_with_declared_parame
         assert shipped.exists(), f"{shipped} is not installed"
         unknown = set(overrides) - declared_parameters(node_package, node)
         assert not unknown, f"{path.name}: {node} does not declare {sorted(unknown)}"
+
+
+def test_the_rviz_config_and_foxglove_layout_are_installed_and_show_scheme_nodes_topics():
+    """Neither RViz nor Foxglove runs here: check that both files are installed, parse, and name the topics
+    scheme_node publishes (body_scheme_nodes.view) and its default frame."""
+    import json
+
+    share = pathlib.Path(get_package_share_directory("body_scheme_nodes")) / "config"
+    rviz = yaml.safe_load((share / "body_scheme.rviz").read_text())
+    displays = {d["Class"]: d for d in rviz["Visualization Manager"]["Displays"]}
+    assert displays["rviz_default_plugins/MarkerArray"]["Topic"]["Value"] == "/body_scheme/markers"
+    assert displays["rviz_default_plugins/PoseArray"]["Topic"]["Value"] == "/body_scheme/poses"
+    assert displays["rviz_default_plugins/RobotModel"]["Description Topic"]["Value"] == \
+        "/body_scheme/robot_description"
+    assert "rviz_default_plugins/TF" in displays
+    assert rviz["Visualization Manager"]["Global Options"]["Fixed Frame"] == "camera"
+    layout = json.loads((share / "body_scheme.foxglove.json").read_text())
+    scene = layout["configById"]["3D!bodyscheme"]
+    assert set(scene["topics"]) == {"/body_scheme/markers", "/body_scheme/poses", "/tf"}
+    assert scene["followTf"] == "camera"
