@@ -51,6 +51,32 @@ def test_live_graph_learns_detects_recovers_and_moves_the_arm(ros_env, tmp_path)
                            env=ros_env, log=lambda text: None)
     assert_story(result, block=100, repair=170, ik_tolerance=0.06)
     assert np.mean([e for s, e in result.prediction_error if s >= 200]) < 0.08, format_summary(result)  # ~45 mm
+    assert_recording_decodes(tmp_path / "session", result.recorded)
+
+
+def assert_recording_decodes(bag, recorded):
+    """The demo's mcap decodes channel by channel with the mcap library's ROS 2 support, from its embedded schemas
+    alone (as Foxglove reads it), and holds every recorded topic with the counts the recorder wrote."""
+    from body_scheme_apps.live_demo import RECORDED_TOPICS
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    (path,) = bag.glob("*.mcap")
+    counts, kinds = {}, {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, _, decoded in reader.iter_decoded_messages():
+            assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            kinds.setdefault(channel.topic, type(decoded).__name__)
+    expected = {("/" + t).replace("//", "/") for t, _, _ in RECORDED_TOPICS}
+    assert {t for t, n in recorded.items() if n} <= set(counts) <= expected, (counts, recorded)
+    assert counts == {t: n for t, n in recorded.items() if n}
+    for topic in ("/joint_commands", "/observations", "/predicted_poses", "/body_scheme/structure",
+                  "/body_scheme/events", "/diagnostics", "/body_scheme/markers", "/tf",
+                  "/body_scheme/robot_description"):
+        assert counts.get(topic, 0) > 0, (topic, counts)
+    assert "ros_distro: jazzy" in (bag / "metadata.yaml").read_text()
 
 
 def test_live_graph_with_rendered_images_learns_detects_recovers_and_moves_the_arm(ros_env, tmp_path):

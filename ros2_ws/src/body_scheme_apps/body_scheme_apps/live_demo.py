@@ -4,7 +4,9 @@ sim_node (babbling, rendered camera, scheduled faults) -> tracker_node (ArUco) -
 from scratch, detects the fault, adapts) -> control_node (IK on the learned scheme), each its own process talking over
 DDS. A monitor node records what a user would watch (events, structure, ``/diagnostics``, predictions against ground
 truth), then, once babbling ends, sends IK targets and measures where the simulated end effector really goes.
-It prints the event timeline and a summary, and writes ``summary.json`` and ``live_demo.png`` to the output directory.
+It prints the event timeline and a summary, and writes ``summary.json`` and ``live_demo.png`` to the output directory,
+and records the whole session as a rosbag2 (mcap) in ``<out>/session`` (:data:`RECORDED_TOPICS`; open it in Foxglove
+with ``ros2_ws/src/body_scheme_nodes/config/body_scheme.foxglove.json``).
 
 ``make demo`` runs ``python -m body_scheme_apps.live_demo`` (also ``ros2 run body_scheme_sim live_demo``); without
 the ``launch`` package it starts the installed node executables as processes (``body_scheme_nodes.graph``).
@@ -16,6 +18,7 @@ import argparse
 import json
 import os
 import pathlib
+import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -23,18 +26,36 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
+from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.transforms import translational_error
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
-from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, SchemeEvent
+from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess
+from body_scheme_nodes.recorder import GraphRecorder
 from body_scheme_sim.robots import load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
 
-__all__ = ["DemoResult", "run_live_demo", "main"]
+__all__ = ["DemoResult", "RECORDED_TOPICS", "run_live_demo", "main"]
+
+#: (topic, type, latched) of the session recording: commands, observations, predictions, structure, events,
+#: diagnostics, the view (markers, poses, tf, learned URDF), IK and the simulator's ground truth. Camera images are
+#: left out (megabytes per second).
+RECORDED_TOPICS = (
+    ("joint_commands", JointState, False), ("observations", MarkerPoses, False),
+    ("predicted_poses", MarkerPoses, False), ("ground_truth/marker_poses", MarkerPoses, False),
+    ("body_scheme/structure", BodySchemeStructure, True), ("body_scheme/snapshot", ModelSnapshot, True),
+    ("body_scheme/events", SchemeEvent, False), ("/diagnostics", DiagnosticArray, False),
+    ("body_scheme/markers", MarkerArray, False), ("body_scheme/poses", PoseArray, False), ("/tf", TFMessage, False),
+    ("body_scheme/robot_description", String, True), ("ik_target", IKTarget, False), ("ik_result", IKResult, False),
+)
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _LEVELS = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR",
@@ -58,6 +79,7 @@ class DemoResult:
     n_observations: int = 0
     wall_time_s: float = 0.0
     rates: dict = field(default_factory=dict)
+    recorded: dict = field(default_factory=dict)      # topic -> messages in <out>/session (the mcap recording)
 
     def structure_learned(self):
         """Whether the final structure is the robot's true marker tree."""
@@ -199,6 +221,8 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     monitor = _Monitor(node, end_effector)
+    shutil.rmtree(out_dir / "session", ignore_errors=True)
+    recorder = GraphRecorder(node, out_dir / "session", RECORDED_TOPICS)
     processes = []
     start = time.monotonic()
     try:
@@ -266,6 +290,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
         _spin(executor, lambda: False, timeout=1.5)  # a last diagnostics message
     finally:
         result.wall_time_s = time.monotonic() - start
+        recorder.close()
         for process in reversed(processes):
             process.stop()
         executor.shutdown()
@@ -284,6 +309,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             error = float(translational_error(monitor.predicted[stamp], poses[end_effector]))
             result.prediction_error.append((monitor.step(stamp), error))
     result.n_observations = monitor.n_observations
+    result.recorded = dict(recorder.counts)
     babble_time = steps * period
     result.rates = {"commands_per_s": len(monitor.truth[:steps]) / babble_time,
                     "observations_per_s": monitor.n_observations / babble_time,
@@ -359,6 +385,10 @@ def format_summary(result):
     lines.append(f"rates: {result.rates['commands_per_s']:.1f} commands/s, {result.rates['observations_per_s']:.1f} "
                  f"observations/s, {100 * result.rates['learned_fraction']:.0f} % of commands learned as samples; "
                  f"wall time {result.wall_time_s:.1f} s")
+    if result.recorded:
+        topics = sum(map(bool, result.recorded.values()))
+        lines.append(f"recorded {sum(result.recorded.values())} messages on {topics} topics into session/ (rosbag2 "
+                     f"mcap; Foxglove layout: body_scheme_nodes/config/body_scheme.foxglove.json)")
     return "\n".join(lines)
 
 

@@ -3,9 +3,9 @@
 import json
 import math
 
+from body_scheme_apps.calibrate import main
 from urdf_parser_py.urdf import URDF
 
-from body_scheme_apps.calibrate import main
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.persistence import save_state
 from body_scheme_core.world import make_session

@@ -62,7 +62,8 @@ except ImportError:
     from backports.zstd import ZstdError
 
 __all__ = ["BagError", "BagMessage", "MESSAGE_CLASSES", "SESSION_TOPICS", "SESSION_FORMAT", "SESSION_FORMAT_VERSION",
-           "bag_topics", "read_messages", "session_info", "read_session", "write_session", "typestore"]
+           "bag_topics", "read_messages", "session_info", "read_session", "write_session", "typestore",
+           "name_the_distro"]
 
 #: Topic -> message type of every topic a session bag may hold.
 SESSION_TOPICS = {
@@ -352,7 +353,7 @@ def write_session(session, path):
                       conversions.camera_info_msg(0.0, frame, camera.width, camera.height, camera.K))
     finally:
         writer.close()
-    _name_the_distro(path)
+    name_the_distro(path)
     return path
 
 
@@ -360,7 +361,7 @@ def write_session(session, path):
 ROS_DISTRO = "jazzy"
 
 
-def _name_the_distro(path):
+def name_the_distro(path):
     """Put ``ros_distro: jazzy`` into the bag's ``metadata.yaml`` (rosbags writes ``rosbags`` there)."""
     metadata = pathlib.Path(path) / "metadata.yaml"
     text = metadata.read_text()
