@@ -242,9 +242,13 @@ def test_hostile_values_and_stamps_are_counted_and_learning_goes_on(start_node, 
         babbler.observations.publish(conversions.marker_poses_msg(now + 0.005, "camera", poses))
 
     start = ros_node.get_clock().now().nanoseconds * 1e-9 + 0.1  # after the babbler's last sample, 50 ms apart
-    far = {1: np.eye(4), 2: np.eye(4), 3: np.eye(4)}
+    # Markers 1 and 2 where they really are (the camera's origin would be beyond the robot's reach: refused too).
+    far = {part: session.observations[0][part] for part in (1, 2) if part in session.observations[0]}
+    far[3] = np.eye(4)
     far[3][0, 3] = 1e300
     publish_pair(session.actions[0], far, start)
+    far = {part: session.observations[1][part] for part in (1, 2) if part in session.observations[1]}
+    far[3] = np.eye(4)
     far[3][0, 3] = 1e150
     publish_pair(session.actions[1], far, start + 0.05)
     publish_pair([50.0, 0.0], session.observations[2], start + 0.10)
