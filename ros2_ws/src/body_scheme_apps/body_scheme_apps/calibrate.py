@@ -39,11 +39,10 @@ def calibrate(learner, joint_names, out, nominal=None, prefix=""):
     scheme = learner.body_scheme
     if scheme is None:
         raise BodySchemeError(f"the state has no body scheme yet ({learner.phase}, step {learner.step})")
-    lower, upper = learner.trained_range()
-    (out / "learned.urdf").write_text(learned_urdf(scheme, joint_names, lower, upper, prefix=prefix))
+    body = learned_tree(scheme, joint_names, *learner.trained_range(), prefix=prefix)
+    (out / "learned.urdf").write_text(learned_urdf(body))
     if nominal is None:
         return None
-    body = learned_tree(scheme, joint_names, lower, upper, prefix=prefix)
     report = calibration_report(body, nominal)
     (out / "report.txt").write_text(format_report(report) + "\n")
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")

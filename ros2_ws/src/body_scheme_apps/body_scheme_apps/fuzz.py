@@ -29,11 +29,9 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovariance
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
@@ -43,7 +41,7 @@ from body_scheme_apps.live_demo import domain_id
 from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses
 from body_scheme_nodes import conversions
-from body_scheme_nodes.graph import NodeProcess
+from body_scheme_nodes.graph import NodeProcess, monitor_node
 from body_scheme_nodes.settings import SchemeSettings
 
 __all__ = ["PERIOD", "CASES", "Plan", "make_plan", "run_fuzz", "main"]
@@ -252,13 +250,9 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
     plan = make_plan(session, n_messages, seed)
     parameters = fuzz_parameters(tree)
     baseline = baseline_structure(SchemeSettings.from_parameters(parameters), plan.valid_samples)
-    with tempfile.TemporaryDirectory() as tmp:
+    domain = domain_id(env) if domain is None else domain
+    with tempfile.TemporaryDirectory() as tmp, monitor_node("fuzz", domain) as (node, executor):
         process = NodeProcess("body_scheme_nodes", "scheme_node", parameters, log_dir or tmp, env=env)
-        context = rclpy.Context()
-        rclpy.init(context=context, domain_id=domain_id(env) if domain is None else domain)
-        node = rclpy.create_node("fuzz", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
         last, structure = {}, []
 
         def on_diagnostics(msg):
@@ -268,8 +262,7 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
                     last.update({kv.key: kv.value for kv in status.values})
 
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
-        node.create_subscription(BodySchemeStructure, "body_scheme/structure",
-                                 structure.append, LATCHED)
+        node.create_subscription(BodySchemeStructure, "body_scheme/structure", structure.append, LATCHED)
         publishers = {"command": node.create_publisher(JointState, "joint_commands", 1000),
                       "observations": node.create_publisher(MarkerPoses, "observations", 1000)}
         published = Counter()
@@ -301,9 +294,6 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
             alive = process.running()
         finally:
             process.stop()
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.try_shutdown(context=context)
             output = process.output()
 
     counted = {k: int(v) for k, v in last.items() if k.startswith(("rejected.", "restamped.", "shed."))

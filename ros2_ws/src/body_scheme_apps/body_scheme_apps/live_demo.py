@@ -24,10 +24,8 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -38,7 +36,7 @@ from body_scheme_core.transforms import translational_error
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_nodes import conversions
-from body_scheme_nodes.graph import NodeProcess
+from body_scheme_nodes.graph import NodeProcess, monitor_node
 from body_scheme_nodes.recorder import GraphRecorder
 from body_scheme_sim.robots import load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
@@ -214,88 +212,80 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     result = DemoResult(steps=steps, faults=list(faults), perception=perception,
                         true_edges=[list(e) for e in tree.marker_tree_edges()])
 
-    domain = domain_id(env)
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain)
-    node = rclpy.create_node("live_demo_monitor", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    monitor = _Monitor(node, end_effector)
-    shutil.rmtree(out_dir / "session", ignore_errors=True)
-    recorder = GraphRecorder(node, out_dir / "session", RECORDED_TOPICS)
-    processes = []
-    start = time.monotonic()
-    try:
-        def start_node(package, name, parameters):
-            processes.append(NodeProcess(package, name, parameters, out_dir / "logs", env=env))
-            log(f"started {package}/{name}")
+    with monitor_node("live_demo_monitor", domain_id(env)) as (node, executor):
+        monitor = _Monitor(node, end_effector)
+        shutil.rmtree(out_dir / "session", ignore_errors=True)
+        recorder = GraphRecorder(node, out_dir / "session", RECORDED_TOPICS)
+        processes = []
+        start = time.monotonic()
+        try:
+            def start_node(package, name, parameters):
+                processes.append(NodeProcess(package, name, parameters, out_dir / "logs", env=env))
+                log(f"started {package}/{name}")
 
-        # The learner's noise sigmas (and so its 3-sigma validity thresholds) are those of the perception in use.
-        learner_noise = {"learner.sigma_trans": float(sigma_trans), "learner.sigma_rot": float(sigma_rot)}
-        start_node("body_scheme_nodes", "scheme_node", {
-            "part_ids": ids, "joint_names": names, "action_lower": lower, "action_upper": upper, **learner_noise})
-        start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.005})
-        if perception == "rendered":
-            start_node("body_scheme_nodes", "tracker_node", {"markers_path": str(markers_path),
-                                                             "image_reliability": "reliable"})
-        if not _spin(executor, lambda: monitor.structure is not None, timeout=60):
-            raise RuntimeError("scheme_node did not come up within 60 s; see " + str(out_dir / "logs"))
-        # The sim babbles only once scheme_node and control_node subscribe to its commands (messages sent before
-        # discovery matched are lost), and the tracker (or scheme_node) and this monitor to its outputs.
-        start_node("body_scheme_nodes", "sim_node", {"wait_for_subscribers": 2,
-            "robot": robot, "perception_mode": perception, "babbling": True, "babbling_period": period,
-            "babbling_steps": steps, "seed": seed, "fault_schedule": list(faults),
-            "sigma_trans": float(sigma_trans), "sigma_rot": float(sigma_rot),
-            "markers_of_interest": [end_effector - 1, end_effector] if len(ids) > 2 else []})
+            # The learner's noise sigmas (and so its 3-sigma validity thresholds) are those of the perception in use.
+            learner_noise = {"learner.sigma_trans": float(sigma_trans), "learner.sigma_rot": float(sigma_rot)}
+            start_node("body_scheme_nodes", "scheme_node", {
+                "part_ids": ids, "joint_names": names, "action_lower": lower, "action_upper": upper, **learner_noise})
+            start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.005})
+            if perception == "rendered":
+                start_node("body_scheme_nodes", "tracker_node", {"markers_path": str(markers_path),
+                                                                 "image_reliability": "reliable"})
+            if not _spin(executor, lambda: monitor.structure is not None, timeout=60):
+                raise RuntimeError("scheme_node did not come up within 60 s; see " + str(out_dir / "logs"))
+            # The sim babbles only once scheme_node and control_node subscribe to its commands (messages sent before
+            # discovery matched are lost), and the tracker (or scheme_node) and this monitor to its outputs.
+            start_node("body_scheme_nodes", "sim_node", {"wait_for_subscribers": 2,
+                "robot": robot, "perception_mode": perception, "babbling": True, "babbling_period": period,
+                "babbling_steps": steps, "seed": seed, "fault_schedule": list(faults),
+                "sigma_trans": float(sigma_trans), "sigma_rot": float(sigma_rot),
+                "markers_of_interest": [end_effector - 1, end_effector] if len(ids) > 2 else []})
 
-        def alive():
-            for process in processes:
-                if not process.running():
-                    raise RuntimeError(f"{process.name} exited; its log:\n{process.output()[-3000:]}")
+            def alive():
+                for process in processes:
+                    if not process.running():
+                        raise RuntimeError(f"{process.name} exited; its log:\n{process.output()[-3000:]}")
 
-        log(f"babbling {steps} commands ({period:.2f} s apart) with faults {list(faults)} ...")
-        if not _spin(executor, lambda: len(monitor.truth) >= steps, timeout=steps * period * 4 + 60,
-                     during=alive):
-            raise RuntimeError(f"only {len(monitor.truth)} of {steps} commands executed")
-        _spin(executor, lambda: False, timeout=1.0)  # let scheme_node drain its queue
+            log(f"babbling {steps} commands ({period:.2f} s apart) with faults {list(faults)} ...")
+            if not _spin(executor, lambda: len(monitor.truth) >= steps, timeout=steps * period * 4 + 60,
+                         during=alive):
+                raise RuntimeError(f"only {len(monitor.truth)} of {steps} commands executed")
+            _spin(executor, lambda: False, timeout=1.0)  # let scheme_node drain its queue
 
-        # IK: end-effector positions the arm reached after the last repair, so reachable by the healthy arm.
-        last_fault = max([int(f.split(":")[0]) for f in faults] or [0])
-        rng = np.random.default_rng(seed)
-        # Targets where the camera saw every marker: configurations the learned models had data for (IK stays in
-        # their trained range, so a target only reachable where a link was never seen may be refused).
-        pool = [k for k in range(last_fault + 5, steps)
-                if monitor.seen.get(monitor.truth[k][0], set()) >= set(ids)] or \
-            [k for k in range(last_fault + 5, steps) if end_effector in monitor.truth[k][1]]
-        for k in rng.choice(pool, size=min(n_targets, len(pool)), replace=False):
-            target = monitor.truth[k][1][end_effector][:3, 3]
-            n_results, n_truth = len(monitor.ik_results), len(monitor.truth)
-            msg = IKTarget(part_id=end_effector)
-            msg.header.frame_id = "camera"
-            msg.position.x, msg.position.y, msg.position.z = (float(v) for v in target)
-            monitor.targets.publish(msg)
-            _spin(executor, lambda n=n_results: len(monitor.ik_results) > n, timeout=20, during=alive)
-            outcome = monitor.ik_results[-1] if len(monitor.ik_results) > n_results else None
-            record = {"target": target.tolist(), "success": bool(outcome and outcome.success),
-                      "reason": outcome.reason if outcome else "no IKResult within 20 s",
-                      "residual": float(outcome.residual) if outcome else float("nan"), "reached_error": None}
-            if outcome is not None and outcome.success and _spin(
-                    executor, lambda n=n_truth: len(monitor.truth) > n, timeout=10, during=alive):
-                reached = monitor.truth[-1][1][end_effector][:3, 3]
-                record["reached_error"] = float(np.linalg.norm(reached - target))
-            result.ik.append(record)
-            reached_mm = "n/a" if record["reached_error"] is None else f"{record['reached_error'] * 1e3:.1f} mm"
-            log(f"IK target {np.round(target, 3).tolist()}: {record['reason']}; true end effector {reached_mm} "
-                f"from the target")
-        _spin(executor, lambda: False, timeout=1.5)  # a last diagnostics message
-    finally:
-        result.wall_time_s = time.monotonic() - start
-        recorder.close()
-        for process in reversed(processes):
-            process.stop()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+            # IK: end-effector positions the arm reached after the last repair, so reachable by the healthy arm.
+            last_fault = max([int(f.split(":")[0]) for f in faults] or [0])
+            rng = np.random.default_rng(seed)
+            # Targets where the camera saw every marker: configurations the learned models had data for (IK stays in
+            # their trained range, so a target only reachable where a link was never seen may be refused).
+            pool = [k for k in range(last_fault + 5, steps)
+                    if monitor.seen.get(monitor.truth[k][0], set()) >= set(ids)] or \
+                [k for k in range(last_fault + 5, steps) if end_effector in monitor.truth[k][1]]
+            for k in rng.choice(pool, size=min(n_targets, len(pool)), replace=False):
+                target = monitor.truth[k][1][end_effector][:3, 3]
+                n_results, n_truth = len(monitor.ik_results), len(monitor.truth)
+                msg = IKTarget(part_id=end_effector)
+                msg.header.frame_id = "camera"
+                msg.position.x, msg.position.y, msg.position.z = (float(v) for v in target)
+                monitor.targets.publish(msg)
+                _spin(executor, lambda n=n_results: len(monitor.ik_results) > n, timeout=20, during=alive)
+                outcome = monitor.ik_results[-1] if len(monitor.ik_results) > n_results else None
+                record = {"target": target.tolist(), "success": bool(outcome and outcome.success),
+                          "reason": outcome.reason if outcome else "no IKResult within 20 s",
+                          "residual": float(outcome.residual) if outcome else float("nan"), "reached_error": None}
+                if outcome is not None and outcome.success and _spin(
+                        executor, lambda n=n_truth: len(monitor.truth) > n, timeout=10, during=alive):
+                    reached = monitor.truth[-1][1][end_effector][:3, 3]
+                    record["reached_error"] = float(np.linalg.norm(reached - target))
+                result.ik.append(record)
+                reached_mm = "n/a" if record["reached_error"] is None else f"{record['reached_error'] * 1e3:.1f} mm"
+                log(f"IK target {np.round(target, 3).tolist()}: {record['reason']}; true end effector {reached_mm} "
+                    f"from the target")
+            _spin(executor, lambda: False, timeout=1.5)  # a last diagnostics message
+        finally:
+            result.wall_time_s = time.monotonic() - start
+            recorder.close()
+            for process in reversed(processes):
+                process.stop()
 
     if monitor.structure is not None:
         result.learned_edges = [[e.parent_id, e.child_id] for e in monitor.structure.edges]

@@ -31,9 +31,7 @@ import tempfile
 import time
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 
 from body_scheme_apps.bench_output import report
@@ -41,7 +39,7 @@ from body_scheme_apps.live_demo import domain_id
 from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_nodes import conversions
-from body_scheme_nodes.graph import NodeProcess
+from body_scheme_nodes.graph import NodeProcess, monitor_node
 
 __all__ = ["TARGETS", "run_load", "main"]
 
@@ -63,18 +61,13 @@ def run_load(rate=1000.0, seconds=60.0, seed=0):
     tree = planar_2dof()
     n = int(rate * seconds)
     session = make_session(tree, n, seed=seed, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, monitor_node("load_bench", domain_id()) as (node, executor):
         checkpoint = pathlib.Path(tmp) / "state.json"
         parameters = {"part_ids": [int(i) for i in tree.marker_ids], "joint_names": list(tree.action_joint_names),
                       "action_lower": [float(v) for v in tree.action_lower],
                       "action_upper": [float(v) for v in tree.action_upper],
                       "checkpoint_path": str(checkpoint), "checkpoint_period": 1.0}
         process = NodeProcess("body_scheme_nodes", "scheme_node", parameters, tmp)
-        context = rclpy.Context()
-        rclpy.init(context=context, domain_id=domain_id())
-        node = rclpy.create_node("load_bench", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
         diagnostics, latencies, last = [], [], {}
 
         def on_diagnostics(msg):
@@ -128,9 +121,6 @@ def run_load(rate=1000.0, seconds=60.0, seed=0):
             alive = process.running()
         finally:
             process.stop()
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.try_shutdown(context=context)
 
     def gaps(times, until):
         times = [t for t in times if start <= t <= until]

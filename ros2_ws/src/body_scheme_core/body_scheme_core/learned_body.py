@@ -1,7 +1,7 @@
 """The learned body scheme as a robot description, and how it differs from the robot's specification.
 
 :func:`learned_tree` turns a :class:`~body_scheme_core.scheme.BodyScheme` into a
-:class:`~body_scheme_core.world.tree.KinematicTree` (and :func:`learned_urdf` into URDF text for
+:class:`~body_scheme_core.world.tree.KinematicTree` (and :func:`learned_urdf` that into URDF text for
 robot_state_publisher, MoveIt or pybullet):
 
 - a link ``<prefix>part_<id>`` per body part and a link ``<prefix>marker_<id>`` on a fixed joint for its marker; the
@@ -71,13 +71,12 @@ class LearnedBody:
         return self.tree.marker_poses(a[..., list(self.actions)] * scale)
 
 
-def _one_action_transform(scheme, edge, n_actions, action, values):
-    """The edge's parent2child for the given values of ``action`` (others zero), shape (n, 4, 4)."""
-    A = np.zeros((len(values), n_actions))
-    if action is not None:
-        A[:, action] = values
+def _edge_transforms(edge, n_actions, values):
+    """The edge's parent2child (n, 4, 4) with its model's actions at ``values`` (n, k) and the others zero."""
     _, _, model, inverted = edge
-    return BodyScheme._local(model, inverted, A)
+    A = np.zeros((len(values), n_actions))
+    A[:, list(model.actions)] = values
+    return BodyScheme.edge_transform(model, inverted, A)
 
 
 def _screw(Z0, Z1, kind):
@@ -129,7 +128,7 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
         action = model.actions[0] if len(model.actions) == 1 else None
         rigid_joint = kind in ("revolute", "prismatic") and action not in used
         if rigid_joint:
-            Z0, Z1 = _one_action_transform(scheme, edge, n_actions, action, [0.0, 1.0])
+            Z0, Z1 = _edge_transforms(edge, n_actions, [[0.0], [1.0]])
             u, scale, c = _screw(Z0, Z1, kind)
             scale = 1.0 if abs(scale - 1.0) < _UNIT_SCALE else scale
             joint_frame = np.eye(4)
@@ -147,13 +146,7 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
                 notes.append(f"{parent}->{child}: joint {joint_names[action]} turns {scale:.6g} per action unit; "
                              f"its position is {scale:.6g} x the command")
             continue
-        values = [mid[action]] if action is not None else [0.0]
-        if len(model.actions) > 1:  # fixed at mid-range for all of its actions
-            A = np.zeros((1, n_actions))
-            A[0, list(model.actions)] = mid[list(model.actions)]
-            Z = BodyScheme._local(model, edge[3], A)[0]
-        else:
-            Z = _one_action_transform(scheme, edge, n_actions, action, values)[0]
+        Z = _edge_transforms(edge, n_actions, [mid[list(model.actions)]])[0]  # fixed at mid-range
         name = f"{prefix}part_{parent}_to_part_{child}"
         joints.append(Joint(name, "fixed", part[parent], part[child], origin=link2marker[parent] @ Z))
         link2marker[child] = np.eye(4)
@@ -171,9 +164,9 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
     return LearnedBody(tree, exported, tuple(used), n_actions, notes)
 
 
-def learned_urdf(scheme, joint_names, lower, upper, prefix="", name="learned_body_scheme"):
-    """URDF text of :func:`learned_tree`, with its notes (GP edges, scaled joints) in a comment at the top."""
-    body = learned_tree(scheme, joint_names, lower, upper, prefix)
+def learned_urdf(body, name="learned_body_scheme"):
+    """URDF text of a :class:`LearnedBody` (:func:`learned_tree`), with its notes (GP edges, scaled joints) in a
+    comment at the top."""
     xml = tree_to_urdf(body.tree, name=name)
     lines = ["Learned by body_scheme from camera observations: a link per part, a fixed marker link per part,",
              "a joint per rigid one-action local model (named after its action), limits = the trained range."]

@@ -214,7 +214,7 @@ class BodyScheme:
         return a
 
     @staticmethod
-    def _local(model, inverted, A, return_std=False):
+    def edge_transform(model, inverted, A, return_std=False):
         """Transform(s) parent2child of one tree edge for action vectors ``A`` (k, m) [and std (k, 2)]."""
         if return_std:
             Z, std = model.predict(A, return_std=True)
@@ -262,7 +262,7 @@ class BodyScheme:
         var = {self.root: np.zeros(2)}
         for parent, child, model, inverted in self.edges:
             if return_std:
-                T, std = self._local(model, inverted, A, return_std=True)
+                T, std = self.edge_transform(model, inverted, A, return_std=True)
                 T = T[0]
                 s_t2, s_r2 = np.asarray(std, dtype=float).reshape(-1)[:2] ** 2
                 lever2 = float(T[:3, 3] @ T[:3, 3])
@@ -304,14 +304,14 @@ class BodyScheme:
         for parent, child, model, inverted in self.edges:
             i, j = self._index[parent], self._index[child]
             if return_std:
-                T, std = self._local(model, inverted, A, return_std=True)
+                T, std = self.edge_transform(model, inverted, A, return_std=True)
                 s2 = np.asarray(std, dtype=float).reshape(n, 2) ** 2
                 lever2 = np.einsum("ni,ni->n", T[:, :3, 3], T[:, :3, 3])
                 s_t2 = s2[:, 0] + (lever2 * s2[:, 1] if inverted else 0.0)
                 var[:, j, 0] = var[:, i, 0] + lever2 * var[:, i, 1] + s_t2
                 var[:, j, 1] = var[:, i, 1] + s2[:, 1]
             else:
-                T = self._local(model, inverted, A)
+                T = self.edge_transform(model, inverted, A)
             out[:, j] = out[:, i] @ T
         if return_std:
             return out, np.sqrt(np.maximum(var, 0.0))

@@ -56,8 +56,8 @@ def test_gp_edges_are_fixed_at_mid_range_and_flagged():
     """Without rigid-joint candidates the edges are GPs: fixed joints, each named in a note and the URDF comment."""
     robot = planar_2dof()
     learner, _ = _learn(robot, BodySchemeConfig(candidate_kinds=("static", "gp")), n=120)
-    urdf = learned_urdf(learner.body_scheme, robot.action_joint_names, robot.action_lower, robot.action_upper,
-                        prefix="robot2/")
+    urdf = learned_urdf(learned_tree(learner.body_scheme, robot.action_joint_names, robot.action_lower,
+                                     robot.action_upper, prefix="robot2/"))
     assert urdf.count("NOTE ") == 2 and "gp model" in urdf and 'type="revolute"' not in urdf
     assert 'name="robot2/part_1"' in urdf
     body = learned_tree(learner.body_scheme, robot.action_joint_names, robot.action_lower, robot.action_upper)

@@ -7,15 +7,18 @@ generated parameter file, and stop them with SIGINT (SIGKILL if they hang).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 import signal
 import subprocess
 
+import rclpy
 import yaml
 from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+from rclpy.executors import SingleThreadedExecutor
 
-__all__ = ["NodeProcess", "executable"]
+__all__ = ["NodeProcess", "executable", "monitor_node"]
 
 
 def executable(package, name):
@@ -89,3 +92,21 @@ class NodeProcess:
         if not self._log.closed:
             self._log.close()
         return self.process.returncode
+
+
+@contextlib.contextmanager
+def monitor_node(name, domain):
+    """``(node, executor)``: an rclpy node of this process in a context of its own on ROS domain ``domain``, with a
+    single-threaded executor; both are shut down on exit. The demo, the benchmarks and the fuzz watch the graph
+    through one."""
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = rclpy.create_node(name, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        yield node, executor
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)

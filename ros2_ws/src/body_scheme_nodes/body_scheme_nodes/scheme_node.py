@@ -83,7 +83,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import ActionOutOfRangeError, BodySchemeError, InvalidInputError, StampOrderError
-from body_scheme_core.learned_body import learned_urdf
+from body_scheme_core.learned_body import learned_tree, learned_urdf
 from body_scheme_core.persistence import load_state, save_state
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import GetRobotDescription, StatePath
@@ -302,17 +302,20 @@ class SchemeNode(Node):
         self.pub_poses.publish(view.pose_array_msg(stamp, self.frame_id, poses))
         self.pub_tf.publish(view.tf_msg(stamp, self.frame_id, poses, self.settings.tf_prefix))
 
-    def _urdf(self):
-        """The learned URDF, or None while there is no body scheme."""
+    def _learned_body(self):
+        """The body scheme as a kinematic tree (body_scheme_core.learned_body), or None while there is none."""
         scheme = self.learner.body_scheme
         if scheme is None:
             return None
         lower, upper = self.learner.trained_range()
-        return learned_urdf(scheme, self.joint_names, lower, upper, prefix=self.settings.tf_prefix)
+        return learned_tree(scheme, self.joint_names, lower, upper, prefix=self.settings.tf_prefix)
 
     def _publish_description(self):
-        text = self._urdf()
-        if text is not None and text != self._last_description:
+        body = self._learned_body()
+        if body is None:
+            return
+        text = learned_urdf(body)
+        if text != self._last_description:
             self._last_description = text
             self.pub_description.publish(String(data=text))
 
@@ -442,14 +445,13 @@ class SchemeNode(Node):
 
     def _on_get_urdf(self, request, response):
         with self._learner_lock:
-            text = self._urdf()
-        if text is None:
+            body = self._learned_body()
+        if body is None:
             response.success, response.message = False, f"no body scheme yet ({self.learner.phase})"
             return response
-        response.success, response.urdf = True, text
-        notes = [line.strip()[5:] for line in text.splitlines() if line.strip().startswith("NOTE ")]
+        response.success, response.urdf = True, learned_urdf(body)
         response.message = f"learned body scheme at step {self.learner.step}" + (
-            f"; {len(notes)} note(s): " + " | ".join(notes) if notes else "")
+            f"; {len(body.notes)} note(s): " + " | ".join(body.notes) if body.notes else "")
         return response
 
     def _on_reset(self, request, response):

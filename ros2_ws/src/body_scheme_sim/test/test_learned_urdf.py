@@ -35,7 +35,8 @@ def learned(request):
 
 
 def _urdf(nominal, learner):
-    return learned_urdf(learner.body_scheme, nominal.action_joint_names, nominal.action_lower, nominal.action_upper)
+    return learned_urdf(learned_tree(learner.body_scheme, nominal.action_joint_names, nominal.action_lower,
+                                     nominal.action_upper))
 
 
 def test_the_learned_urdf_parses_and_names_joints_after_the_actions(learned):

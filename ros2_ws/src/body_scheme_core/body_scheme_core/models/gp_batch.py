@@ -15,11 +15,12 @@ from ..errors import BodySchemeError, InvalidInputError, ModelFileError
 from ..transforms import check_transform, project_to_rotation_batch, vector12_from_transform
 from .gp import GPModel, _training_arrays
 from .gp_kernel import ROT_OUTPUTS, TRANS_OUTPUTS, GPHyperparameters, _clamp_variance, summarise_std
+from .slots import SlotArrays
 
 __all__ = ["GPBatch"]
 
 
-class GPBatch:
+class GPBatch(SlotArrays):
     """Many incremental GP local models ("slots") in stacked arrays, updated together without Python loops.
 
     Each slot is a GP of :class:`GPModel` over its own action indices, holding at most ``capacity`` samples. The
@@ -57,8 +58,7 @@ class GPBatch:
         self._signal_std = hp.signal_std
         self._n_groups = len(self._ratios2)
         self._gamma = -0.5 / hp.length_scale**2
-        self._storage = 0
-        self._allocated = np.zeros(0, dtype=bool)
+        self._init_slots()
         self._dim = np.zeros(0, dtype=int)
         self._n = np.zeros(0, dtype=int)
         # Padded action indices point at an extra 0 appended to the action vector.
@@ -79,32 +79,14 @@ class GPBatch:
 
     # ------------------------------------------------------------------ slots
 
-    @property
-    def n_allocated(self):
-        """Number of allocated slots."""
-        return int(np.count_nonzero(self._allocated))
-
-    @property
-    def allocated_slots(self):
-        """Allocated slot indices, ascending."""
-        return np.flatnonzero(self._allocated)
-
     def slot_actions(self, slot):
         """Action indices (tuple) of one allocated slot."""
         slot = int(self._check_slots([slot])[0])
         return tuple(int(a) for a in self._actions[slot, :self._dim[slot]])
 
-    def _grow(self, storage):
-        extra = storage - self._storage
-        self._allocated = np.concatenate([self._allocated, np.zeros(extra, dtype=bool)])
-        self._dim = np.concatenate([self._dim, np.zeros(extra, dtype=int)])
-        self._n = np.concatenate([self._n, np.zeros(extra, dtype=int)])
-        self._actions = np.concatenate([self._actions, np.full((extra, self.max_dim), self.n_actions, dtype=int)])
-        self._X = np.concatenate([self._X, np.zeros((extra,) + self._X.shape[1:])])
-        self._Y = np.concatenate([self._Y, np.zeros((extra,) + self._Y.shape[1:])])
-        self._Ysum = np.concatenate([self._Ysum, np.zeros((extra, 12))])
-        self._Kinv = np.concatenate([self._Kinv, np.zeros((extra,) + self._Kinv.shape[1:])])
-        self._storage = storage
+    def _slot_fills(self):
+        # Padded action indices point at an extra 0 appended to the action vector.
+        return {"_dim": 0, "_n": 0, "_actions": self.n_actions, "_X": 0.0, "_Y": 0.0, "_Ysum": 0.0, "_Kinv": 0.0}
 
     def _check_slot_actions(self, actions):
         try:
@@ -118,11 +100,9 @@ class GPBatch:
         return actions
 
     def _assign(self, slot, actions):
-        self._actions[slot] = self.n_actions
+        """Give an empty allocated slot its action indices."""
         self._actions[slot, :len(actions)] = actions
         self._dim[slot] = len(actions)
-        self._n[slot] = 0
-        self._allocated[slot] = True
 
     def allocate(self, actions_list):
         """Allocate empty GPs, one per tuple of action indices; returns their slot indices, shape (k,).
@@ -130,11 +110,7 @@ class GPBatch:
         Released slots are reused, lowest first; storage grows (doubling) when none is free.
         """
         checked = [self._check_slot_actions(actions) for actions in actions_list]
-        free = np.flatnonzero(~self._allocated)
-        if free.size < len(checked):
-            self._grow(max(2 * self._storage, self._storage + len(checked) - free.size, 16))
-            free = np.flatnonzero(~self._allocated)
-        slots = free[:len(checked)]
+        slots = self._take_slots(len(checked))
         for slot, actions in zip(slots, checked, strict=True):
             self._assign(slot, actions)
         self._version += 1
@@ -142,32 +118,8 @@ class GPBatch:
 
     def release(self, slots):
         """Free slots for reuse; their data are discarded."""
-        slots = self._check_slots(slots)
-        self._allocated[slots] = False
-        self._n[slots] = 0
-        self._dim[slots] = 0
-        self._actions[slots] = self.n_actions
-        self._X[slots] = 0.0
-        self._Y[slots] = 0.0
-        self._Ysum[slots] = 0.0
-        self._Kinv[slots] = 0.0
+        slots = super().release(slots)
         self._version += 1
-
-    def size(self, slots):
-        """Number of training samples of each slot, shape (k,)."""
-        return self._n[self._check_slots(slots)].copy()
-
-    def _check_slots(self, slots, unique=False):
-        slots = np.atleast_1d(np.asarray(slots))
-        if slots.ndim != 1 or not (np.issubdtype(slots.dtype, np.integer) or slots.size == 0):
-            raise InvalidInputError(f"slots must be a 1-d array of ints, got shape {slots.shape} dtype {slots.dtype}")
-        slots = slots.astype(np.intp, copy=False)
-        if slots.size and (slots.min() < 0 or slots.max() >= self._storage):
-            raise InvalidInputError(f"slot index out of range [0, {self._storage}): {slots.min()}..{slots.max()}")
-        if not np.all(self._allocated[slots]):
-            raise InvalidInputError(f"slots not allocated: {slots[~self._allocated[slots]].tolist()}")
-        if unique and np.unique(slots).size != slots.size:
-            raise InvalidInputError("slots must not repeat in one update")
         return slots
 
     def _check_a(self, a):
@@ -381,6 +333,7 @@ class GPBatch:
                 if not (np.all(np.isfinite(Xs)) and np.all(np.isfinite(Ys))):
                     raise ModelFileError(f"slot {slot}: data contain NaN or inf")
                 batch._assign(slot, batch._check_slot_actions(actions))
+                batch._allocated[slot] = True
                 X[slot, :n, :d] = Xs
                 Y[slot, :n] = Ys
                 sizes[slot] = n

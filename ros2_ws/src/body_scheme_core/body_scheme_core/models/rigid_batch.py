@@ -20,6 +20,7 @@ from ..transforms import check_transform, vector12_from_transform
 from .prismatic import PrismaticModel
 from .revolute import RevoluteModel
 from .rigid_fit import DEFAULT_F_SCALE, covariance, fit_rms, fit_stack, gauss_newton
+from .slots import SlotArrays
 from .static import StaticModel
 
 __all__ = ["RigidBatch", "RIGID_CLASSES", "RESTART_SIZES"]
@@ -36,7 +37,7 @@ _FRESH_ITERATIONS = 3
 _STORED = max(cls.form.N_STORED for cls in RIGID_CLASSES.values())
 
 
-class RigidBatch:
+class RigidBatch(SlotArrays):
     """Incremental rigid-joint candidates ("slots") in stacked arrays.
 
     Parameters
@@ -61,8 +62,7 @@ class RigidBatch:
         self.fit_scale = bool(fit_scale)
         self._forms = [RIGID_CLASSES[kind].form_for(self.fit_scale) for kind in _KINDS]
         self._min_samples = np.array([form.MIN_SAMPLES for form in self._forms])
-        self._storage = 0
-        self._allocated = np.zeros(0, dtype=bool)
+        self._init_slots()
         self._kind = np.zeros(0, dtype=int)
         self._action = np.zeros(0, dtype=int)
         self._n = np.zeros(0, dtype=int)
@@ -74,16 +74,6 @@ class RigidBatch:
         self._fit_n = np.zeros(0, dtype=int)  # training-set size at the last fit
 
     # ------------------------------------------------------------------ slots
-    @property
-    def n_allocated(self):
-        """Number of allocated slots."""
-        return int(np.count_nonzero(self._allocated))
-
-    @property
-    def allocated_slots(self):
-        """Allocated slot indices, ascending."""
-        return np.flatnonzero(self._allocated)
-
     def slot_kind(self, slot):
         """Kind (``"static"``, ``"prismatic"``, ``"revolute"``) of one allocated slot."""
         return _KINDS[self._kind[int(self._check_slots([slot])[0])]]
@@ -93,19 +83,9 @@ class RigidBatch:
         slot = int(self._check_slots([slot])[0])
         return () if self._action[slot] < 0 else (int(self._action[slot]),)
 
-    def _grow(self, storage):
-        extra = storage - self._storage
-        self._allocated = np.concatenate([self._allocated, np.zeros(extra, dtype=bool)])
-        self._kind = np.concatenate([self._kind, np.zeros(extra, dtype=int)])
-        self._action = np.concatenate([self._action, np.full(extra, -1, dtype=int)])
-        self._n = np.concatenate([self._n, np.zeros(extra, dtype=int)])
-        self._x = np.concatenate([self._x, np.zeros((extra, self.capacity))])
-        self._Z = np.concatenate([self._Z, np.broadcast_to(np.eye(4), (extra, self.capacity, 4, 4))])
-        self._S = np.concatenate([self._S, np.ones((extra, self.capacity, 2))])
-        self._params = np.concatenate([self._params, np.zeros((extra, _STORED))])
-        self._cost = np.concatenate([self._cost, np.zeros(extra)])
-        self._fit_n = np.concatenate([self._fit_n, np.zeros(extra, dtype=int)])
-        self._storage = storage
+    def _slot_fills(self):
+        return {"_kind": 0, "_action": -1, "_n": 0, "_x": 0.0, "_Z": np.eye(4), "_S": 1.0, "_params": 0.0,
+                "_cost": 0.0, "_fit_n": 0}
 
     def _check_spec(self, spec):
         try:
@@ -123,37 +103,11 @@ class RigidBatch:
     def allocate(self, specs):
         """Allocate empty slots, one per ``(kind, actions)``; returns their indices (k,), reusing free ones first."""
         checked = [self._check_spec(spec) for spec in specs]
-        free = np.flatnonzero(~self._allocated)
-        if free.size < len(checked):
-            self._grow(max(2 * self._storage, self._storage + len(checked) - free.size, 16))
-            free = np.flatnonzero(~self._allocated)
-        slots = free[:len(checked)]
+        slots = self._take_slots(len(checked))
         for slot, (kind, action) in zip(slots, checked, strict=True):
-            self._clear(slot)
             self._kind[slot] = kind
             self._action[slot] = action
-            self._allocated[slot] = True
         return slots
-
-    def _clear(self, slot):
-        self._n[slot] = 0
-        self._x[slot] = 0.0
-        self._Z[slot] = np.eye(4)
-        self._S[slot] = 1.0
-        self._params[slot] = 0.0
-        self._cost[slot] = 0.0
-        self._fit_n[slot] = 0
-
-    def release(self, slots):
-        """Free slots for reuse; their data are discarded."""
-        for slot in self._check_slots(slots):
-            self._clear(slot)
-            self._allocated[slot] = False
-            self._action[slot] = -1
-
-    def size(self, slots):
-        """Number of training samples of each slot, shape (k,)."""
-        return self._n[self._check_slots(slots)].copy()
 
     def ready(self, slots):
         """Whether each slot holds enough samples to be fitted (its form's ``MIN_SAMPLES``), shape (k,)."""
@@ -164,17 +118,6 @@ class RigidBatch:
         """Whether each slot has an estimate to predict with, shape (k,)."""
         slots = self._check_slots(slots)
         return self._fit_n[slots] >= self._min_samples[self._kind[slots]]
-
-    def _check_slots(self, slots):
-        slots = np.atleast_1d(np.asarray(slots))
-        if slots.ndim != 1 or not (np.issubdtype(slots.dtype, np.integer) or slots.size == 0):
-            raise InvalidInputError(f"slots must be a 1-d array of ints, got shape {slots.shape} dtype {slots.dtype}")
-        slots = slots.astype(np.intp, copy=False)
-        if slots.size and (slots.min() < 0 or slots.max() >= self._storage):
-            raise InvalidInputError(f"slot index out of range [0, {self._storage}): {slots.min()}..{slots.max()}")
-        if not np.all(self._allocated[slots]):
-            raise InvalidInputError(f"slots not allocated: {slots[~self._allocated[slots]].tolist()}")
-        return slots
 
     def _check_a(self, a):
         a = np.asarray(a, dtype=float).reshape(-1)
