@@ -14,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import String, UInt64
 from tf2_msgs.msg import TFMessage
 from urdf_parser_py.urdf import URDF
 from visualization_msgs.msg import Marker, MarkerArray
@@ -70,10 +70,10 @@ class Collector:
 class Babbler:
     """Publishes a synthetic babbling session: each command, then the marker poses observed after it."""
 
-    def __init__(self, node, session, period=0.02):
+    def __init__(self, node, session, period=0.02, depth=100):
         self.node, self.session, self.period = node, session, period
-        self.commands = node.create_publisher(JointState, "joint_commands", 100)
-        self.observations = node.create_publisher(MarkerPoses, "observations", 100)
+        self.commands = node.create_publisher(JointState, "joint_commands", depth)
+        self.observations = node.create_publisher(MarkerPoses, "observations", depth)
         self.k = 0
         self._next = time.monotonic()
 
@@ -414,6 +414,43 @@ def test_input_without_learning_turns_diagnostics_to_error_until_learning_resume
     assert spin_until(lambda: status().level != DiagnosticStatus.ERROR and babbler.k > 0, timeout=15, during=babbler), \
         status()
     assert "nothing learnt" not in status().message
+
+
+def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to_fresh_samples(start_node, ros_node,
+                                                                                                  spin_until):
+    """A burst far beyond what the learner takes (5,000 pairs in about a second) with max_sample_age 0.05 s: nothing
+    is lost uncounted, the stale samples are shed (counted), learning goes on, and at the end every observation
+    message is learnt, refused or shed, which body_scheme/progress reports as all decided."""
+    tree = planar_2dof()
+    n = 5000
+    session = make_session(tree, n_steps=n, seed=4, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=1.0)
+    process = start_node("body_scheme_nodes", "scheme_node", dict(scheme_parameters(tree), max_sample_age=0.05))
+    collector = Collector(ros_node)
+    progress = []
+    ros_node.create_subscription(UInt64, "body_scheme/progress", lambda msg: progress.append(msg.data), 10)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    babbler = Babbler(ros_node, session, period=0.0, depth=n)  # as fast as this process publishes
+    assert spin_until(lambda: babbler.k == n, timeout=60, during=lambda: [babbler() for _ in range(50)])
+
+    def values():
+        status = collector.diagnostics.get("/scheme_node: body scheme")
+        return {} if status is None else {kv.key: kv.value for kv in status.values}
+
+    def count(key):
+        return int(values().get(key, 0))
+
+    def settled():
+        return (count("received.observations") == n and count("pending_samples") == 0
+                and bool(progress) and progress[-1] == n)
+
+    assert spin_until(settled, timeout=30), (values(), progress[-1:], process.output())
+    assert count("received.command") == n
+    assert count("shed.stale_samples") > 0 and 0 < count("step") < n
+    # Each observation message became one sample (learnt or shed) or was refused by the pairer.
+    pairer_refusals = sum(count(f"rejected.{reason}") for reason in
+                          ("duplicate", "stale", "settling", "no_command", "out_of_order_observation"))
+    assert count("step") + count("shed.stale_samples") + count("shed.samples") + pairer_refusals == n, values()
+    assert process.process.poll() is None
 
 
 # ---------------------------------------------------------------------- the ROS toolbox view (issue 13)

@@ -77,6 +77,11 @@ class CommandObservationPairer:
             return
         bisect.insort(self._pending, (stamp, len(self.rejected), observations), key=lambda item: item[0])
 
+    @property
+    def waiting(self):
+        """Number of observations buffered until it is certain which command they belong to."""
+        return len(self._pending)
+
     def flush(self, now):
         """Decide buffered observations older than ``now - grace``; returns ``[(stamp, actions, observations)]``."""
         return self._decide(lambda obs_stamp: obs_stamp <= now - self.grace)

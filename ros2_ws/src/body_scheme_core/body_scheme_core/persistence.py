@@ -23,7 +23,7 @@ from . import __version__
 from .errors import ModelFileError
 from .learner import BodySchemeLearner
 
-__all__ = ["save_state", "load_state", "STATE_FORMAT", "STATE_FILE_VERSION"]
+__all__ = ["save_state", "encode_state", "write_state_text", "load_state", "STATE_FORMAT", "STATE_FILE_VERSION"]
 
 #: Value of the ``format`` tag of a state file.
 STATE_FORMAT = "body_scheme_state"
@@ -45,9 +45,17 @@ def save_state(learner, path):
     path : str
         The absolute path written.
     """
+    return write_state_text(encode_state(learner, path), path)
+
+
+def encode_state(learner, path="<memory>"):
+    """``learner``'s complete state as the text of a state file (``path`` only names it in errors).
+
+    The only step that reads the learner: a node holds its learner lock for this and writes the text after
+    (:func:`write_state_text`).
+    """
     if not isinstance(learner, BodySchemeLearner):
         raise TypeError(f"learner must be a BodySchemeLearner, got {type(learner).__name__}")
-    path = os.path.abspath(os.fspath(path))
     document = {
         "format": STATE_FORMAT,
         "version": STATE_FILE_VERSION,
@@ -57,10 +65,16 @@ def save_state(learner, path):
     }
     # allow_nan=False: NaN/inf are not JSON; a state containing them is refused here, with a clear error.
     try:
-        text = json.dumps(document, allow_nan=False, separators=(",", ":"))
+        return json.dumps(document, allow_nan=False, separators=(",", ":"))
     except ValueError as exc:
-        raise ModelFileError(f"cannot save the learner's state to {path!r}: it contains NaN or infinite values "
-                             f"({exc})") from exc
+        raise ModelFileError(f"cannot save the learner's state to {os.fspath(path)!r}: it contains NaN or infinite "
+                             f"values ({exc})") from exc
+
+
+def write_state_text(text, path):
+    """Write the text of a state file (:func:`encode_state`) to ``path`` atomically and durably; returns the absolute
+    path."""
+    path = os.path.abspath(os.fspath(path))
     directory = os.path.dirname(path)
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
     try:

@@ -25,7 +25,9 @@ def test_observation_waits_for_late_command():
     p.add_observation(2.1, "late")
     assert p.flush(now=2.2) == []  # still within grace: the command for 2.0 may be in flight
     assert p.add_command(2.0, [0.2]) == []  # 2.1 is not before 2.0: still undecided
+    assert p.waiting == 1
     ((stamp, actions, obs),) = p.flush(now=3.0)
+    assert p.waiting == 0
     assert (stamp, obs) == (2.1, "late")
     np.testing.assert_array_equal(actions, [0.2])
 

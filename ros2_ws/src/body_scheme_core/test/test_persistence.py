@@ -9,7 +9,14 @@ import pytest
 from body_scheme_core import __version__
 from body_scheme_core.errors import ModelFileError
 from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.persistence import STATE_FILE_VERSION, STATE_FORMAT, load_state, save_state
+from body_scheme_core.persistence import (
+    STATE_FILE_VERSION,
+    STATE_FORMAT,
+    encode_state,
+    load_state,
+    save_state,
+    write_state_text,
+)
 from body_scheme_core.world import make_session, planar_2dof
 
 
@@ -212,3 +219,14 @@ def test_numbers_that_overflow_are_refused_at_load_and_non_finite_state_at_save(
     with pytest.raises(ModelFileError, match="NaN or infinite"):
         save_state(broken, tmp_path / "other.json")
     assert not (tmp_path / "other.json").exists()
+
+
+def test_encoding_then_writing_is_saving(trained, tmp_path):
+    """A node encodes under its learner lock and writes after: the file is the one save_state writes."""
+    learner, _ = trained
+    save_state(learner, tmp_path / "saved.json")
+    written = write_state_text(encode_state(learner), tmp_path / "written.json")
+    assert written == str(tmp_path / "written.json")
+    saved, encoded = (json.loads((tmp_path / name).read_text()) for name in ("saved.json", "written.json"))
+    assert {k: v for k, v in saved.items() if k != "saved_at"} == {k: v for k, v in encoded.items() if k != "saved_at"}
+    assert load_state(written).step == learner.step

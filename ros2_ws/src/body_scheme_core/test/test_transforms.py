@@ -73,6 +73,14 @@ def test_transform_from_pose_matches_scipy_xyzw():
     assert_allclose(A2B[3], [0.0, 0.0, 0.0, 1.0])
 
 
+def test_transform_from_pose_matches_scipy_for_random_quaternions_and_stacks():
+    """The closed-form quaternion to matrix agrees with scipy for any unit quaternion, one or a stack."""
+    q = Rotation.random(50, random_state=3).as_quat()
+    A2B = transform_from_pose(np.zeros((50, 3)), q)
+    assert_allclose(A2B[:, :3, :3], Rotation.from_quat(q).as_matrix(), atol=1e-12)
+    assert_allclose(transform_from_pose([0.0, 0.0, 0.0], -q[7])[:3, :3], A2B[7, :3, :3], atol=1e-12)  # q ~ -q
+
+
 def test_transform_from_rotvec_matches_scipy():
     """Rotation block from the rotation vector, translation copied, broadcasting over stacks."""
     rng = np.random.default_rng(0)

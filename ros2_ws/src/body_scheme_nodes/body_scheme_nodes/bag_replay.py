@@ -8,11 +8,12 @@ Timing (``rate``)
 -----------------
 ``rate > 0``: message ``i`` is published ``(log_i - log_0) / rate`` after the start (1.0: original timing, 2.0: twice
 as fast). ``rate = 0``: as fast as the consumer keeps up: at most ``max_in_flight`` ``/observations`` messages are
-ahead of what scheme_node reports on ``body_scheme/progress`` (the number of observation messages it has taken in,
-counted from the start of the replay). In this mode the replay starts only once a subscriber of ``observations`` and
-a publisher of ``body_scheme/progress`` exist; without ``/observations`` among the topics there is no backpressure.
-``rate > 0`` waits for no one: a consumer slower than the replay loses messages once its queue (depth 100) is full;
-the node warns when scheme_node's progress falls more than half that behind.
+ahead of what scheme_node reports on ``body_scheme/progress`` (the number of observation messages it has decided:
+learnt, refused or shed; counted from the start of the replay), so the replay waits for learning. In this mode the
+replay starts only once a subscriber of ``observations`` and a publisher of ``body_scheme/progress`` exist; without
+``/observations`` among the topics there is no backpressure. ``rate > 0`` waits for no one: when scheme_node learns
+slower than the replay, its samples wait and, past its ``max_sample_age``, are shed (counted on /diagnostics); the
+node warns when scheme_node's progress falls more than ``LAG_WARNING`` observation messages behind.
 
 Stamps (``restamp``)
 --------------------
@@ -65,8 +66,8 @@ TICK = 0.005
 MIN_SPACING_NS = 1_000
 #: Rate 0: warn when body_scheme/progress has not moved for this long while messages wait, s.
 STALL_WARNING = 5.0
-#: Rate > 0: warn when scheme_node's progress is this many observation messages behind (half the queue depth).
-LAG_WARNING = RELIABLE.depth // 2
+#: Rate > 0: warn when scheme_node's progress is this many observation messages behind.
+LAG_WARNING = 50
 
 
 class BagReplay(Node):
@@ -80,7 +81,7 @@ class BagReplay(Node):
                                                bag topics to publish (types: bag_io.MESSAGE_CLASSES)
     restamp : bool true                        move header stamps into the present (module docstring)
     start_delay : double 1.0 s                 wait before the first message (for subscribers to connect)
-    max_in_flight : int 10                     rate 0: observation messages published but not yet taken in
+    max_in_flight : int 10                     rate 0: observation messages published but not yet decided
 
     Publishers
     ----------
@@ -197,11 +198,12 @@ class BagReplay(Node):
         self._finish(success=True)
 
     def _warn_if_falling_behind(self):
-        """rate > 0 does not wait: warn when scheme_node lags so far that its queues (depth 100) may overflow."""
+        """rate > 0 does not wait: warn when scheme_node lags so far behind that its samples wait or are shed."""
         if self._progress_subscription.get_publisher_count() > 0 and self._in_flight() > LAG_WARNING:
             self.get_logger().warn(
-                f"scheme_node is {self._in_flight()} observation messages behind at rate {self.rate:g}: beyond "
-                f"{RELIABLE.depth} messages are lost; lower the rate or use rate 0", throttle_duration_sec=5.0)
+                f"scheme_node is {self._in_flight()} observation messages behind at rate {self.rate:g}: its samples "
+                f"wait, and past its max_sample_age they are shed; lower the rate or use rate 0",
+                throttle_duration_sec=5.0)
 
     def _in_flight(self):
         taken_in = self.progress - (self._progress_start or 0)

@@ -93,14 +93,25 @@ def observations_from_msg(msg):
     if len(msg.marker_ids) != len(msg.poses):
         raise InvalidInputError(
             f"MarkerPoses has {len(msg.marker_ids)} marker_ids but {len(msg.poses)} poses")
+    poses = [item.pose for item in msg.poses]
+    # All poses in one vectorised call (the node converts every marker of every message); a message with an invalid
+    # pose is redone marker by marker for the per-marker reasons.
+    try:
+        transforms = transform_from_pose(
+            np.array([[p.position.x, p.position.y, p.position.z] for p in poses], dtype=float).reshape(-1, 3),
+            np.array([[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w] for p in poses],
+                     dtype=float).reshape(-1, 4))
+    except InvalidInputError:
+        transforms = None
     observations, rejected = {}, []
-    for marker_id, pose in zip(msg.marker_ids, msg.poses, strict=True):
+    for index, marker_id in enumerate(msg.marker_ids):
         marker_id = int(marker_id)
         if marker_id in observations:
             rejected.append((marker_id, "repeated_id", "repeated marker id in one message"))
             continue
         try:
-            observations[marker_id] = transform_from_pose_msg(pose.pose)
+            observations[marker_id] = (transforms[index] if transforms is not None
+                                       else transform_from_pose_msg(poses[index]))
         except InvalidInputError as error:
             rejected.append((marker_id, "invalid_pose", str(error)))
     return seconds_from_stamp(msg.header.stamp), observations, rejected

@@ -16,7 +16,7 @@ body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
 body_scheme/events : body_scheme_msgs/SchemeEvent
 /diagnostics : diagnostic_msgs/DiagnosticArray
 body_scheme/progress : std_msgs/UInt64
-    Number of observation messages taken in so far (bag_replay's backpressure signal).
+    Number of observation messages decided so far: learnt, refused or shed (bag_replay's backpressure signal).
 body_scheme/markers : visualization_msgs/MarkerArray, body_scheme/poses : geometry_msgs/PoseArray, /tf
     The latest prediction for RViz, Foxglove and tf2 (at most every ``view_period``; see body_scheme_nodes.view).
 body_scheme/robot_description : std_msgs/String  (transient local)
@@ -36,7 +36,7 @@ part_ids : int[]  (required)          marker ids of the body parts
 joint_names : string[]  (required)    joint names in action-vector order
 action_lower, action_upper : double[] joint limits (default +-pi)
 frame_id : string "camera"            frame of observations and predictions
-update_period : double 0.02 s         period of the learning timer
+update_period : double 0.02 s         messages are taken in this often; the learning thread works at least this often
 settle_time : 0.0, max_delay : 2.0, pairing_grace : 0.2 (s)   pairing rule, see body_scheme_core.pairing
 checkpoint_path : string ""           state file; restored on start if it exists; "" disables checkpoints
 checkpoint_period : double 30.0 s
@@ -52,11 +52,13 @@ view_period : double 0.1 s            markers, poses and /tf at most this often
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
                                       $ROS_HOME/body_scheme)
 max_state_bytes : int 67108864        largest state file ~/load reads
-max_inbox : int 2000, max_pending_samples : int 500, tick_budget : double 0.2 s, max_sample_age : double 5.0 s
+queue_depth : int 1000                depth of the two subscriptions; the executor's thread empties them every
+                                      update_period (a message waiting longer than depth messages is lost in DDS)
+max_inbox : int 2000, max_pending_samples : int 500, max_sample_age : double 5.0 s
                                       overload: messages and paired samples beyond the bounds are shed oldest
-                                      first and counted (shed.*), samples older than max_sample_age when their turn
-                                      comes are shed (shed.stale_samples); the timer learns for at most tick_budget per
-                                      tick; diagnostics and checkpoints run in their own callback group and thread
+                                      first and counted (shed.*); a sample older than max_sample_age (since DDS
+                                      received its message) when its turn comes is shed (shed.stale_samples), so
+                                      predictions are at most about max_sample_age plus one learning step late
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
@@ -65,7 +67,6 @@ from __future__ import annotations
 
 import os
 import pathlib
-import sys
 import threading
 import time
 from collections import Counter, deque
@@ -73,7 +74,6 @@ from collections import Counter, deque
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -84,11 +84,12 @@ from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import ActionOutOfRangeError, BodySchemeError, InvalidInputError, StampOrderError
 from body_scheme_core.learned_body import learned_tree, learned_urdf
-from body_scheme_core.persistence import load_state, save_state
+from body_scheme_core.persistence import encode_state, load_state, write_state_text
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
 from . import conversions, state_files, view
+from .intake import BatchIntake
 from .message_feed import feed_message
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
@@ -117,19 +118,18 @@ class SchemeNode(Node):
         self.rejected = Counter()
         self.event_counts = Counter()
         self.latency = deque(maxlen=200)
-        self._inbox = deque()  # (kind, message, receipt time) from callbacks; drained by the timer
-        self._pending = deque()  # paired samples not learnt yet (the timer works within tick_budget per tick)
+        self._inbox = deque()  # (kind, message, receipt time) from the intake; taken by the learning thread
+        self._pending = deque()  # (receipt time, paired sample) not learnt yet
         self.shed = Counter()  # messages and samples dropped under overload, by kind (oldest first)
-        self.received = Counter()  # messages taken in by the callbacks, by kind
-        self._learner_lock = threading.Lock()  # the learner between the work and the housekeeping threads
+        self.received = Counter()  # messages taken in from the subscriptions, by kind
+        self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
         self.restamped = Counter()
         self.last_input_time = self.last_learn_time = None  # node clock, s: the watchdog's inputs
         self._lock = threading.Lock()
 
-        work = MutuallyExclusiveCallbackGroup()
-        housekeeping = MutuallyExclusiveCallbackGroup()  # diagnostics and checkpoints: the learner cannot starve them
-        self.create_subscription(JointState, "joint_commands", self._on_command, 100)
-        self.create_subscription(MarkerPoses, "observations", self._on_observations, 100)
+        depth = self.settings.queue_depth
+        self._intake = {"command": BatchIntake(self, JointState, "joint_commands", depth),
+                        "observations": BatchIntake(self, MarkerPoses, "observations", depth)}
         self.pub_predicted = self.create_publisher(MarkerPoses, "predicted_poses", 10)
         self.pub_structure = self.create_publisher(BodySchemeStructure, "body_scheme/structure", LATCHED)
         self.pub_snapshot = self.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
@@ -144,17 +144,24 @@ class SchemeNode(Node):
         self._last_description = None
         self._recent_events = {}  # child part -> (kind, node time) of the latest replacement or reinstatement
         self.n_observation_messages = 0
-        self.create_service(StatePath, "~/save", self._on_save, callback_group=work)
-        self.create_service(StatePath, "~/load", self._on_load, callback_group=work)
-        self.create_service(Trigger, "~/reset", self._on_reset, callback_group=work)
-        self.create_service(GetRobotDescription, "~/get_urdf", self._on_get_urdf, callback_group=work)
-        self.create_timer(self.settings.update_period, self._on_timer, callback_group=work)
-        self.create_timer(1.0, self._publish_diagnostics, callback_group=housekeeping)
+        self._last_progress = None
+        self.create_service(StatePath, "~/save", self._on_save)
+        self.create_service(StatePath, "~/load", self._on_load)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(GetRobotDescription, "~/get_urdf", self._on_get_urdf)
+        self.create_timer(self.settings.update_period, self._take_messages)
+        self.create_timer(1.0, self._publish_diagnostics)
         if self.checkpoint_path:
-            self.create_timer(self.settings.checkpoint_period, self._checkpoint, callback_group=housekeeping)
+            self.create_timer(self.settings.checkpoint_period, self._checkpoint)
         self._last_structure_key = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_structure(force=True)
+        # Learning runs in a thread of its own, not in an executor callback: the executor's thread only takes
+        # messages in, answers services and keeps diagnostics and checkpoints going, whatever a learning step costs.
+        self._wake, self._stopping, self._failure = threading.Event(), threading.Event(), None
+        self._failed = self.create_guard_condition(self._raise_failure)
+        self._learning_thread = threading.Thread(target=self._learn_forever, name="learning", daemon=True)
+        self._learning_thread.start()
         self.get_logger().info(
             f"scheme_node ready: parts {list(self.settings.part_ids)}, joints {self.joint_names}, "
             f"phase {self.learner.phase}")
@@ -191,54 +198,92 @@ class SchemeNode(Node):
                     f"actions, this node has parts {sorted(self.settings.part_ids)} and {len(self.joint_names)} joints")
         return None
 
-    # -- callbacks only buffer -----------------------------------------------------------------------------------
-    def _on_command(self, msg):
-        self._buffer("command", msg)
-
-    def _on_observations(self, msg):
-        self._buffer("observations", msg)
-
-    def _buffer(self, kind, msg):
-        """Queue a message for the timer; beyond ``max_inbox`` the oldest is shed and counted."""
+    # -- intake: the executor's thread takes messages in every update_period --------------------------------------
+    def _take_messages(self):
+        """Move every waiting message into the inbox for the learning thread; beyond ``max_inbox`` the oldest are
+        shed and counted."""
+        now, wall = self._now(), time.time()
+        # Both topics in the order DDS received them (as callbacks would have seen them), with receipt times on the
+        # node clock: the wait in the queue counts towards a sample's age.
+        batch = sorted(((received, kind, msg) for kind, intake in self._intake.items()
+                        for msg, received in intake.take()), key=lambda item: item[0])
         with self._lock:
-            self.received[kind] += 1
-            self._inbox.append((kind, msg, self._now()))
-            if len(self._inbox) > self.settings.max_inbox:
+            for received, kind, msg in batch:
+                self.received[kind] += 1
+                self._inbox.append((kind, msg, now - max(0.0, wall - received)))
+            while len(self._inbox) > self.settings.max_inbox:
                 self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
+        if batch:
+            self._wake.set()
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
 
-    # -- the work ------------------------------------------------------------------------------------------------
-    def _on_timer(self):
+    # -- the learning thread --------------------------------------------------------------------------------------
+    def _learn_forever(self):
+        """Take new messages in, learn one sample, repeat; wait for messages (or ``update_period``, as the pairer's
+        grace runs out by the clock) when no sample waits. An unexpected error is handed to the executor, which
+        raises it: the node fails loudly, as it would have in a callback, rather than living on without learning."""
+        try:
+            while not self._stopping.is_set():
+                if not self._pending:
+                    self._wake.wait(self.settings.update_period)
+                    self._wake.clear()
+                self._work()
+        except Exception as error:  # re-raised in the executor's thread
+            self._failure = error
+            self._failed.trigger()
+
+    def _raise_failure(self):
+        raise RuntimeError("the learning thread failed") from self._failure
+
+    def destroy_node(self):
+        self._stopping.set()
+        self._wake.set()
+        self._learning_thread.join()
+        super().destroy_node()
+
+    def _work(self):
+        """Take the inbox in, then learn the oldest waiting sample that is not older than ``max_sample_age`` (the
+        older ones are shed: under overload the learner keeps to the freshest data)."""
         with self._lock:
             inbox, self._inbox = self._inbox, deque()
-        samples, now = [], self._now()
+        with self._learner_lock:  # the counters the executor's thread reads for /diagnostics change here
+            self._take_in(inbox, self._now())
+            while self._pending:
+                received, sample = self._pending.popleft()
+                if self._now() - received <= self.settings.max_sample_age:
+                    self._learn(*sample)
+                    break
+                self.shed["stale_samples"] += 1
+        self._publish_progress()
+
+    def _take_in(self, inbox, now):
+        """Stamp policy, pairing and the bound on waiting samples for a batch of ``(kind, message, receipt time)``."""
         if inbox:
             self.last_input_time = now
         for kind, msg, received in inbox:
             if not self._stamp_acceptable(msg, received, now):
                 continue
             # The same function replay_offline uses: a bag replayed offline and through the graph pairs alike.
-            new_samples, rejections = feed_message(self.pairer, kind, msg, self.joint_names)
-            samples += new_samples
+            samples, rejections = feed_message(self.pairer, kind, msg, self.joint_names)
+            self._pending.extend((received, sample) for sample in samples)  # a sample is as old as its message
             for code, detail in rejections:
                 self._reject(code, detail)
-        n_observations = sum(item[0] == "observations" for item in inbox)
-        if n_observations:
-            self.n_observation_messages += n_observations
-            self.pub_progress.publish(UInt64(data=self.n_observation_messages))
-        self._pending.extend((now, sample) for sample in samples + self.pairer.flush(now))
+        self.n_observation_messages += sum(item[0] == "observations" for item in inbox)
+        self._pending.extend((now, sample) for sample in self.pairer.flush(now))
         while len(self._pending) > self.settings.max_pending_samples:
             self._pending.popleft()
             self.shed["samples"] += 1
-        deadline = time.perf_counter() + self.settings.tick_budget
-        while self._pending and time.perf_counter() < deadline:
-            paired_at, sample = self._pending.popleft()
-            if self._now() - paired_at > self.settings.max_sample_age:
-                self.shed["stale_samples"] += 1  # too old to predict for: learn from the freshest data instead
-                continue
-            self._learn(*sample)
+
+    def _publish_progress(self):
+        """Observation messages decided so far: taken in, less those the pairer holds and those whose samples wait
+        to be learnt (one sample per observation message). bag_replay's rate 0 keeps its messages in flight within
+        this, so a replay waits for learning, not only for intake."""
+        progress = self.n_observation_messages - self.pairer.waiting - len(self._pending)
+        if progress != self._last_progress:
+            self._last_progress = progress
+            self.pub_progress.publish(UInt64(data=progress))
 
     def _stamp_acceptable(self, msg, received, now):
         """Apply the stamp policy: zero stamps per ``unstamped_policy``, stamps beyond ``stamp_tolerance`` ahead of
@@ -259,10 +304,6 @@ class SchemeNode(Node):
         return True
 
     def _learn(self, stamp, actions, observations):
-        with self._learner_lock:
-            self._learn_locked(stamp, actions, observations)
-
-    def _learn_locked(self, stamp, actions, observations):
         start = time.perf_counter()
         try:
             events = self.learner.update(actions, observations, stamp=stamp)
@@ -412,8 +453,10 @@ class SchemeNode(Node):
                 path = pathlib.Path(self.checkpoint_path)
             else:
                 raise state_files.StateFileError("no file name given and checkpoint_path is empty")
-            save_state(self.learner, path)
-            response.success, response.message = True, f"saved step {self.learner.step} to {path}"
+            with self._learner_lock:  # the learner is read under the lock; the file is written after
+                text, step = encode_state(self.learner, path), self.learner.step
+            write_state_text(text, path)
+            response.success, response.message = True, f"saved step {step} to {path}"
         except state_files.StateFileError as error:
             response.success, response.message = False, f"save refused: {error}"
         except (OSError, BodySchemeError) as error:
@@ -438,9 +481,10 @@ class SchemeNode(Node):
         if problem is not None:
             response.success, response.message = False, f"load refused: {problem}"
             return response
-        self.learner = learner
+        with self._learner_lock:
+            self.learner = learner
+            self._publish_structure(force=True)
         response.success, response.message = True, f"loaded step {learner.step} from {path}"
-        self._publish_structure(force=True)
         return response
 
     def _on_get_urdf(self, request, response):
@@ -455,8 +499,9 @@ class SchemeNode(Node):
         return response
 
     def _on_reset(self, request, response):
-        self.learner = self.settings.new_learner()
-        self._publish_structure(force=True)
+        with self._learner_lock:
+            self.learner = self.settings.new_learner()
+            self._publish_structure(force=True)
         response.success, response.message = True, "learner reset: bootstrapping from scratch"
         return response
 
@@ -464,17 +509,15 @@ class SchemeNode(Node):
         if not self.checkpoint_path:
             return
         try:
-            with self._learner_lock:
-                save_state(self.learner, self.checkpoint_path)
+            with self._learner_lock:  # learning waits for the encoding only, not for the disk
+                text = encode_state(self.learner, self.checkpoint_path)
+            write_state_text(text, self.checkpoint_path)
         except (OSError, BodySchemeError, ValueError) as error:
             self.get_logger().error(f"checkpoint to {self.checkpoint_path} failed: {error}")
 
 
 def main(args=None):
-    # The learning thread holds the GIL for long stretches of Python; switching more often than every 5 ms lets the
-    # subscription thread take messages in (otherwise DDS overwrites them unseen under load).
-    sys.setswitchinterval(2e-4)
-    return run_node(SchemeNode, args, threads=3)  # subscriptions, the learning timer and services, housekeeping
+    return run_node(SchemeNode, args, threads=1)  # the executor's thread; learning has a thread of its own
 
 
 if __name__ == "__main__":

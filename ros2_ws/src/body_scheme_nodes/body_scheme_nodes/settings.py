@@ -41,7 +41,7 @@ def parameter_defaults(n_joints=1):
         "checkpoint_path": "", "checkpoint_period": 30.0, "urdf_path": "", "markers_path": "",
         "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
-        "max_inbox": 2000, "max_pending_samples": 500, "tick_budget": 0.2, "max_sample_age": 5.0,
+        "queue_depth": 1000, "max_inbox": 2000, "max_pending_samples": 500, "max_sample_age": 5.0,
         "tf_prefix": "", "view_period": 0.1,
     }
     config = BodySchemeConfig()
@@ -77,9 +77,9 @@ class SchemeSettings:
     hardware_id: str = ""
     state_dir: str = ""
     max_state_bytes: int = 64 * 1024 * 1024
+    queue_depth: int = 1000
     max_inbox: int = 2000
     max_pending_samples: int = 500
-    tick_budget: float = 0.2
     max_sample_age: float = 5.0
     tf_prefix: str = ""
     view_period: float = 0.1
@@ -96,7 +96,7 @@ class SchemeSettings:
                                     f"{len(self.action_lower)} and {len(self.action_upper)}")
         if len(self.part_ids) < 2 or len(set(self.part_ids)) != len(self.part_ids):
             raise InvalidInputError(f"part_ids must name at least two distinct parts, got {list(self.part_ids)}")
-        for name in ("update_period", "stamp_tolerance", "stall_timeout", "tick_budget", "max_sample_age",
+        for name in ("update_period", "stamp_tolerance", "stall_timeout", "max_sample_age",
                      "view_period"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -105,7 +105,7 @@ class SchemeSettings:
                 and self.checkpoint_period > 0):
             raise InvalidInputError(f"checkpoint_period must be a finite number > 0 s (checkpoint_path \"\" turns "
                                     f"checkpoints off), got {self.checkpoint_period!r}")
-        for name in ("max_state_bytes", "max_inbox", "max_pending_samples"):
+        for name in ("max_state_bytes", "queue_depth", "max_inbox", "max_pending_samples"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")

@@ -59,6 +59,10 @@ def test_bad_markers_rejected_individually():
     assert sorted(observations) == [1]
     codes = [(marker_id, code) for marker_id, code, _ in rejected]
     assert codes == [(2, "invalid_pose"), (3, "invalid_pose"), (1, "repeated_id")]
+    msg.poses = [msg.poses[0], repeated, repeated, repeated]  # all valid: converted in one vectorised call
+    _, observations, rejected = conversions.observations_from_msg(msg)
+    assert sorted(observations) == [1, 2, 3] and [(i, code) for i, code, _ in rejected] == [(1, "repeated_id")]
+    np.testing.assert_array_equal(observations[1], np.eye(4))  # the first of a repeated id is kept
 
 
 def test_mismatched_lengths_rejected():
