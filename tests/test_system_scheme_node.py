@@ -432,24 +432,21 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
     babbler = Babbler(ros_node, session, period=0.0, depth=n)  # as fast as this process publishes
     assert spin_until(lambda: babbler.k == n, timeout=60, during=lambda: [babbler() for _ in range(50)])
 
-    def values():
-        status = collector.diagnostics.get("/scheme_node: body scheme")
-        return {} if status is None else {kv.key: kv.value for kv in status.values}
-
     def count(key):
-        return int(values().get(key, 0))
+        return int(_values(collector).get(key, 0))
 
     def settled():
         return (count("received.observations") == n and count("pending_samples") == 0
                 and bool(progress) and progress[-1] == n)
 
-    assert spin_until(settled, timeout=30), (values(), progress[-1:], process.output())
+    assert spin_until(settled, timeout=30), (_values(collector), progress[-1:], process.output())
     assert count("received.command") == n
     assert count("shed.stale_samples") > 0 and 0 < count("step") < n
     # Each observation message became one sample (learnt or shed) or was refused by the pairer.
     pairer_refusals = sum(count(f"rejected.{reason}") for reason in
                           ("duplicate", "stale", "settling", "no_command", "out_of_order_observation"))
-    assert count("step") + count("shed.stale_samples") + count("shed.samples") + pairer_refusals == n, values()
+    learnt_or_shed = count("step") + count("shed.stale_samples") + count("shed.samples")
+    assert learnt_or_shed + pairer_refusals == n, _values(collector)
     assert process.process.poll() is None
 
 

@@ -249,14 +249,12 @@ def filter_observations(observations, part_ids, max_distance=math.inf, reach=Non
             rejected.append(Rejection(part, "bad_shape", f"pose of part {part} must have shape (4, 4), got {shape}"))
         elif not np.all(np.isfinite(Y)):
             rejected.append(Rejection(part, "not_finite", f"pose of part {part} contains NaN or inf"))
-        elif not _distance(Y) <= max_distance:
-            distance = _distance(Y)
+        elif not (distance := math.hypot(*Y[:3, 3])) <= max_distance:  # hypot: no overflow for 1e300
             rejected.append(Rejection(part, "out_of_workspace", f"pose of part {part} is {distance:.3g} m from the "
                                       f"camera (max_distance {max_distance} m)"))
-        elif reach is not None and not _distance(Y[:3, 3] - reach[0]) <= reach[1]:
-            rejected.append(Rejection(part, "out_of_workspace", f"pose of part {part} is "
-                                      f"{_distance(Y[:3, 3] - reach[0]):.3g} m from the root part, beyond the "
-                                      f"robot's reach ({reach[1]:.3g} m with the margin)"))
+        elif reach is not None and not (distance := math.hypot(*(Y[:3, 3] - reach[0]))) <= reach[1]:
+            rejected.append(Rejection(part, "out_of_workspace", f"pose of part {part} is {distance:.3g} m from the "
+                                      f"root part, beyond the robot's reach ({reach[1]:.3g} m with the margin)"))
         else:
             valid[part] = Y
     if valid:
@@ -274,9 +272,3 @@ def filter_observations(observations, part_ids, max_distance=math.inf, reach=Non
                                                              f"det < 0)"))
     return valid, rejected
 
-
-def _distance(Y):
-    """Distance of a pose's position (or of a point) from the origin, without overflow for huge coordinates."""
-    t = np.abs(Y[:3, 3] if Y.ndim == 2 else Y)
-    scale = t.max()
-    return float(scale * np.sqrt(np.sum((t / scale) ** 2))) if scale > 0 else 0.0

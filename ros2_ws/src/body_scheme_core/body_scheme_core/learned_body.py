@@ -28,11 +28,12 @@ import numpy as np
 
 from .errors import InvalidInputError
 from .scheme import BodyScheme
-from .transforms import invert_transform, rotation_log
+from .transforms import invert_transform, rotation_log, rotational_error, translational_error
 from .world.robot_files import tree_to_urdf
 from .world.tree import Joint, KinematicTree, Marker
 
-__all__ = ["LearnedJoint", "LearnedBody", "learned_tree", "learned_urdf", "calibration_report", "format_report"]
+__all__ = ["LearnedJoint", "LearnedBody", "marker_link", "learned_tree", "learned_urdf", "calibration_report",
+           "format_report"]
 
 #: Below this |s - 1| a joint's learned scale is 1 (the command is the joint position).
 _UNIT_SCALE = 1e-6
@@ -93,6 +94,11 @@ def _screw(Z0, Z1, kind):
     c = np.linalg.lstsq(np.eye(3) - J[:3, :3], J[:3, 3], rcond=None)[0]
     c = c + u * float(np.dot(Z0[:3, 3] - c, u))
     return u, scale, c
+
+
+def marker_link(prefix, part):
+    """The learned URDF's link of a part's marker, ``<prefix>marker_<id>`` (also its TF frame)."""
+    return f"{prefix}marker_{int(part)}"
 
 
 def learned_tree(scheme, joint_names, lower, upper, prefix=""):
@@ -157,9 +163,9 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
                          f"its prediction for mid-range actions {mid[list(model.actions)].round(4).tolist()}")
     markers = []
     for p in scheme.parts:
-        joints.append(Joint(f"{prefix}marker_{p}_joint", "fixed", part[p], f"{prefix}marker_{p}",
+        joints.append(Joint(f"{marker_link(prefix, p)}_joint", "fixed", part[p], marker_link(prefix, p),
                             origin=link2marker[p]))
-        markers.append(Marker(p, f"{prefix}marker_{p}"))
+        markers.append(Marker(p, marker_link(prefix, p)))
     tree = KinematicTree(joints, markers, root_link=part[scheme.root])
     return LearnedBody(tree, exported, tuple(used), n_actions, notes)
 
@@ -206,9 +212,8 @@ def calibration_report(body, nominal):
         nominal2parent = invert_transform(nominal_markers[joint.parent])
         nominal_rel = nominal2parent @ nominal_markers[joint.child]
         learned_rel = invert_transform(learned_markers[joint.parent]) @ learned_markers[joint.child]
-        placement = {"marker_mm": 1e3 * float(np.linalg.norm(learned_rel[:3, 3] - nominal_rel[:3, 3])),
-                     "marker_deg": math.degrees(float(np.linalg.norm(rotation_log(
-                         (nominal_rel[:3, :3].T @ learned_rel[:3, :3])[None])[0])))}
+        placement = {"marker_mm": 1e3 * float(translational_error(nominal_rel, learned_rel)),
+                     "marker_deg": math.degrees(float(rotational_error(nominal_rel, learned_rel)))}
         if joint.type == "fixed":
             fixed.append({"parent": joint.parent, "child": joint.child, "model": joint.model, **placement})
             continue

@@ -491,12 +491,7 @@ def chordal_mean(R, weights):
     -------
     mean : ndarray, shape (k, 3, 3)
     """
-    M = np.einsum("kn,knij->kij", weights, R)
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0.0, 1.0, d)
-    U[..., :, 2] *= d[..., None]
-    return U @ Vt
+    return project_to_rotation(np.einsum("kn,knij->kij", weights, R))
 
 
 def perpendicular_basis(u):

@@ -90,7 +90,7 @@ class BagReplay(Node):
 
     Subscriptions
     -------------
-    body_scheme/progress : std_msgs/UInt64   scheme_node's count of observation messages taken in (rate 0)
+    body_scheme/progress : std_msgs/UInt64   scheme_node's count of observation messages decided (rate 0)
     """
 
     def __init__(self, **node_options):

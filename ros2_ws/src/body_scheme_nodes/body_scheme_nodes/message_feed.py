@@ -1,18 +1,18 @@
 """From decoded messages to learning samples, without ROS: the one path scheme_node and replay_offline share.
 
-scheme_node calls :func:`feed_message` for every buffered message in its timer, ``pairer.flush(now)`` and then
-``learner.update`` for each sample; replay_offline does the same over a bag (with a final ``flush(inf)``). Because
+scheme_node calls :func:`feed_message` for every message it takes in, ``pairer.flush(now)`` and then
+:func:`learn_sample` for each sample; replay_offline does the same over a bag (with a final ``flush(inf)``). Because
 both go through these lines with the same messages and settings, an offline replay and a replay through the ROS graph
 learn from identical samples.
 """
 
 from __future__ import annotations
 
-from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
 
 from . import conversions
 
-__all__ = ["MESSAGE_KINDS", "feed_message"]
+__all__ = ["MESSAGE_KINDS", "feed_message", "learn_sample"]
 
 #: Kinds of message scheme_node learns from: a ``sensor_msgs/JointState`` command or a ``MarkerPoses`` observation.
 MESSAGE_KINDS = ("command", "observations")
@@ -49,3 +49,23 @@ def feed_message(pairer, kind, msg, joint_names):
         return [], [(code, f"marker {marker_id}: {detail}") for marker_id, code, detail in dropped]
     except InvalidInputError as error:
         return [], [(f"bad_{kind}_message", str(error))]
+
+
+def learn_sample(learner, stamp, actions, observations):
+    """``learner.update`` on one paired sample, with the learner's refusals as reason codes.
+
+    Returns
+    -------
+    events : list of SchemeEvent, or None if the sample was refused (the learner is then unchanged)
+    rejection : (str, str) or None
+        Reason code and detail: ``command_out_of_range``, ``older_than_state`` (a stamp before the learner's last
+        step, e.g. a bag replayed into a restored state) or ``bad_sample``.
+    """
+    try:
+        return learner.update(actions, observations, stamp=stamp), None
+    except ActionOutOfRangeError as error:
+        return None, ("command_out_of_range", str(error))
+    except StampOrderError as error:
+        return None, ("older_than_state", str(error))
+    except InvalidInputError as error:
+        return None, ("bad_sample", str(error))

@@ -1,9 +1,9 @@
 """The offline replay loop: learn from a bag's commands and observations exactly as scheme_node would, without ROS.
 
 The bag's ``/joint_commands`` and ``/observations`` are decoded into rclpy messages (:mod:`.bag_io`) and go through
-scheme_node's own path (:func:`.message_feed.feed_message` into the pairer, ``learner.update`` per sample, a final
-``flush(inf)``), with the settings of its parameter file. The report, plot and command line around it are
-``body_scheme_apps.replay_offline``.
+scheme_node's own path (:func:`.message_feed.feed_message` into the pairer, :func:`.message_feed.learn_sample` per
+sample, a final ``flush(inf)``), with the settings of its parameter file. The report, plot and command line around it
+are ``body_scheme_apps.replay_offline``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from body_scheme_core.transforms import rotational_error, translational_error
 
 from . import conversions
 from .bag_io import bag_topics, read_messages, session_info
-from .message_feed import feed_message
+from .message_feed import feed_message, learn_sample
 from .settings import SchemeSettings
 
 __all__ = ["ReplayResult", "default_params_file", "replay_bag", "COMMANDS", "OBSERVATIONS", "GROUND_TRUTH"]
@@ -164,10 +164,9 @@ def replay_bag(path, settings, progress=None):
             k = bisect.bisect_right(command_stamps, stamp) - 1
             prediction = _prediction_errors(learner, actions, truth[k] if k >= 0 else None)
             step = learner.step
-            try:
-                events = learner.update(actions, observations, stamp=stamp)
-            except InvalidInputError:  # counted as scheme_node counts it; the learner is unchanged
-                result.rejected["bad_sample"] += 1
+            events, rejection = learn_sample(learner, stamp, actions, observations)
+            if rejection is not None:  # counted as scheme_node counts it; the learner is unchanged
+                result.rejected[rejection[0]] += 1
                 continue
             result.events += events
             result.steps.append({"step": step, "command_index": k, "stamp": stamp, "phase": learner.phase,

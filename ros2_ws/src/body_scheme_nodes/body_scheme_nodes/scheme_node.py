@@ -82,7 +82,7 @@ from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
-from body_scheme_core.errors import ActionOutOfRangeError, BodySchemeError, InvalidInputError, StampOrderError
+from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.learned_body import learned_tree, learned_urdf
 from body_scheme_core.persistence import encode_state, load_state, write_state_text
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -90,7 +90,7 @@ from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
 from . import conversions, state_files, view
 from .intake import BatchIntake
-from .message_feed import feed_message
+from .message_feed import feed_message, learn_sample
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
 
@@ -120,7 +120,10 @@ class SchemeNode(Node):
         self.latency = deque(maxlen=200)
         self._inbox = deque()  # (kind, message, receipt time) from the intake; taken by the learning thread
         self._pending = deque()  # (receipt time, paired sample) not learnt yet
-        self.shed = Counter()  # messages and samples dropped under overload, by kind (oldest first)
+        # Messages and samples dropped under overload, by kind (oldest first): messages by the executor's thread under
+        # _lock, samples by the learning thread under _learner_lock; /diagnostics reads it on the executor's thread
+        # under _learner_lock, so no write overlaps the read.
+        self.shed = Counter()
         self.received = Counter()  # messages taken in from the subscriptions, by kind
         self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
         self.restamped = Counter()
@@ -277,10 +280,12 @@ class SchemeNode(Node):
             self.shed["samples"] += 1
 
     def _publish_progress(self):
-        """Observation messages decided so far: taken in, less those the pairer holds and those whose samples wait
-        to be learnt (one sample per observation message). bag_replay's rate 0 keeps its messages in flight within
-        this, so a replay waits for learning, not only for intake."""
-        progress = self.n_observation_messages - self.pairer.waiting - len(self._pending)
+        """Observation messages decided so far: those taken in by the learning thread or shed from the inbox, less
+        those the pairer holds and those whose samples wait to be learnt (one sample per observation message).
+        bag_replay's rate 0 keeps its messages in flight within this, so a replay waits for learning, not only for
+        intake."""
+        progress = (self.n_observation_messages + self.shed["observations_messages"] - self.pairer.waiting
+                    - len(self._pending))
         if progress != self._last_progress:
             self._last_progress = progress
             self.pub_progress.publish(UInt64(data=progress))
@@ -305,16 +310,9 @@ class SchemeNode(Node):
 
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()
-        try:
-            events = self.learner.update(actions, observations, stamp=stamp)
-        except ActionOutOfRangeError as error:
-            self._reject("command_out_of_range", str(error))
-            return
-        except StampOrderError as error:  # older than a restored state (e.g. a bag replayed with restamp: false)
-            self._reject("older_than_state", str(error))
-            return
-        except InvalidInputError as error:
-            self._reject("bad_sample", str(error))
+        events, rejection = learn_sample(self.learner, stamp, actions, observations)
+        if rejection is not None:
+            self._reject(*rejection)
             return
         self.last_learn_time = self._now()
         self.latency.append(time.perf_counter() - start)
@@ -325,21 +323,21 @@ class SchemeNode(Node):
                 self._recent_events[event.child] = (event.kind, self._now())
             if event.kind != "input_rejected":
                 self.get_logger().info(f"[step {event.step}] {event.kind}: {event.reason}")
+        edges = self.learner.edge_status()
         if self.learner.body_scheme is not None:
             poses, std = self.learner.predict(actions, return_std=True)
             self.pub_predicted.publish(conversions.marker_poses_msg(stamp, self.frame_id, poses, std))
-            self._publish_view(stamp, poses, std, observations)
-        self._publish_structure()
+            self._publish_view(stamp, poses, std, observations, edges)
+        self._publish_structure(edges=edges)
 
-    def _publish_view(self, stamp, poses, std, observations):
+    def _publish_view(self, stamp, poses, std, observations, edges):
         """Markers, PoseArray and /tf of a prediction, at most every ``view_period`` (body_scheme_nodes.view)."""
         now = self._now()
         if now - self._last_view < self.settings.view_period:
             return
         self._last_view = now
         recent = {child: kind for child, (kind, when) in self._recent_events.items() if now - when < 5.0}
-        self.pub_markers.publish(view.markers_msg(stamp, self.frame_id, poses, std, self.learner.edge_status(),
-                                                  observations, recent))
+        self.pub_markers.publish(view.markers_msg(stamp, self.frame_id, poses, std, edges, observations, recent))
         self.pub_poses.publish(view.pose_array_msg(stamp, self.frame_id, poses))
         self.pub_tf.publish(view.tf_msg(stamp, self.frame_id, poses, self.settings.tf_prefix))
 
@@ -365,9 +363,9 @@ class SchemeNode(Node):
         self.rejected[code] += 1
         self.get_logger().warn(f"rejected input ({code}): {detail}", throttle_duration_sec=5.0)
 
-    def _publish_structure(self, force=False):
+    def _publish_structure(self, force=False, edges=None):
         learner = self.learner
-        edges = learner.edge_status()
+        edges = learner.edge_status() if edges is None else edges
         key = tuple((e["parent"], e["child"], e["model"], e["valid"]) for e in edges) + (learner.phase,)
         if not force and key == self._last_structure_key:
             return
@@ -489,12 +487,12 @@ class SchemeNode(Node):
 
     def _on_get_urdf(self, request, response):
         with self._learner_lock:
-            body = self._learned_body()
+            body, phase, step = self._learned_body(), self.learner.phase, self.learner.step
         if body is None:
-            response.success, response.message = False, f"no body scheme yet ({self.learner.phase})"
+            response.success, response.message = False, f"no body scheme yet ({phase})"
             return response
         response.success, response.urdf = True, learned_urdf(body)
-        response.message = f"learned body scheme at step {self.learner.step}" + (
+        response.message = f"learned body scheme at step {step}" + (
             f"; {len(body.notes)} note(s): " + " | ".join(body.notes) if body.notes else "")
         return response
 

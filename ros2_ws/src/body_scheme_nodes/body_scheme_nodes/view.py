@@ -23,9 +23,11 @@ from std_msgs.msg import ColorRGBA, Header
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
+from body_scheme_core.learned_body import marker_link
+
 from . import conversions
 
-__all__ = ["EDGE_COLOURS", "edge_state", "markers_msg", "pose_array_msg", "tf_msg", "frame_name"]
+__all__ = ["EDGE_COLOURS", "edge_state", "markers_msg", "pose_array_msg", "tf_msg"]
 
 #: Colour (r, g, b) of a tree edge by state.
 EDGE_COLOURS = {"valid": (0.1, 0.8, 0.1), "mismatch": (0.9, 0.1, 0.1), "invalid": (1.0, 0.55, 0.0),
@@ -33,11 +35,6 @@ EDGE_COLOURS = {"valid": (0.1, 0.8, 0.1), "mismatch": (0.9, 0.1, 0.1), "invalid"
 _AXIS_COLOURS = ((1.0, 0.0, 0.0), (0.0, 0.8, 0.0), (0.0, 0.3, 1.0))
 _AXIS_LENGTH = 0.08
 _LIFETIME = Duration(sec=0)  # until replaced
-
-
-def frame_name(prefix, part):
-    """TF frame of a predicted part: ``<prefix>marker_<id>`` (the learned URDF's marker link)."""
-    return f"{prefix}marker_{int(part)}"
 
 
 def edge_state(edge, recent_event=None):
@@ -146,7 +143,7 @@ def tf_msg(stamp, frame_id, poses, prefix=""):
         pose = conversions.pose_msg_from_transform(poses[part])
         transform = TransformStamped()
         transform.header = _header(stamp, frame_id)
-        transform.child_frame_id = frame_name(prefix, part)
+        transform.child_frame_id = marker_link(prefix, part)  # the learned URDF's marker link
         transform.transform.translation.x = pose.position.x
         transform.transform.translation.y = pose.position.y
         transform.transform.translation.z = pose.position.z
