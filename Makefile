@@ -4,6 +4,7 @@
 #   make test-fast  the inner loop: every test but the DDS system tests and the slow ones (under 90 s)
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
+#   make stress  the learner's property-based stress test on random bodies, >= 100,000 steps (out/stress/stress.json)
 #   make fuzz    scheme_node under 10,000+ hostile and valid messages over DDS (writes out/fuzz/fuzz.json)
 #   make bags    regenerate the sample babbling sessions in bags/ (see bags/README.md)
 #   make replay  learn offline from bags/joint_blocked_seed0, write out/replay/joint_blocked_seed0 (report + plot)
@@ -24,7 +25,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test test-fast unit lint demo bench fuzz bags replay experiments experiments-quick clean distclean
+.PHONY: all setup build test test-fast unit lint demo bench stress fuzz bags replay experiments experiments-quick clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -82,6 +83,12 @@ bench: build
 	$(RUN) python -m body_scheme_apps.learning_bench --out out/bench/core.json
 	$(RUN) python -m body_scheme_apps.perception_bench --out out/bench/sim.json
 	$(RUN) python -m body_scheme_apps.load_bench --out out/bench/load.json
+
+# The learner under random bodies, noise, dropout, outliers and faults (CI runs a small profile of the same test).
+stress: build
+	mkdir -p out/stress
+	$(RUN) BODY_SCHEME_STRESS=stress BODY_SCHEME_STRESS_OUT=out/stress/stress.json \
+	  python -m pytest -q -p no:cacheprovider ros2_ws/src/body_scheme_core/test/test_stress.py
 
 # Hostile input over DDS: every refusal counted exactly, the same tree as without it (tests run a 3,000-message one).
 fuzz: build

@@ -183,7 +183,7 @@ def _parametrisation_comparison(seed, n_trials, n_train=30, n_test=200):
     config = BodySchemeConfig()
     hyper = GPHyperparameters.from_config(config)
     rng = np.random.default_rng(seed)
-    s_t, s_r = config.sigma_trans / np.sqrt(3.0), config.sigma_rot / np.sqrt(3.0)
+    s_t, s_r = config.prior_sigma_trans / np.sqrt(3.0), config.prior_sigma_rot / np.sqrt(3.0)
     out = {}
     for label, limit in (("range_1rad", 1.0), ("range_pi", np.pi)):
         errors = {"matrix12": [], "tangent6": []}

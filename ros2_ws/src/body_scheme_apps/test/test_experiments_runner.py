@@ -78,6 +78,29 @@ def test_command_writes_results_json_with_seed_commit_and_std_twins(tmp_path, ca
     assert (tmp_path / "table1_blocked.png").exists() and "Table I" in (tmp_path / "RESULTS.md").read_text()
 
 
+def test_keep_reruns_one_experiment_and_keeps_the_others_figures(tmp_path):
+    """--only zoo --keep over an earlier Table I run: results.json and RESULTS.md have both, the seconds add up."""
+    common = ["--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1", "--quiet", "--out", str(tmp_path),
+              "--md", str(tmp_path / "RESULTS.md")]
+    assert main(["--only", "table1", *common]) == 0
+    first = json.loads((tmp_path / "results.json").read_text())
+    assert main(["--only", "zoo", "--keep", *common]) == 0
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["blocked_recovery_failure"] == first["blocked_recovery_failure"]
+    assert results["zoo_exceptions"] == 0.0 and results["seconds"] >= first["seconds"]
+    assert set(results["runs_per_experiment"]) == {"table1", "zoo"}
+    text = (tmp_path / "RESULTS.md").read_text()
+    assert "Table I" in text and "robot zoo" in text and "table1_blocked.png" in text and "--keep" in text
+    runs = json.loads((tmp_path / "zoo_runs.json").read_text())  # which seeds and levels went wrong
+    assert len(runs) == 4 and {r["variant"] for r in runs} == {"camera", "realcam", "paper", "harsh"}
+
+
+def test_keep_needs_an_earlier_results_file(tmp_path):
+    with pytest.raises(SystemExit, match="earlier"):
+        main(["--only", "zoo", "--keep", "--quick", "--runs", "1", "--rendered-runs", "0", "--jobs", "1", "--quiet",
+              "--out", str(tmp_path)])
+
+
 def test_command_rejects_bad_run_counts():
     """--runs 0 is a usage error."""
     with pytest.raises(SystemExit):

@@ -46,12 +46,15 @@ from .quality import model_cost, nests, relative_complexity
 from .structure import action_subsets, kinds_for, replacement_candidates
 from .tracked import MEMORY, TREE, TrackedModel, nested_models
 
-__all__ = ["Adaptation", "Mismatch", "Change", "least_recently_used", "tree_halves"]
+__all__ = ["Adaptation", "Mismatch", "Change", "least_recently_used", "tree_halves", "upstream_edges"]
 
 #: An alarm is attributed to an edge above it only if that edge's CUSUM reached this fraction of the alarm level: a
 #: change above raises the errors of its own child too, while healthy edges wander a little above zero (up to 0.7 of
 #: the drift-adjusted statistic on clean data, learning-and-adaptation.md Sec. 6).
 _ATTRIBUTION_FRACTION = 0.5
+#: The memory challenge needs the tree model's CUSUM at this fraction of the alarm level: a changed part's first sample
+#: (clipped at ``cusum_clip``) raises it by ``clip - drift`` = 4.5 of 12 with the defaults.
+_CHALLENGE_FRACTION = 0.25
 
 
 @dataclass
@@ -72,6 +75,11 @@ class Mismatch:
         How often replacements were sampled again after ``replacement_patience``.
     bridged_at : int
         Step at which candidates of other pairs across the cut were sampled; -1 before.
+    search : int
+        1 when the edge is searched for like a new one (:meth:`Adaptation.flag`: the joint fit left a part below it
+        unexplained; or its pair failed again within ``2 test_window`` steps): no remembered model is asked (the body
+        did not change back), candidates of the pair and of every pair across the cut are sampled together, and the
+        cheapest by absolute complexity wins, as while bootstrapping.
     """
 
     tau: int
@@ -80,6 +88,7 @@ class Mismatch:
     train_from: int = -1
     resamples: int = 0
     bridged_at: int = -1
+    search: int = 0
 
 
 class Change(NamedTuple):
@@ -142,6 +151,45 @@ def tree_halves(part_ids, edges):
     return {part: k for k, parts in enumerate(nx.connected_components(graph)) for part in parts}
 
 
+def upstream_edges(root, edges):
+    """Per tree edge, the edges on the path from the root to its part nearer the root, root-most first.
+
+    Parameters
+    ----------
+    root : int
+    edges : iterable of (int, int, key)
+        The tree's edges ``(part, part, key)``, in any orientation.
+
+    Returns
+    -------
+    upstream : dict of key to list of key
+    """
+    edges = list(edges)
+    graph = nx.Graph()
+    graph.add_node(root)
+    for u, v, key in edges:
+        graph.add_edge(u, v, key=key)
+    above = {root: None}  # part -> (part above it, key of the edge between them)
+    depth = {root: 0}
+    for u, v in nx.bfs_edges(graph, root):
+        above[v] = (u, graph.edges[u, v]["key"])
+        depth[v] = depth[u] + 1
+    out = {}
+    for u, v, key in edges:
+        part = u if depth[u] < depth[v] else v
+        path = []
+        while above[part] is not None:
+            part, edge = above[part]
+            path.append(edge)
+        out[key] = path[::-1]
+    return out
+
+
+def _across(entries, halves):
+    """The models of ``entries`` whose parts lie in different halves (``halves``: :func:`tree_halves`)."""
+    return [e for e in entries if halves[e.parent] != halves[e.child]]
+
+
 def bridge_relative_complexity(entry, failed):
     """C(M2|M1) of a candidate ``entry`` replacing ``failed`` (Eq. 11): differing actions, plus one for another
     pair of parts (fewer shared nodes)."""
@@ -165,14 +213,17 @@ class Adaptation:
         Edges in mismatch by tree-model id (a restored state).
     refining : dict of int to tuple (int, int), optional
         Installed replacements whose sibling candidates still learn: tree-model id -> (failed model id, tau).
+    failed : dict of frozenset to tuple (int, int), optional
+        The last step each pair of parts was found in mismatch, and that mismatch's change point.
 
     Attributes
     ----------
     mismatch : dict of int to Mismatch
     refining : dict of int to tuple (int, int)
+    failed : dict of frozenset to tuple (int, int)
     """
 
-    def __init__(self, config, pool, history, part_ids, root, mismatch=None, refining=None):
+    def __init__(self, config, pool, history, part_ids, root, mismatch=None, refining=None, failed=None):
         self.config = config
         self.pool = pool
         self.history = history
@@ -180,8 +231,9 @@ class Adaptation:
         self.root = root
         self.mismatch = {} if mismatch is None else mismatch
         self.refining = {} if refining is None else dict(refining)
+        self.failed = {} if failed is None else dict(failed)
 
-    def step(self, tree, a, chain, chain_at, upstream, step, events):
+    def step(self, tree, a, chain, chain_at, step, events):
         """One step after bootstrapping: evaluate and train, detect mismatches, repair the edges in mismatch.
 
         Parameters
@@ -193,8 +245,6 @@ class Adaptation:
             Targets of this step.
         chain_at : callable
             ``chain_at(a, observations)`` gives the :class:`ChainTargets` of a past step (history replay).
-        upstream : dict of int to list of int
-            Per tree model id, the ids of the tree models on the path from the root to it (root-most first).
         step : int
         events : list of Event
             Appended to.
@@ -206,10 +256,11 @@ class Adaptation:
         """
         pool = self.pool
         edges = [pool.tracked[i] for i in tree]
-        index, e_t, e_r, theta = chain.tree_errors([chain.orient(e.parent, e.child) for e in edges])
+        index, e_t, e_r, theta_t, theta_r = chain.tree_errors([chain.orient(e.parent, e.child) for e in edges])
         evaluated = [edges[k] for k in index]
         alarm = pool.monitor.record([e.row for e in evaluated], e_t, e_r, step,
-                                    n_train=[e.n_train for e in evaluated], cusum=True, theta_trans=theta)
+                                    n_train=[e.n_train for e in evaluated], cusum=True, theta_trans=theta_t,
+                                    theta_rot=theta_r)
         alarms = {e.id: bool(x) for e, x in zip(evaluated, alarm, strict=True)}
         memory = pool.with_role(MEMORY)
         index, targets = chain.for_entries(memory)
@@ -219,7 +270,8 @@ class Adaptation:
             index, targets = chain.for_entries(learning, own=True)
             pool.train([learning[k].id for k in index], a, targets, step)
         changes = self._refine_choices(tree, step, events) + self._challenge(tree, step, events)
-        self._detect(tree, alarms, upstream, step, events)
+        # After those changes: detection sees the tree as it is now (a replaced model is no edge of it any more).
+        self._detect(tree, alarms, step, events)
         for edge_id in list(self.mismatch):
             if edge_id in self.mismatch:
                 change = self._repair(tree, pool.tracked[edge_id], chain, chain_at, step, events)
@@ -228,7 +280,7 @@ class Adaptation:
         return changes
 
     # ------------------------------------------------------------------ detection
-    def _detect(self, tree, alarms, upstream, step, events):
+    def _detect(self, tree, alarms, step, events):
         """Mismatch detection on the tree edges evaluated in this step (``alarms``: CUSUM alarm by model id)."""
         c = self.config
         pool = self.pool
@@ -236,6 +288,7 @@ class Adaptation:
         observed = [pool.tracked[i] for i in tree if i in alarms and i not in self.mismatch]
         if not observed:
             return
+        upstream = upstream_edges(self.root, [(pool.tracked[i].parent, pool.tracked[i].child, i) for i in tree])
         st, valid = pool.window_stats([e.row for e in observed], [pool.n_now(e) for e in observed])
         for k, e in enumerate(observed):
             if e.id in self.mismatch:  # attributed from an edge below it earlier in this loop
@@ -277,14 +330,15 @@ class Adaptation:
     def _challenge_from_memory(self, entry, step, events, st, k):
         """Start a mismatch early when a remembered model of the same pair clearly fits the recent samples better.
 
-        Only while the tree model's CUSUM is above zero (some evidence of drift): over the samples since the
-        excursion started, a remembered model must be valid (at least ``reinstate_min_samples`` samples) and beat
-        the tree model in a paired comparison in both channels, by more than ``challenge_margin`` on average. This
-        is what lets a repair, or the same failure again, be handled within a few samples.
+        Only while the tree model's CUSUM is up by :data:`_CHALLENGE_FRACTION` of the alarm level (evidence of a drift,
+        which one sample of a real change gives; noise excursions stay lower): over the samples since the excursion
+        started, a remembered model must be valid (at least ``reinstate_min_samples`` samples) and beat the tree model
+        in a paired comparison in both channels, by more than ``challenge_margin`` on average. This is what lets a
+        repair, or the same failure again, be handled within a few samples.
         """
         c = self.config
         monitor = self.pool.monitor
-        if not np.any(monitor.cusum[entry.row] > 0.0):
+        if not np.any(monitor.cusum[entry.row] >= _CHALLENGE_FRACTION * c.cusum_threshold):
             return
         memory = self.pool.memory_of_pair(entry.parent, entry.child)
         if not memory:
@@ -301,24 +355,44 @@ class Adaptation:
                      f"{-diff[best, 0]:.2f} (trans) / {-diff[best, 1]:.2f} (rot) thresholds")
             self._start_mismatch(entry, step, events, False, st, k, cause=cause)
 
-    def _start_mismatch(self, entry, step, events, alarm, st, k, cause=None):
-        """Put ``entry`` in mismatch, with the change point from its CUSUM (else the oldest window sample)."""
+    def flag(self, entry, step, events, cause):
+        """Put tree edge ``entry`` in mismatch for a reason the detectors did not see (the joint fit left a part below
+        it unexplained): it is repaired like a detected change, by remembered models, replacements of other classes
+        and action sets, and pairs across the cut. The change point is the CUSUM's if it rose, else the oldest step of
+        the history (the model may have been wrong all along)."""
+        st, _ = self.pool.window_stats([entry.row], [self.pool.n_now(entry)])
+        oldest = self.history[0][0] if self.history else step
+        self._start_mismatch(entry, step, events, False, st, 0, cause=cause, fallback_tau=oldest, search=True)
+
+    def _start_mismatch(self, entry, step, events, alarm, st, k, cause=None, fallback_tau=None, search=False):
+        """Put ``entry`` in mismatch, with the change point from its CUSUM (else ``fallback_tau``, else the oldest
+        window sample); searched for like a new edge (``search``, or when its pair failed within ``2 test_window``
+        steps: repairing it the usual way did not last)."""
         c = self.config
         monitor = self.pool.monitor
-        n, mt, mr, theta_t = int(st.n[k]), float(st.trans_error[k]), float(st.rot_error[k]), float(st.theta_trans[k])
+        n, mt, mr = int(st.n[k]), float(st.trans_error[k]), float(st.rot_error[k])
+        theta_t, theta_r = float(st.theta_trans[k]), float(st.theta_rot[k])
         tau = int(monitor.change_point([entry.row])[0])
-        if tau < 0:
+        if tau < 0 and fallback_tau is not None:
+            tau = int(fallback_tau)
+        elif tau < 0:
             tau = int(monitor.first_step([entry.row])[0])
             tau = step if tau < 0 else tau
         S = monitor.cusum[entry.row]
         if cause is None:
             cause = (f"CUSUM {S[0]:.2f} (trans) / {S[1]:.2f} (rot) reached {c.cusum_threshold:g}" if alarm
                      else f"test window invalid over {n} samples")
-        self.mismatch[entry.id] = Mismatch(tau=tau, detected=step, train_from=tau)
+        pair = frozenset((entry.parent, entry.child))
+        last, last_tau = self.failed.get(pair, (-math.inf, tau))
+        again = step - last <= 2 * c.test_window
+        if again:  # the repair of the same change did not last: its data since that change point is still good
+            tau = min(tau, last_tau)
+        self.failed[pair] = (step, tau)
+        self.mismatch[entry.id] = Mismatch(tau=tau, detected=step, train_from=tau, search=int(search or again))
         events.append(Event(step, "mismatch_detected",
                             f"{entry.describe()} no longer matches the observations: {cause}; window mean "
                             f"{format_errors(mt, mr)} over {n} samples (thresholds "
-                            f"{format_errors(theta_t, c.theta_rot)}); change point estimated at step {tau}",
+                            f"{format_errors(theta_t, theta_r)}); change point estimated at step {tau}",
                             parent=entry.parent, child=entry.child, model=entry.describe(),
                             trans_error=finite_or_none(mt), rot_error=finite_or_none(mr)))
 
@@ -334,16 +408,22 @@ class Adaptation:
         pool = self.pool
         mismatch = self.mismatch[failed.id]
         halves = self._halves(tree, failed)
-        change = self._reinstate_from_memory(tree, failed, mismatch, halves, step, events)
-        if change is not None:
-            return change
+        if not mismatch.search:
+            change = self._reinstate_from_memory(tree, failed, mismatch, halves, step, events)
+            if change is not None:
+                return change
         candidates = pool.candidates_of(failed.id)
         if not candidates and mismatch.sampled_at < 0:
             self._sample(failed, mismatch, chain, chain_at, halves, step, events, mismatch.tau, bridges=False,
-                         why="no remembered model fits")
+                         why="searched for like a new edge" if mismatch.search else "no remembered model fits")
+            if mismatch.search:
+                self._sample(failed, mismatch, chain, chain_at, halves, step, events, mismatch.tau, bridges=True,
+                             why="searched for like a new edge")
             candidates = pool.candidates_of(failed.id)
         if candidates:
-            choice = self._choose_replacement(failed, candidates)
+            # Only candidates that reconnect the two halves of the tree as it is now (another repair may have moved
+            # the cut since they were sampled).
+            choice = self._choose_replacement(failed, _across(candidates, halves), bool(mismatch.search))
             if choice is not None:
                 return self._install_replacement(tree, failed, choice, step, events)
         if mismatch.sampled_at >= 0 and mismatch.bridged_at < 0 and step - mismatch.sampled_at >= c.bridge_patience:
@@ -385,7 +465,8 @@ class Adaptation:
         events.append(Event(step, "model_reinstated",
                             f"remembered {back.describe()} fits again: mean error {format_errors(mt[best], mr[best])} "
                             f"over {n[best]} samples since the change point (step {mismatch.tau}), below "
-                            f"{format_errors(st.theta_trans[best], c.theta_rot)}; it replaces {failed.describe()} "
+                            f"{format_errors(st.theta_trans[best], st.theta_rot[best])}; it replaces "
+                            f"{failed.describe()} "
                             f"(chosen among {int(ok.sum())} fitting of {len(bridges)} remembered)",
                             parent=back.parent, child=back.child, model=back.describe(),
                             trans_error=float(mt[best]), rot_error=float(mr[best])))
@@ -444,8 +525,9 @@ class Adaptation:
                             f"samples since step {start} (replayed from history)",
                             parent=failed.parent, child=failed.child, model=failed.describe()))
 
-    def _choose_replacement(self, failed, candidates):
-        """The valid, not dominated candidate of least cost ``C(M2|M1)`` + error and class penalty (Eq. 11), or None."""
+    def _choose_replacement(self, failed, candidates, absolute=False):
+        """The valid, not dominated candidate of least cost ``C(M2|M1)`` + error and class penalty (Eq. 11), or None;
+        with ``absolute``, of least absolute complexity ``C(M2)`` instead (Eq. 4, as while bootstrapping)."""
         pool = self.pool
         rows = [e.row for e in candidates]
         n_now = [pool.n_now(e) for e in candidates]
@@ -453,7 +535,7 @@ class Adaptation:
         valid &= ~pool.dominated(rows, n_now, *nested_models(candidates), valid)
         if not np.any(valid):
             return None
-        rel = np.array([bridge_relative_complexity(e, failed) for e in candidates])
+        rel = np.array([e.complexity if absolute else bridge_relative_complexity(e, failed) for e in candidates])
         rank = np.array([e.rank for e in candidates])
         cost = np.where(valid, model_cost(rel, st.trans_ratio, st.rot_ratio, rank), np.inf)
         best = int(np.argmin(cost))
@@ -472,12 +554,12 @@ class Adaptation:
         return self.mismatch.pop(failed.id)
 
     def _refine_choices(self, tree, step, events):
-        """A replacement is installed as soon as one candidate is valid; a simpler sibling (lower relative complexity,
-        then class rank) may need a few more samples to be judged (a revolute joint predicts from its third sample,
-        a GP from its first). Siblings keep learning until they are frozen, and a simpler one that becomes valid
-        takes over (``model_replaced``) unless the installed model predicts the same samples clearly better (the
-        dominance margin); the first choice is dropped, not remembered (it never described another body). Returns
-        the changes."""
+        """A replacement is installed as soon as one candidate is valid; a simpler sibling (fewer actions, then class
+        rank) may need a few more samples to be judged (a revolute joint predicts from its third sample, a GP from its
+        first). Siblings keep learning until they are frozen, and a simpler one that becomes valid takes over
+        (``model_replaced``) unless the installed model predicts the same samples clearly better (the dominance
+        margin); the first choice is dropped, not remembered (it never described another body). Returns the
+        changes."""
         pool = self.pool
         changes = []
         for new_id, (failed_id, tau) in list(self.refining.items()):
@@ -491,11 +573,14 @@ class Adaptation:
                 continue
             if current.id in self.mismatch:
                 continue  # its repair decides
-            choice = self._choose_replacement(failed, candidates)
-            simpler = (choice is not None
-                       and ((bridge_relative_complexity(choice.entry, failed), choice.entry.rank)
-                            < (bridge_relative_complexity(current, failed), current.rank))
-                       and not self._clearly_better(current, choice.entry))
+            sampled = candidates
+            candidates = _across(sampled, self._halves(tree, current))  # the cut as it is now
+            # The first choice followed Eq. 11 (close to the failed model: found fast); with more data the simplest
+            # valid sibling that is not clearly worse takes over (absolute complexity, then class: a static model for
+            # a blocked joint, a revolute one where a GP was valid first).
+            choice = self._choose_replacement(failed, candidates, absolute=True)
+            simpler = (choice is not None and (choice.entry.complexity, choice.entry.rank)
+                       < (current.complexity, current.rank) and not self._clearly_better(current, choice.entry))
             if not simpler:
                 dominating = self._dominating(current, candidates)
                 choice = None if dominating is None else Replacement(dominating[0], *dominating[1:4], 0, 0.0, 1,
@@ -515,12 +600,16 @@ class Adaptation:
                                     f"{choice.n_test} test samples after {new.n_train} training samples",
                                     parent=new.parent, child=new.child, model=new.describe(),
                                     trans_error=choice.trans_error, rot_error=choice.rot_error))
+                if {new.parent, new.child} != {current.parent, current.child}:
+                    events.append(Event(step, "structure_changed",
+                                        f"edge {current.parent}-{current.child} replaced by {new.parent}-{new.child} "
+                                        f"({new.describe()}), a simpler candidate across the cut"))
                 pool.remove(current)
                 del self.refining[new_id]
                 self.refining[new.id] = (failed_id, tau)
                 changes.append(Change(new, current, tau))
             elif all(pool.n_now(e) >= self.config.train_window for e in candidates):
-                for e in candidates:
+                for e in sampled:
                     pool.remove(e)
                 del self.refining[new_id]
         return changes
@@ -537,7 +626,8 @@ class Adaptation:
                             f"{new.describe()} replaces {failed.describe()}: valid with mean error "
                             f"{format_errors(choice.trans_error, choice.rot_error)} over {choice.n_test} test samples "
                             f"after {new.n_train} training samples since step {mismatch.train_from}; cost "
-                            f"C(M2|M1) + error and class penalty = {choice.cost:.2f} (relative complexity "
+                            f"{'C(M2)' if mismatch.search else 'C(M2|M1)'} + error and class penalty = "
+                            f"{choice.cost:.2f} ({'' if mismatch.search else 'relative '}complexity "
                             f"{choice.relative}), "
                             f"cheapest of {choice.n_valid} valid among {choice.n_sampled} sampled; mismatch lasted "
                             f"{step - mismatch.detected} steps",
@@ -553,58 +643,81 @@ class Adaptation:
     def _clearly_better(self, entry, other):
         """Whether ``entry`` predicts the samples both were tested on clearly better than ``other``: by more than
         ``dominance_margin`` thresholds on average in either channel, over at least ``min_test_samples``."""
-        n, diff = self.pool.monitor.paired_difference([entry.row], [other.row])
+        pool = self.pool
+        n, diff = pool.monitor.paired_difference([entry.row], [other.row], [pool.n_now(entry)], [pool.n_now(other)],
+                                                 self.config.stale_fraction)
         return bool(n[0] >= self.config.min_test_samples and -diff[0].min() > self.config.dominance_margin)
 
     def _dominating(self, current, candidates):
         """The valid candidate that nests ``current`` and beats it most clearly in a paired comparison (more than
-        ``dominance_margin`` thresholds on average in either channel, over at least ``min_test_samples`` common
-        samples), as ``(entry, n, trans_error, rot_error)``; None if there is none. The dominance rule of the
-        structure search, applied to a model already in the tree."""
+        ``dominance_margin`` thresholds on average in either channel, over a full ``test_window`` of common samples),
+        as ``(entry, n, trans_error, rot_error)``; None if there is none. The dominance rule of the structure search,
+        applied to a model already in the tree: a more flexible model takes over only on a window's evidence (over a
+        few samples it fits the noise)."""
         c = self.config
         pool = self.pool
         nesting = [e for e in candidates if nests(e.kind, e.actions, current.kind, current.actions)]
         if not nesting:
             return None
         rows = [e.row for e in nesting]
-        st, valid = pool.window_stats(rows, [pool.n_now(e) for e in nesting])
-        n, diff = pool.monitor.paired_difference(rows, [current.row] * len(rows))
+        n_now = [pool.n_now(e) for e in nesting]
+        st, valid = pool.window_stats(rows, n_now)
+        n, diff = pool.monitor.paired_difference(rows, [current.row] * len(rows), n_now,
+                                                 [pool.n_now(current)] * len(rows), c.stale_fraction)
         gain = -diff.min(axis=1)
-        ok = valid & (n >= c.min_test_samples) & (gain > c.dominance_margin)
+        ok = valid & (n >= c.test_window) & (gain > c.dominance_margin)
         if not np.any(ok):
             return None
         best = int(np.argmax(np.where(ok, gain, -np.inf)))
         return nesting[best], int(st.n[best]), float(st.trans_error[best]), float(st.rot_error[best])
 
     def sample_challengers(self, tree, chain, chain_at, step, events):
-        """A GP challenger for every rigid-joint tree model, trained on the chain-consistent history.
+        """Challengers of the tree's models in the other direction of flexibility, trained on the chain-consistent
+        history: a GP for every rigid joint, and the rigid forms for every GP edge on one action.
 
         Relative observations cannot tell a rigid joint from a smooth nonlinear relation (a transmission, a flexing
-        tool) at the paper's noise; chain-consistent targets can. ``chain`` (this step's targets) orients each
-        challenger from the root's side; ``chain_at`` gives the targets of past steps. Each challenger learns like a
-        replacement candidate and takes the edge if it dominates the joint (:meth:`_challenge`); it is dropped once
-        frozen and compared with the joint over a full window of common samples without doing so.
+        tool) at the paper's noise; chain-consistent targets can. Early in bootstrapping, a GP judged against its own
+        wide uncertainty can also win an edge that a rigid joint describes with fewer parameters and less error.
+        ``chain`` (this step's targets) orients each challenger from the root's side; ``chain_at`` gives the targets
+        of past steps. Each challenger learns like a replacement candidate and is judged by :meth:`_challenge`; it is
+        dropped once frozen and compared with the tree model over a full window of common samples without taking
+        the edge.
         """
         pool = self.pool
-        edges = [pool.tracked[i] for i in tree if pool.tracked[i].kind in ("static", "prismatic", "revolute")
-                 and pool.tracked[i].actions]
-        if "gp" not in self.config.candidate_kinds or not edges:
-            return
+        kinds = self.config.candidate_kinds
+        rigid = [pool.tracked[i] for i in tree if pool.tracked[i].kind in ("static", "prismatic", "revolute")
+                 and pool.tracked[i].actions] if "gp" in kinds else []
+        flexible = [pool.tracked[i] for i in tree if pool.tracked[i].kind == "gp"
+                    and len(pool.tracked[i].actions) == 1]
+        simpler = [k for k in ("prismatic", "revolute") if k in kinds]
         challengers = []
-        for e in edges:
+        for e in rigid:
             u, v = chain.orient(e.parent, e.child)  # from the root's side, the direction of their targets
             challengers += pool.add_learning([(u, v, e.actions, "gp")], origin="challenger", created=step,
                                              target=e.id)
+        for e in flexible if simpler else []:
+            u, v = chain.orient(e.parent, e.child)
+            challengers += pool.add_learning([(u, v, e.actions, kind) for kind in simpler], origin="challenger",
+                                             created=step, target=e.id)
+        if not challengers:
+            return
         used = self._replay(challengers, chain_at, start=-1)
+        what = []
+        if rigid:
+            what.append(f"a GP for each of the {len(rigid)} rigid joints (a relation no rigid form explains would "
+                        f"show here)")
+        if flexible and simpler:
+            what.append(f"{' and '.join(simpler)} joints for each of the {len(flexible)} GP edges on one action (a "
+                        f"rigid joint that predicts as well takes the edge)")
         events.append(Event(step, "model_sampled",
-                            f"sampled a GP challenger for each of the {len(edges)} rigid joints of the tree "
+                            f"sampled challengers of the tree's models: {'; '.join(what)} "
                             f"({', '.join(e.describe() for e in challengers)}), trained on the {used} "
-                            f"chain-consistent samples of the history: a relation no rigid form explains would "
-                            f"show here"))
+                            f"chain-consistent samples of the history"))
 
     def _challenge(self, tree, step, events):
-        """Challengers that dominate their tree model take the edge; the others are dropped once they are frozen and
-        were compared with it over a full window of common samples. Returns the changes."""
+        """Challengers that take their tree model's edge: a GP that dominates a rigid joint, or a valid rigid joint
+        that a GP edge does not predict clearly better over a full window of common samples. The others are dropped
+        once they are frozen and were compared with it over a full window. Returns the changes."""
         pool = self.pool
         c = self.config
         changes = []
@@ -615,7 +728,15 @@ class Adaptation:
             current = pool.tracked[current_id]
             if current_id in self.mismatch:
                 continue
-            found = self._dominating(current, challengers)
+            if current.kind == "gp":
+                choice = self._simpler(current, challengers)
+                found = None if choice is None else (choice.entry, choice.n_test, choice.trans_error,
+                                                     choice.rot_error)
+                why = "a rigid joint predicts the same chain-consistent samples as well, with fewer parameters"
+            else:
+                found = self._dominating(current, challengers)
+                why = ("it predicts the same chain-consistent samples clearly better: no rigid form explains this "
+                       "relation")
             if found is not None:
                 new, n, mt, mr = found
                 pool.freeze(new)
@@ -627,20 +748,34 @@ class Adaptation:
                     if e is not new:
                         pool.remove(e)
                 events.append(Event(step, "model_replaced",
-                                    f"{new.describe()} replaces {current.describe()}: it predicts the same "
-                                    f"chain-consistent samples clearly better (mean error {format_errors(mt, mr)} "
-                                    f"over {n} test samples): no rigid form explains this relation",
+                                    f"{new.describe()} replaces {current.describe()}: {why} (mean error "
+                                    f"{format_errors(mt, mr)} over {n} test samples)",
                                     parent=new.parent, child=new.child, model=new.describe(),
                                     trans_error=mt, rot_error=mr))
                 pool.remove(current)
                 changes.append(Change(new, current, new.since))
                 continue
             # Judged: frozen, and compared with the tree model on a full window of common samples.
-            n, _ = pool.monitor.paired_difference([e.row for e in challengers], [current.row] * len(challengers))
+            n, _ = pool.monitor.paired_difference([e.row for e in challengers], [current.row] * len(challengers),
+                                                  [pool.n_now(e) for e in challengers],
+                                                  [pool.n_now(current)] * len(challengers), c.stale_fraction)
             for e, n_common in zip(challengers, n, strict=True):
                 if pool.n_now(e) >= c.train_window and n_common >= c.test_window:
                     pool.remove(e)
         return changes
+
+    def _simpler(self, current, challengers):
+        """The cheapest valid rigid challenger of a GP edge (:meth:`_choose_replacement`) once it shares a full
+        test window of samples with it and the GP does not predict them clearly better; else None."""
+        choice = self._choose_replacement(current, challengers, absolute=True)
+        if choice is None:
+            return None
+        pool = self.pool
+        n, _ = pool.monitor.paired_difference([current.row], [choice.entry.row], [pool.n_now(current)],
+                                              [pool.n_now(choice.entry)], self.config.stale_fraction)
+        if n[0] < self.config.test_window or self._clearly_better(current, choice.entry):
+            return None
+        return choice
 
     def _replay(self, entries, chain_at, start):
         """Replay the history since step ``start`` to learning ``entries`` (test-then-train); returns the number of
@@ -688,6 +823,20 @@ class Adaptation:
         """:attr:`refining` as JSON-serialisable ``[[tree model id, failed model id, tau], ...]``."""
         return [[k, f, t] for k, (f, t) in self.refining.items()]
 
+    def failed_state(self):
+        """:attr:`failed` as JSON-serialisable ``[[part, part, step, tau], ...]``."""
+        return [[*sorted(pair), step, tau] for pair, (step, tau) in self.failed.items()]
+
+    @staticmethod
+    def failed_from_state(items, part_ids):
+        """Rebuild :attr:`failed` from :meth:`failed_state` output; the parts must be known."""
+        failed = {}
+        for p, q, step, tau in items:
+            if int(p) not in part_ids or int(q) not in part_ids:
+                raise ModelFileError(f"failed pair {p}-{q} refers to an unknown part")
+            failed[frozenset((int(p), int(q)))] = (int(step), int(tau))
+        return failed
+
     @staticmethod
     def refining_from_state(items, tracked):
         """Rebuild :attr:`refining` from :meth:`refining_state` output; the installed model must be tracked."""
@@ -708,5 +857,5 @@ class Adaptation:
             if edge not in tracked:
                 raise ModelFileError(f"mismatch refers to unknown model id {edge}")
             mismatch[edge] = Mismatch(**{k: int(item[k]) for k in ("tau", "detected", "sampled_at", "train_from",
-                                                                     "resamples", "bridged_at")})
+                                                                     "resamples", "bridged_at", "search")})
         return mismatch

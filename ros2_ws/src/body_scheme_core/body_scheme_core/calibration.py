@@ -7,9 +7,11 @@ predicted as ``world2root @ root2part(a)`` (a bundle adjustment over the tree). 
 absolute observations of the parts below it, never from its parent marker's noisy orientation alone: the lever arm
 that makes relative observations ``Y_i^-1 Y_j`` noisy (15 deg of orientation noise times the link length) is gone.
 
-The problem is solved by Levenberg-Marquardt with Huber re-weighting on the normalised residuals of
-:func:`~body_scheme_core.models.rigid_fit.pose_residuals` (per-axis sigmas ``sigma / sqrt(3)`` of the configuration's 3D
-RMS noise), with analytic Jacobians: the twist ``[dt, w]`` of an edge (its model's ``twists``, mapped through the
+The problem is solved by Levenberg-Marquardt with Huber re-weighting on whitened residuals: the position residual of
+an observation in units of its marker's noise across and along the camera's ray (``axis_sigmas``: lateral, depth;
+isotropic ``sigma / sqrt(3)`` of a 3D RMS ``sigma`` by default), the rotation vector of
+``R_obs^T R_pred`` in units of its per-axis sigma (as :func:`~body_scheme_core.models.rigid_fit.pose_residuals`), with
+analytic Jacobians: the twist ``[dt, w]`` of an edge (its model's ``twists``, mapped through the
 inversion for edges used backwards) moves a part at the end of the chain ``P @ T_edge @ S`` by::
 
     dt_part = R_P (dt - R_edge [t_S]x w),   w_part = R_S^T w
@@ -17,6 +19,8 @@ inversion for edges used backwards) moves a part at the end of the chain ``P @ T
 and the root pose likewise. Engineered models (the specification) and GP models have no parameters here: GP edges are
 refitted afterwards on *chain-consistent* targets ``(world2root root2parent(a))^-1 Y_child`` — the child's
 observation relative to the parent's *predicted* pose — and the rigid parameters are refined once more around them.
+Observations of parts below a GP edge never steer the rigid edges above it (the GP's approximation errors would bend
+them); the rigid edges below a GP are fitted last, to those observations, with everything above them held.
 
 Observations are used per part only from the step at which every edge on its path from the root became valid
 (``since``, e.g. a replacement's change point). A model can carry a Gaussian prior on its parameters (its earlier
@@ -33,9 +37,9 @@ import numpy as np
 from .errors import InvalidInputError
 from .models.gp import GPModel
 from .models.rigid import RigidJointModel
-from .models.rigid_fit import DEFAULT_F_SCALE, huber_weights, pose_residuals, robust_cost
+from .models.rigid_fit import DEFAULT_F_SCALE, huber_weights, robust_cost
 from .scheme import BodyScheme
-from .transforms import rotvec_matrix, skew
+from .transforms import rotation_log, rotvec_matrix, skew
 
 __all__ = ["Calibration", "calibrate", "chain_targets", "edge_consistency"]
 
@@ -69,6 +73,18 @@ class Calibration:
     parts, trans_errors, rot_errors : ndarray, shape (n_observations,)
         Per used observation at the solution: the part, and the distance (m) and angle (rad) between its predicted
         and observed pose.
+    steps : ndarray of int, shape (n_observations,)
+        Per used observation: its row in ``actions``.
+    residual_t, residual_r : ndarray, shape (n_observations, 3)
+        ``t_pred - t_obs`` in the world (camera) frame (m) and the rotation vector of ``R_obs^T R_pred`` (rad).
+    positions : ndarray, shape (n_observations, 3)
+        Observed positions (the rays of the noise model).
+    whitened : ndarray, shape (n_observations, 6)
+        The residuals in units of their noise sigmas (what the fit minimised, before the robust loss).
+    n_params : int
+        Parameters fitted (the root pose's 6 included).
+    coupled : ndarray of bool, shape (n_observations,)
+        Observations that steered the rigid parameters (not of a part below a GP edge).
     """
 
     scheme: BodyScheme
@@ -81,6 +97,13 @@ class Calibration:
     parts: np.ndarray
     trans_errors: np.ndarray
     rot_errors: np.ndarray
+    steps: np.ndarray
+    residual_t: np.ndarray
+    residual_r: np.ndarray
+    positions: np.ndarray
+    whitened: np.ndarray
+    n_params: int
+    coupled: np.ndarray
 
     def part_ratios(self, theta_trans, theta_rot, clip):
         """Per part: ``(n, mean clipped e_t / theta_trans, mean clipped e_r / theta_rot)`` of its observations.
@@ -120,7 +143,7 @@ class _Problem:
     transform) and an observed part ``q`` below ``v``; the root pose is an edge from the world.
     """
 
-    def __init__(self, scheme, actions, observations, since, free, sigma):
+    def __init__(self, scheme, actions, observations, since, free, axis_sigmas, root_since=0, below_gp=False):
         self.scheme = scheme
         self.A = actions
         n = actions.shape[0]
@@ -133,6 +156,7 @@ class _Problem:
         first = np.zeros(len(self.order), dtype=np.int64)
         for parent_i, child_i, k, _ in self.edges:
             first[child_i] = max(first[parent_i], since[k])
+        first[0] = max(first[0], root_since)  # the root's own observations only (its marker moved then)
         # Usable observations: observed, and no earlier than every edge on the part's path.
         n_parts = len(self.order)
         self.Y = np.broadcast_to(np.eye(4), (n_parts, n, 4, 4)).copy()
@@ -145,6 +169,13 @@ class _Problem:
                     self.Y[i, t] = pose
         self.obs_q, self.obs_t = np.nonzero(valid)
         self.n_obs = self.obs_q.size
+        # Parts below a GP edge do not steer the rigid parameters above it: a GP is refitted to their targets afterwards
+        # and is only as good as its data, and its errors would bend the rigid edges above to make up for them. They
+        # steer the rigid edges below the GP in a second problem (``below_gp``) with everything above held.
+        self.below_gp = below_gp
+        part_below_gp = _parts_below_gp(scheme, self.order)
+        self.coupled = part_below_gp[self.obs_q] if below_gp else ~part_below_gp[self.obs_q]
+        self.n_used = int(self.coupled.sum())
         row_of = np.full((n_parts, n), -1, dtype=np.int64)
         row_of[self.obs_q, self.obs_t] = np.arange(self.n_obs)
         # Parameter layout: root pose first, then each free model.
@@ -182,8 +213,14 @@ class _Problem:
             block_rows = (self.triple_obs[sel][:, None] * 6 + np.arange(6)[None, :]).ravel()
             self.blocks_of.append((slice(int(sel[0]), int(sel[-1]) + 1), block_rows, self.offset[k],
                                    scheme.models[k].n_params))
-        self.sigma = np.asarray(sigma, dtype=float)
-        self.inv_sigma = np.repeat(1.0 / self.sigma, 3)[:, None]  # per residual row of an observation
+        # Per observation: the position whitening W = (I - v v^T) / s_lateral + v v^T / s_depth (v: the ray) and the
+        # rotation's per-axis sigma, from its marker's (lateral, depth, rotation) sigmas.
+        sig = np.array([axis_sigmas(self.order[q]) for q in range(n_parts)], dtype=float)[self.obs_q]
+        Yt = self.Y[self.obs_q, self.obs_t, :3, 3]
+        ray = Yt / np.maximum(np.linalg.norm(Yt, axis=1, keepdims=True), 1e-12)
+        vv = ray[:, :, None] * ray[:, None, :]
+        self.W = (np.eye(3) - vv) / sig[:, 0, None, None] + vv / sig[:, 1, None, None]
+        self.sigma_r = sig[:, 2]
         self._J = None  # the Jacobian's storage, reused: its zero pattern is the same in every evaluation
         # Free models grouped by form, so each group is evaluated and retracted in one vectorised call.
         self.groups = {}
@@ -234,7 +271,7 @@ class _Problem:
             P[child_i] = P[parent_i] @ (_inverse(Z) if inverted else Z)
         P_flat = P.reshape(-1, 4, 4)
         pred = P_flat[self.obs_flat]
-        r = pose_residuals(pred, self.Y[self.obs_q, self.obs_t], np.broadcast_to(self.sigma, (self.n_obs, 2)))
+        r = self.whiten(*self.raw_residuals(pred)) * self.coupled[:, None]
         if not jacobian:
             return r, None
         if self._J is None:
@@ -243,17 +280,17 @@ class _Problem:
         # An edge's twist [dt, w] moves the observed part q (pose R_q, t_q) below it, in world axes U = R_u dt and
         # V = R_v w (u, v: the edge's parent and child poses), by
         #     d t_q = U + [t_v]x V - [t_q]x V,    d w_q = R_q^T V,
-        # i.e. [C; 0] + M_q V with C = U + [t_v]x V per (edge, step) and M_q = [-[t_q]x; R_q^T] per observation.
+        # i.e. [C; 0] + M_q V with C = U + [t_v]x V per (edge, step) and M_q = [-[t_q]x; R_q^T] per observation,
+        # each whitened like the residuals (W_q on the position rows, 1 / s_rot on the rotation rows).
         M = np.empty((self.n_obs, 6, 3))
-        M[:, :3] = -skew(pred[:, :3, 3])
-        M[:, 3:] = np.swapaxes(pred[:, :3, :3], 1, 2)
-        M *= self.inv_sigma
+        M[:, :3] = self.W @ -skew(pred[:, :3, 3])
+        M[:, 3:] = np.swapaxes(pred[:, :3, :3], 1, 2) / self.sigma_r[:, None, None]
         # The root pose: an edge from the world (U = [I 0], V = [0 R_root], t_v = t_root).
         R_root, t_root = world2root[:3, :3], world2root[:3, 3]
         root = M @ R_root  # M V for V = [0 R_root]: the rotation columns
-        root[:, :3] += (skew(t_root) @ R_root) / self.sigma[0]
+        root[:, :3] += self.W @ (skew(t_root) @ R_root)
         rows = J.reshape(self.n_obs, 6, self.n_params)  # a view: one observation's six rows per entry
-        rows[:, :3, 0:3] = np.eye(3) / self.sigma[0]
+        rows[:, :3, 0:3] = self.W
         rows[:, :, 3:6] = root
         if self.blocks_of:
             parent = [u for u, _, _, _ in self.edges]
@@ -262,17 +299,40 @@ class _Problem:
             C = (P[parent, :, :3, :3] @ TW[:, :, :3]).reshape(n_edges * n, 3, self.p_max)
             C += skew(P[child, :, :3, 3]).reshape(n_edges * n, 3, 3) @ V
             blocks = M[self.triple_obs] @ V[self.triple_edge]
-            blocks[:, :3] += C[self.triple_edge] / self.sigma[0]
+            blocks[:, :3] += self.W[self.triple_obs] @ C[self.triple_edge]
             for sel, block_rows, col, p in self.blocks_of:
                 J[block_rows, col:col + p] = blocks[sel, :, :p].reshape(-1, p)
+        rows[~self.coupled] = 0.0
+        if self.below_gp:
+            rows[:, :, :6] = 0.0  # the root pose is held
         return r, J
 
-    def part_errors(self, r):
-        """Per usable observation: part id, translational (m) and rotational (rad) error, from residuals (n_obs, 6)."""
-        e_t = np.linalg.norm(r[:, :3], axis=1) * self.sigma[0]
-        e_r = np.linalg.norm(r[:, 3:], axis=1) * self.sigma[1]
-        parts = np.array(self.order)[self.obs_q]
-        return parts, e_t, e_r
+    def raw_residuals(self, pred):
+        """``(t_pred - t_obs, rotation vector of R_obs^T R_pred)`` per observation, (n_obs, 3) each."""
+        Y = self.Y[self.obs_q, self.obs_t]
+        return pred[:, :3, 3] - Y[:, :3, 3], rotation_log(np.swapaxes(Y[:, :3, :3], 1, 2) @ pred[:, :3, :3])
+
+    def whiten(self, dt, dr):
+        """Residuals (n_obs, 6) in units of their noise sigmas."""
+        return np.concatenate([np.einsum("nij,nj->ni", self.W, dt), dr / self.sigma_r[:, None]], axis=1)
+
+    def part_errors(self, dt, dr):
+        """Per usable observation: part id, translational (m) and rotational (rad) error, from raw residuals."""
+        return np.array(self.order)[self.obs_q], np.linalg.norm(dt, axis=1), np.linalg.norm(dr, axis=1)
+
+    def predicted(self, params, world2root):
+        """World poses (n_obs, 4, 4) of the observed parts at ``params``."""
+        n = self.A.shape[0]
+        Z_of = dict(self.fixed_Z)
+        for form, ks in self.groups.items():
+            Z, _ = form.evaluate(params[form], np.stack([self.x[k] for k in ks]), twists=False)
+            for j, k in enumerate(ks):
+                Z_of[k] = Z[j]
+        P = np.empty((len(self.order), n, 4, 4))
+        P[0] = world2root
+        for parent_i, child_i, k, inverted in self.edges:
+            P[child_i] = P[parent_i] @ (_inverse(Z_of[k]) if inverted else Z_of[k])
+        return P.reshape(-1, 4, 4)[self.obs_flat]
 
 
 def _inverse(Z):
@@ -358,7 +418,7 @@ def edge_consistency(scheme, world2root, actions, observations, theta_trans, the
 
 
 def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot, since=None, priors=None,
-              fixed=(), f_scale=DEFAULT_F_SCALE, max_iterations=20, gp_optimize=True):
+              fixed=(), f_scale=DEFAULT_F_SCALE, max_iterations=20, gp_optimize=True, axis_sigmas=None, root_since=0):
     """Refine ``world2root`` and every rigid-joint model of ``scheme`` together (see the module docstring).
 
     Parameters
@@ -384,6 +444,13 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
     max_iterations : int
     gp_optimize : bool
         Choose each refitted GP edge's length scale and noise ratio by marginal likelihood.
+    axis_sigmas : callable, optional
+        ``axis_sigmas(part) -> (lateral, depth, rotation)``: per-axis noise sigmas of a marker's position across
+        and along the camera's ray (m) and of its orientation (rad), e.g.
+        :meth:`~body_scheme_core.noise_model.NoiseModel.axis_sigmas`. Default: isotropic, ``sigma / sqrt(3)``.
+    root_since : int
+        First step index at which the root's own observations are used (its marker moved before it); the other
+        parts keep theirs.
 
     Returns
     -------
@@ -404,10 +471,15 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
     models = list(scheme.models)
     for k, (params, cov) in priors.items():
         models[k] = models[k].with_params(np.asarray(params, dtype=float), np.asarray(cov, dtype=float))
-    free = [k for k, m in enumerate(models) if isinstance(m, RigidJointModel) and k not in fixed]
-    sigma = np.array([sigma_trans, sigma_rot], dtype=float) / math.sqrt(3.0)
+    below = _models_below_gp(scheme)
+    free = [k for k, m in enumerate(models) if isinstance(m, RigidJointModel) and k not in fixed and k not in below]
+    if axis_sigmas is None:
+        isotropic = (sigma_trans / math.sqrt(3.0), sigma_trans / math.sqrt(3.0), sigma_rot / math.sqrt(3.0))
+
+        def axis_sigmas(part):
+            return isotropic
     W = np.array(world2root, dtype=float)
-    problem = _Problem(scheme, A, observations, since, free, sigma)
+    problem = _Problem(scheme, A, observations, since, free, axis_sigmas, root_since)
     has_gp = any(isinstance(m, GPModel) for m in models)
     iterations = 0
     for round_ in range(2 if has_gp else 1):
@@ -417,17 +489,61 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
         models = _unstack(problem, models, params)
         if has_gp and round_ == 0:
             models = _refit_gp_edges(scheme, models, W, A, observations, since, gp_optimize)
-    cov = np.linalg.pinv(info + 1e-9 * np.eye(problem.n_params), hermitian=True) if problem.n_params else info
-    dof = max(6 * problem.n_obs - problem.n_params, 1)
-    cov *= max(1.0, cost / dof)
-    for k in free:
-        c = problem.offset[k]
-        p = models[k].n_params
-        models[k] = models[k].with_params(models[k].params_, cov[c:c + p, c:c + p])
+    cov = _covariance(problem, info, cost)
+    models = _with_covariances(problem, models, cov)
+    free_below = [k for k, m in enumerate(models) if isinstance(m, RigidJointModel) and k not in fixed and k in below]
+    if free_below:
+        below_problem = _Problem(scheme, A, observations, since, free_below, axis_sigmas, root_since, below_gp=True)
+        below_problem.set_fixed(models)
+        below_priors = {k: v for k, v in priors.items() if k in below_problem.offset}
+        params_b, _, info_b, cost_b, it, _ = _solve(below_problem, below_problem.stack(models), W, below_priors,
+                                                     f_scale, max_iterations)
+        iterations += it
+        models = _with_covariances(below_problem, _unstack(below_problem, models, params_b),
+                                   _covariance(below_problem, info_b, cost_b))
     refined = BodyScheme(scheme.parts, scheme.root, models)
-    rms = math.sqrt(cost / max(6 * problem.n_obs, 1))
-    parts, e_t, e_r = problem.part_errors(r)
-    return Calibration(refined, W, cov[:6, :6], problem.n_obs, float(cost), rms, iterations, parts, e_t, e_r)
+    rms = math.sqrt(cost / max(6 * problem.n_used, 1))
+    problem.set_fixed(models)
+    dt, dr = problem.raw_residuals(problem.predicted(problem.stack(models), W))
+    parts, e_t, e_r = problem.part_errors(dt, dr)
+    positions = problem.Y[problem.obs_q, problem.obs_t, :3, 3]
+    return Calibration(refined, W, cov[:6, :6], problem.n_obs, float(cost), rms, iterations, parts, e_t, e_r,
+                       problem.obs_t.copy(), dt, dr, positions, problem.whiten(dt, dr), problem.n_params,
+                       problem.coupled.copy())
+
+
+def _parts_below_gp(scheme, order):
+    """Per part of ``order`` (the root first, then breadth-first): whether a GP edge lies on its path."""
+    index = {p: i for i, p in enumerate(order)}
+    below = np.zeros(len(order), dtype=bool)
+    for parent, child, model, _ in scheme.edges:  # breadth-first: a parent comes first
+        below[index[child]] = below[index[parent]] or isinstance(model, GPModel)
+    return below
+
+
+def _models_below_gp(scheme):
+    """Positions in ``scheme.models`` of the models whose edge lies below a GP edge."""
+    order = [scheme.root] + [child for _, child, _, _ in scheme.edges]
+    below = dict(zip(order, _parts_below_gp(scheme, order), strict=True))
+    position = {id(m): k for k, m in enumerate(scheme.models)}
+    return {position[id(model)] for parent, _, model, _ in scheme.edges if below[parent]}
+
+
+def _covariance(problem, info, cost):
+    """Parameter covariance of a solved problem, scaled up by its residuals' chi-square per degree of freedom."""
+    if not problem.n_params:
+        return info
+    cov = np.linalg.pinv(info + 1e-9 * np.eye(problem.n_params), hermitian=True)
+    return cov * max(1.0, cost / max(6 * problem.n_used - problem.n_params, 1))
+
+
+def _with_covariances(problem, models, cov):
+    """The free models of ``problem`` with their blocks of ``cov`` as their parameter covariances."""
+    models = list(models)
+    for k in problem.free:
+        c, p = problem.offset[k], models[k].n_params
+        models[k] = models[k].with_params(models[k].params_, cov[c:c + p, c:c + p])
+    return models
 
 
 def _unstack(problem, models, params):

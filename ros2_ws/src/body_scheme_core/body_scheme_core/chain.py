@@ -21,7 +21,8 @@ uses the failed model), and models whose ``u`` is such a part get no target.
 
 For an edge *of the tree* the chain-consistent error is simply the child's absolute prediction error: its predicted
 pose is ``world2u @ Z_uv(a)``, and a rigid map preserves distances and angles. :meth:`ChainTargets.tree_errors` uses
-that and needs no second prediction.
+that and needs no second prediction; its thresholds add the uncertainty of the child's whole predicted pose (every
+model on its path, the edge's own included) to the marker's noise, in both channels.
 """
 
 from __future__ import annotations
@@ -47,8 +48,8 @@ class ChainTargets:
     a : ndarray, shape (m,)
     observations : dict of int to ndarray, shape (4, 4)
         Accepted ``world2part`` of this step.
-    config : BodySchemeConfig
-        Noise sigmas and validity thresholds.
+    noise : NoiseModel
+        The current noise sigmas and validity thresholds (:mod:`~body_scheme_core.noise_model`).
     untrusted : iterable of int
         Parts whose predicted pose is not trusted (below an edge in mismatch).
     std : dict of int to array-like, shape (2,), optional
@@ -57,7 +58,7 @@ class ChainTargets:
         joint fit's average instead.
     """
 
-    def __init__(self, scheme, world2root, a, observations, config, untrusted=(), std=None):
+    def __init__(self, scheme, world2root, a, observations, noise, untrusted=(), std=None):
         if std is None:
             root2part, std = scheme.predict(a, return_std=True)
         else:
@@ -67,7 +68,13 @@ class ChainTargets:
         self.depth = {p: len(scheme.path(p)) for p in scheme.parts}
         self.observations = observations
         self.untrusted = frozenset(untrusted)
-        self.config = config
+        # The noise of this step, read once: a replay asks for thousands of targets.
+        self._sigma = (noise.sigma_trans, noise.sigma_rot)
+        self._theta = (noise.theta_trans, noise.theta_rot)
+        lateral, depth, _ = noise.axis_sigmas()
+        self._axis = (lateral**2, depth**2)  # per-axis variances across and along the ray
+        self._k2 = noise.validity_sigmas**2
+        self._targets = {}  # (u, v) -> pair_target(u, v)
 
     def orient(self, parent, child):
         """``(u, v)``: the pair ordered from the root (``u`` nearer the root in the current tree; ties: as given)."""
@@ -81,15 +88,18 @@ class ChainTargets:
         return v in self.observations and u not in self.untrusted
 
     def pair_target(self, u, v):
-        """Target ``Z_uv`` (4, 4), translational threshold (m) and per-axis sigma (2,) of the pair ``u -> v``."""
-        c = self.config
-        Z = invert_transform(self.world2part[u]) @ self.observations[v]
-        s_t, s_r = self.std[u]
-        d2 = float(Z[:3, 3] @ Z[:3, 3])
-        theta = self.threshold(u, d2)
-        sigma = np.array([math.sqrt(c.sigma_trans**2 / 3.0 + s_t**2 + (2.0 / 3.0) * s_r**2 * d2),
-                          math.sqrt(c.sigma_rot**2 / 3.0 + s_r**2)])
-        return Z, theta, sigma
+        """Target ``Z_uv`` (4, 4), its translational and rotational thresholds (m, rad) and per-axis sigma (2,) of the
+        pair ``u -> v`` (computed once per pair and step)."""
+        target = self._targets.get((u, v))
+        if target is None:
+            Z = invert_transform(self.world2part[u]) @ self.observations[v]
+            s_t, s_r = self.std[u]
+            d2 = float(Z[:3, 3] @ Z[:3, 3])
+            sigma_t, sigma_r = self._sigma
+            sigma = np.array([math.sqrt(sigma_t**2 / 3.0 + s_t**2 + (2.0 / 3.0) * s_r**2 * d2),
+                              math.sqrt(sigma_r**2 / 3.0 + s_r**2)])
+            target = self._targets[(u, v)] = (Z, self.threshold(u, d2), self.rotation_threshold(s_r), sigma)
+        return target
 
     def _orientation(self, entry, own):
         """``(u, v)`` of a model's target, or None: its own direction for candidates (``own``), else from the root,
@@ -105,9 +115,12 @@ class ChainTargets:
 
     def threshold(self, u, d2):
         """Translational threshold (m) of a target from part ``u`` at squared distance ``d2`` (module docstring)."""
-        c = self.config
         s_t, s_r = self.std[u]
-        return math.sqrt(c.theta_trans**2 + c.validity_sigmas**2 * (3.0 * s_t**2 + 2.0 * s_r**2 * d2))
+        return math.sqrt(self._theta[0]**2 + self._k2 * (3.0 * s_t**2 + 2.0 * s_r**2 * d2))
+
+    def rotation_threshold(self, s_r):
+        """Rotational threshold (rad) of a target whose reference orientation has per-axis std ``s_r``."""
+        return math.sqrt(self._theta[1]**2 + self._k2 * 3.0 * s_r**2)
 
     def tree_errors(self, edges):
         """Chain-consistent errors of tree edges: the absolute prediction errors of their children.
@@ -121,20 +134,48 @@ class ChainTargets:
         -------
         index : ndarray of int
             Positions in ``edges`` with a target (``v`` observed, ``u`` trusted).
-        trans_error, rot_error, theta_trans : ndarray, shape (k,)
+        trans_error, rot_error, theta_trans, theta_rot : ndarray, shape (k,)
+            Errors (m, rad) and thresholds: the marker's noise plus the uncertainty of the child's predicted pose,
+            the edge's own model included (a GP far from its data, or one that cannot be more accurate, is judged
+            against what it claims). The position error is weighed across and along the camera's ray by the noise
+            there (:meth:`_isotropic_error`).
         """
-        index, e_t, e_r, theta = [], [], [], []
+        k2 = 3.0 * self._k2
+        scale = self._theta[0] / math.sqrt(self._k2 * (2.0 * self._axis[0] + self._axis[1]))  # the threshold's margin
+        index, e_t, e_r, theta_t, theta_r = [], [], [], [], []
         for k, (u, v) in enumerate(edges):
             Y = self.observations.get(v)
             if Y is None or u in self.untrusted:
                 continue
             P = self.world2part[v]
-            d = Y[:3, 3] - self.world2part[u][:3, 3]  # observed child from predicted parent, as in pair_target
+            s_t, s_r = self.std[v]
             index.append(k)
-            e_t.append(math.dist(P[:3, 3], Y[:3, 3]))
+            e_t.append(self._isotropic_error(P[:3, 3] - Y[:3, 3], Y[:3, 3], s_t, scale))
             e_r.append(math.acos(max(-1.0, min(1.0, (float(np.sum(P[:3, :3] * Y[:3, :3])) - 1.0) / 2.0))))
-            theta.append(self.threshold(u, float(d @ d)))
-        return np.array(index, dtype=np.intp), np.array(e_t), np.array(e_r), np.array(theta)
+            theta_t.append(math.sqrt(self._theta[0]**2 + k2 * s_t**2))
+            theta_r.append(math.sqrt(self._theta[1]**2 + k2 * s_r**2))
+        return (np.array(index, dtype=np.intp), np.array(e_t), np.array(e_r), np.array(theta_t),
+                np.array(theta_r))
+
+    def _isotropic_error(self, residual, position, s_t, scale):
+        """The position error ``residual`` (3,) of a marker at ``position`` as the error of the same likelihood under
+        isotropic noise of the same 3D RMS: a camera's error along its ray is several times its error across, and a
+        plain distance would make every large depth error look like a change. Equal to ``|residual|`` for isotropic
+        noise. ``s_t``: per-axis std of the prediction; ``scale``: the thresholds' margin over the noise."""
+        lateral, depth = self._axis[0] * scale**2 + s_t**2, self._axis[1] * scale**2 + s_t**2
+        ray = position / max(math.sqrt(float(position @ position)), 1e-12)
+        along = float(residual @ ray)
+        across = max(float(residual @ residual) - along * along, 0.0)
+        return math.sqrt((2.0 * lateral + depth) * (across / lateral + along * along / depth) / 3.0)
+
+    def observed_errors(self, predicted, observed):
+        """Errors of an observed pose ``(4, 4)`` against a predicted one without model uncertainty (the root's own
+        observation against the root pose): the position error weighed across and along the camera's ray as for the
+        edges (:meth:`_isotropic_error`, m) and the rotation angle (rad)."""
+        scale = self._theta[0] / math.sqrt(self._k2 * (2.0 * self._axis[0] + self._axis[1]))
+        e_t = self._isotropic_error(predicted[:3, 3] - observed[:3, 3], observed[:3, 3], 0.0, scale)
+        cos = (float(np.sum(predicted[:3, :3] * observed[:3, :3])) - 1.0) / 2.0
+        return e_t, math.acos(max(-1.0, min(1.0, cos)))
 
     def for_entries(self, entries, own=False, reverse=True):
         """Targets of the tracked models that have one.
@@ -155,20 +196,21 @@ class ChainTargets:
         targets : Targets
             One row per position of ``index``.
         """
-        index, Z, theta, sigma, flip = [], [], [], [], []
+        index, Z, theta_t, theta_r, sigma, flip = [], [], [], [], [], []
         for k, e in enumerate(entries):
             uv = self._orientation(e, own)
             if uv is None or (not reverse and not own and uv != self.orient(e.parent, e.child)):
                 continue
             u, v = uv
-            Zk, tk, sk = self.pair_target(u, v)
+            Zk, tk, rk, sk = self.pair_target(u, v)
             index.append(k)
             Z.append(Zk)
-            theta.append(tk)
+            theta_t.append(tk)
+            theta_r.append(rk)
             sigma.append(sk)
             flip.append(u != e.parent)
         if not index:
-            return np.zeros(0, dtype=np.intp), Targets(np.zeros((0, 4, 4)), np.zeros(0), np.ones((0, 2)),
+            return np.zeros(0, dtype=np.intp), Targets(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.ones((0, 2)),
                                                        np.zeros(0, dtype=bool))
-        return np.array(index, dtype=np.intp), Targets(np.array(Z), np.array(theta), np.array(sigma),
-                                                       np.array(flip, dtype=bool))
+        return np.array(index, dtype=np.intp), Targets(np.array(Z), np.array(theta_t), np.array(theta_r),
+                                                       np.array(sigma), np.array(flip, dtype=bool))

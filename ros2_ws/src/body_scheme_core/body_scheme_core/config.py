@@ -30,15 +30,18 @@ class BodySchemeConfig:
 
     Attributes
     ----------
-    sigma_trans : float
-        Observation noise of one marker's position as the RMS of its 3D error, in m (the paper's "44 mm in 3D
-        space"); the per-axis standard deviation is ``sigma_trans / sqrt(3)``.
-    sigma_rot : float
-        Observation noise of one marker's orientation as the RMS of its rotation-vector error, in rad; per axis
-        ``sigma_rot / sqrt(3)``.
+    sigma_trans : float or "auto"
+        Prior of the observation noise of one marker's position as the RMS of its 3D error, in m (the paper's "44 mm
+        in 3D space"; per axis ``sigma_trans / sqrt(3)``). The learner estimates the noise from the joint fit's
+        residuals (:mod:`~body_scheme_core.noise_model`: per marker, across and along the camera's ray); a number is
+        where it starts and weighs like 50 observations, ``"auto"`` (default) starts from 50 mm and yields to the
+        first estimate.
+    sigma_rot : float or "auto"
+        The same for the orientation: the RMS of the rotation-vector error, in rad (``"auto"``: 15 deg).
     theta_trans, theta_rot : float or None
         Validity thresholds on the mean translational (m) and rotational (rad) prediction error over the test
-        window (paper Eq. 5-6). ``None`` means ``validity_sigmas * sigma``: 3 sigma as in the paper.
+        window (paper Eq. 5-6). ``None`` (default) means ``validity_sigmas`` times the current noise estimate: 3 sigma
+        as in the paper. A number fixes the threshold.
     validity_sigmas : float
         Multiple of sigma used when a threshold is ``None``.
     test_window : int
@@ -74,8 +77,9 @@ class BodySchemeConfig:
         Bootstrapping also ends when the valid spanning tree's models are frozen and the tree has not changed for
         this many steps, even if candidates of pairs rarely seen together are still learning.
     cusum_drift, cusum_threshold, cusum_clip : float
-        One-sided CUSUM on a body-scheme model's per-sample error in threshold units (``e / theta``): reference
-        value k, alarm level h, and the clip applied to each sample first (outlier robustness).
+        One-sided CUSUM per channel (position, orientation) on a body-scheme model's squared per-sample error in units
+        of its noise (``(validity_sigmas e / theta)^2``, mean 1 while the model is right): reference value k, alarm
+        level h, and the clip applied to each sample first (outlier robustness).
     dominance_margin : float
         A candidate is not eligible for the spanning tree while a candidate of the same pair whose actions include
         its own predicts the same test samples better by more than this many thresholds (mean of ``e / theta``, in
@@ -124,10 +128,14 @@ class BodySchemeConfig:
     action_margin : float
         Plausibility gate on commands, as a fraction of each joint's range: actions beyond the joint limits by more
         than this are refused (``update`` raises ``InvalidInputError``).
+    consistency_alpha : float
+        Significance of the lack-of-fit test after every joint fit (:mod:`~body_scheme_core.consistency`), for all
+        parts together (Bonferroni): a part whose residuals depend on the commands at this level is not explained by
+        the body scheme, which is then not trusted and searched again.
     """
 
-    sigma_trans: float = DEFAULT_SIGMA_TRANS
-    sigma_rot: float = DEFAULT_SIGMA_ROT
+    sigma_trans: float | str = "auto"
+    sigma_rot: float | str = "auto"
     theta_trans: float | None = None
     theta_rot: float | None = None
     validity_sigmas: float = 3.0
@@ -144,9 +152,9 @@ class BodySchemeConfig:
     gp_optimize: bool = True
     stale_fraction: float = 0.5
     bootstrap_patience: int = 30
-    cusum_drift: float = 0.75
-    cusum_threshold: float = 2.5
-    cusum_clip: float = 2.0
+    cusum_drift: float = 1.5
+    cusum_threshold: float = 12.0
+    cusum_clip: float = 6.0
     dominance_margin: float = 0.15
     challenge_margin: float = 0.25
     reinstate_min_samples: int = 2
@@ -161,10 +169,16 @@ class BodySchemeConfig:
     max_distance: float = 10.0
     workspace_margin: float = 0.5
     action_margin: float = 0.05
+    consistency_alpha: float = 1e-3
 
     def __post_init__(self):
-        positive = ["sigma_trans", "sigma_rot", "validity_sigmas", "gp_length_scale", "gp_signal_std_trans",
-                    "gp_signal_std_rot", "f_scale"]
+        for name in ("sigma_trans", "sigma_rot"):
+            value = getattr(self, name)
+            if value != "auto" and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                        and math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be \"auto\" or a finite number > 0 (the noise prior), got "
+                                        f"{value!r}")
+        positive = ["validity_sigmas", "gp_length_scale", "gp_signal_std_trans", "gp_signal_std_rot", "f_scale"]
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -191,6 +205,8 @@ class BodySchemeConfig:
         if not (isinstance(self.action_margin, (int, float)) and math.isfinite(self.action_margin)
                 and self.action_margin >= 0):
             raise InvalidInputError(f"action_margin must be a finite number >= 0, got {self.action_margin!r}")
+        if not (isinstance(self.consistency_alpha, (int, float)) and 0.0 < self.consistency_alpha < 1.0):
+            raise InvalidInputError(f"consistency_alpha must be in (0, 1), got {self.consistency_alpha!r}")
         if not (isinstance(self.stale_fraction, (int, float)) and 0.0 <= self.stale_fraction < 1.0):
             raise InvalidInputError(f"stale_fraction must be in [0, 1), got {self.stale_fraction!r}")
         cusum = (self.cusum_drift, self.cusum_threshold, self.cusum_clip)
@@ -215,12 +231,21 @@ class BodySchemeConfig:
         if self.min_test_samples > self.test_window:
             raise InvalidInputError(
                 f"min_test_samples ({self.min_test_samples}) must not exceed test_window ({self.test_window})")
-        for name, sigma in [("theta_trans", self.sigma_trans), ("theta_rot", self.sigma_rot)]:
+        for name in ("theta_trans", "theta_rot"):
             value = getattr(self, name)
-            if value is None:
-                object.__setattr__(self, name, self.validity_sigmas * sigma)
-            elif not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                          and math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be a finite number > 0 or None, got {value!r}")
+
+    @property
+    def prior_sigma_trans(self):
+        """The noise prior's 3D RMS position error (m): ``sigma_trans``, or the default of ``"auto"``."""
+        return DEFAULT_SIGMA_TRANS if self.sigma_trans == "auto" else float(self.sigma_trans)
+
+    @property
+    def prior_sigma_rot(self):
+        """The noise prior's 3D RMS orientation error (rad)."""
+        return DEFAULT_SIGMA_ROT if self.sigma_rot == "auto" else float(self.sigma_rot)
 
     def to_dict(self):
         """Plain dict of all fields (JSON-serialisable; tuples as lists)."""

@@ -7,7 +7,7 @@ catch ours without swallowing programming errors. Input validation errors also d
 from __future__ import annotations
 
 __all__ = ["BodySchemeError", "InvalidInputError", "ModelFileError", "NotFittedError", "BabblingError",
-           "FaultScheduleError", "ActionOutOfRangeError", "StampOrderError"]
+           "FaultScheduleError", "ActionOutOfRangeError", "StampOrderError", "LearnerStepError"]
 
 
 class BodySchemeError(Exception):
@@ -40,3 +40,8 @@ class ActionOutOfRangeError(InvalidInputError):
 
 class StampOrderError(InvalidInputError):
     """A time step is stamped before the previous one (for a node: older than the state it restored)."""
+
+
+class LearnerStepError(BodySchemeError):
+    """A time step failed inside the learner (a defect, not bad input): the step was undone, the learner is exactly as
+    it was before the call, and the error it met is the ``__cause__``. The caller may go on with the next step."""

@@ -19,6 +19,7 @@ EVENT_KINDS = (
     "model_retired",        # a local model left the body scheme and went to memory
     "input_rejected",       # an observation or action was rejected (bad value, unknown id, ...)
     "bootstrap_finished",   # learning from scratch ended: the tree's models are frozen, other candidates dropped
+    "trust_changed",        # the joint fit's residuals of some part depend on the commands (not trusted), or no more
 )
 
 

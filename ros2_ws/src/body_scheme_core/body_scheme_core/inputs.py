@@ -19,11 +19,12 @@ from typing import NamedTuple
 import numpy as np
 
 from .config import BodySchemeConfig
-from .errors import InvalidInputError, StampOrderError
+from .errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
 from .scheme import BodyScheme
 
 __all__ = [
     "OBSERVATION_TOLERANCE",
+    "MAX_ACTION",
     "Rejection",
     "check_config",
     "check_part_ids",
@@ -35,10 +36,14 @@ __all__ = [
     "check_stamp",
     "check_observation_mapping",
     "filter_observations",
+    "rigidity_problem",
 ]
 
 #: Largest deviation of an observed rotation block from orthonormality (and of the last row from [0 0 0 1]).
 OBSERVATION_TOLERANCE = 1e-4
+#: Largest magnitude of an action (rad or m) taken without joint limits: no joint position is this large (a continuous
+#: joint 1,500 turns away from zero), so a larger command is in other units or corrupt, and kernels would overflow.
+MAX_ACTION = 1e4
 
 
 class Rejection(NamedTuple):
@@ -157,7 +162,8 @@ def check_initial_models(models, parts, root, n_actions):
 
 # ---------------------------------------------------------------------- one time step
 def check_action_vector(actions, n_actions):
-    """The one action vector of a time step as a float array of shape exactly ``(n_actions,)``, finite.
+    """The one action vector of a time step as a float array of shape exactly ``(n_actions,)``, finite and within
+    :data:`MAX_ACTION`.
 
     The models validate their stacked inputs with :func:`~body_scheme_core.models.base.check_action_batch` instead.
 
@@ -171,6 +177,10 @@ def check_action_vector(actions, n_actions):
         raise InvalidInputError(f"actions must have shape ({n_actions},), got {a.shape}")
     if not np.all(np.isfinite(a)):
         raise InvalidInputError(f"actions contain NaN or inf: {a.tolist()}")
+    if np.any(np.abs(a) > MAX_ACTION):
+        raise ActionOutOfRangeError(f"actions {np.flatnonzero(np.abs(a) > MAX_ACTION).tolist()} exceed "
+                                    f"+-{MAX_ACTION:g} (rad or m): no joint position is that large; check the "
+                                    f"command's units")
     return a
 
 
@@ -259,11 +269,7 @@ def filter_observations(observations, part_ids, max_distance=math.inf, reach=Non
             valid[part] = Y
     if valid:
         # Rigidity of all remaining poses in one vectorised check.
-        Y = np.stack(list(valid.values()))
-        R = Y[:, :3, :3]
-        dev = np.maximum(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)),
-                         np.abs(Y[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1))
-        bad = (dev > OBSERVATION_TOLERANCE) | (np.linalg.det(R) < 0.0)
+        dev, bad = _rigidity(np.stack(list(valid.values())))
         for part, is_bad, d in zip(list(valid), bad, dev, strict=True):
             if is_bad:
                 del valid[part]
@@ -271,4 +277,19 @@ def filter_observations(observations, part_ids, max_distance=math.inf, reach=Non
                                                              f"(deviation {d:.3g} > {OBSERVATION_TOLERANCE:g} or "
                                                              f"det < 0)"))
     return valid, rejected
+
+
+def _rigidity(Y):
+    """``(deviation, bad)`` per pose of a stack (k, 4, 4): the largest deviation of ``R^T R`` from I and of the last
+    row from [0 0 0 1], and whether it exceeds :data:`OBSERVATION_TOLERANCE` or the rotation is a reflection."""
+    R = Y[:, :3, :3]
+    dev = np.maximum(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)),
+                     np.abs(Y[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1))
+    return dev, (dev > OBSERVATION_TOLERANCE) | (np.linalg.det(R) < 0.0)
+
+
+def rigidity_problem(pose):
+    """None for a rigid (4, 4) pose (within :data:`OBSERVATION_TOLERANCE`), else what is wrong with it."""
+    dev, bad = _rigidity(np.asarray(pose, dtype=float)[None])
+    return f"deviation {dev[0]:.3g} or det < 0" if bad[0] else None
 

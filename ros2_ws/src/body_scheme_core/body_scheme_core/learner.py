@@ -49,8 +49,9 @@ from .bootstrap import Bootstrap
 from .calibration import calibrate
 from .chain import ChainTargets
 from .config import BodySchemeConfig
-from .errors import ActionOutOfRangeError, BodySchemeError, NotFittedError
-from .events import Event
+from .consistency import part_consistency
+from .errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, NotFittedError
+from .events import Event, format_errors
 from .inputs import (
     check_action_bounds,
     check_action_vector,
@@ -63,14 +64,17 @@ from .inputs import (
     filter_observations,
     root_part,
 )
-from .learner_state import STATE_VERSION, Calibrated, learner_from_state, learner_to_state
+from .learner_state import STATE_VERSION, Calibrated, learner_from_state, learner_to_state, restore, snapshot
 from .models import GPModel
 from .models.rigid import RigidJointModel
+from .noise_model import NoiseModel
 from .pool import ModelPool
 from .relative import PartPairs
-from .root_pose import RootPoseEstimator
+from .root_pose import RootPoseEstimator, RootWatch
 from .scheme import BodyScheme
 from .tracked import MEMORY, TREE
+from .transforms import mirror_about_ray, project_to_rotation, rotational_error
+from .validity import RATIO_CLIP
 
 __all__ = ["BodySchemeLearner", "PHASES", "STATE_VERSION"]
 
@@ -86,6 +90,42 @@ _GROWTH_PARAMS = 30
 #: trial fit (:meth:`BodySchemeLearner._veto_inconsistent_edges`).
 _SUSPECTS = 3
 _TRIAL_ITERATIONS = 6
+#: Observations of a part before it can be chosen as the root (:func:`still_part`).
+_ROOT_SAMPLES = 3
+
+
+def still_part(part_ids, observations, sigma_trans, sigma_rot):
+    """The part whose observed pose moves least in the camera's view: the robot's trunk, the root of the body scheme.
+
+    A part's motion is the median distance of its observed positions from their median, in units of the position
+    noise, or the median angle of its observed orientations from their mean, in units of the orientation noise,
+    whichever is larger (a joint whose axis passes through a marker turns it without moving it). Parts seen fewer than
+    :data:`_ROOT_SAMPLES` times are not considered; ties go to the lowest id.
+
+    Parameters
+    ----------
+    part_ids : iterable of int
+    observations : list of dict of int to ndarray, shape (4, 4)
+        Observed ``world2part`` per step.
+    sigma_trans, sigma_rot : float
+        The noise (3D RMS, m and rad).
+
+    Returns
+    -------
+    part : int or None
+        None while no part was seen often enough.
+    """
+    motion = {}
+    for part in part_ids:
+        Y = np.array([obs[part] for obs in observations if part in obs])
+        if len(Y) < _ROOT_SAMPLES:
+            continue
+        P = Y[:, :3, 3]
+        moved = np.median(np.linalg.norm(P - np.median(P, axis=0), axis=1)) / sigma_trans
+        mean = project_to_rotation(Y[:, :3, :3].mean(axis=0))
+        turned = np.median(rotational_error(np.broadcast_to(mean, Y[:, :3, :3].shape), Y[:, :3, :3])) / sigma_rot
+        motion[part] = max(float(moved), float(turned))
+    return min(motion, key=lambda p: (motion[p], p)) if motion else None
 
 
 class BodySchemeLearner:
@@ -109,13 +149,18 @@ class BodySchemeLearner:
     ----------
     part_ids : tuple of int
     root : int
-        The root part: ``config.root`` or the lowest id.
+        The root part, the robot's trunk, fixed in the camera's view: ``config.root``; without it, while bootstrapping,
+        the part whose observed position moves least (the lowest id until anything was seen); with
+        ``initial_models`` and no ``config.root``, the lowest id.
     n_actions : int
     config : BodySchemeConfig
     step : int
-        Number of :meth:`update` calls so far.
+        Number of accepted :meth:`update` calls so far.
     rejected : collections.Counter
-        Rejected observations by reason: ``unknown_id``, ``bad_shape``, ``not_finite``, ``not_rigid``.
+        Rejected observations by reason: ``unknown_id``, ``bad_shape``, ``not_finite``, ``not_rigid``,
+        ``out_of_workspace``, ``flipped``.
+    noise : NoiseModel
+        The marker noise the learner works with: its prior, then its estimate (:mod:`~body_scheme_core.noise_model`).
     """
 
     def __init__(self, part_ids, n_actions, config=None, initial_models=None, action_lower=None, action_upper=None):
@@ -148,20 +193,26 @@ class BodySchemeLearner:
         self.part_ids = parts
         self.n_actions = n_actions
         self.root = root_part(parts, config.root)
-        self._pairs = PartPairs(parts, config.theta_trans, config.theta_rot, config.sigma_trans, config.sigma_rot)
+        self.noise = NoiseModel.from_config(parts, config)
+        self._pairs = PartPairs(parts, self.noise)
 
     def _set_models(self, pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed=None,
-                    refining=None):
+                    refining=None, unexplained=None, lack_of_fit=(), failed=None, root_watch=None, root_since=0):
         """Install the tracked models and the phase objects working on them (shared by construction and restore)."""
         self._pool = pool
         self._tree = tree
         self._bootstrapping = bootstrapping
         self._bootstrap = Bootstrap(self.config, pool, self._pairs, found, tree_since, vetoed)
-        self._adaptation = Adaptation(self.config, pool, self._history, self.part_ids, self.root, mismatch, refining)
+        self._adaptation = Adaptation(self.config, pool, self._history, self.part_ids, self.root, mismatch, refining,
+                                      failed)
         self._calibrated = calibrated
-        self._upstream_of = None  # (scheme, upstream map) cache
         self._reach = None  # (the Calibrated it belongs to, reach in m) cache: see _workspace
         self._just_finished = False
+        self._unexplained = {} if unexplained is None else dict(unexplained)  # part -> step it was last flagged
+        self._lack_of_fit = tuple(lack_of_fit)  # parts of the last joint fit whose residuals depend on the commands
+        self._root_watch = RootWatch(self.config) if root_watch is None else root_watch
+        self._root_since = int(root_since)  # first step of the root's own observations in the joint fit
+        pool.monitor.set_thresholds(self.noise.theta_trans, self.noise.theta_rot)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -250,6 +301,25 @@ class BodySchemeLearner:
         return A.min(axis=0), A.max(axis=0)
 
     @property
+    def consistency(self):
+        """Per part, the lack-of-fit test of the last joint fit (:class:`~body_scheme_core.consistency.PartConsistency`:
+        do its residuals depend on the commands?); empty before the first fit."""
+        return {} if self._calibrated is None else dict(self._calibrated.consistency)
+
+    @property
+    def unexplained_parts(self):
+        """Parts whose residuals at the last joint fit depend on the commands (the body scheme does not explain
+        them), ascending."""
+        return self._lack_of_fit
+
+    @property
+    def trusted(self):
+        """Whether the body scheme can be relied on: one exists, bootstrapping is over, no edge is in mismatch, and
+        the last joint fit explains every part (:attr:`unexplained_parts` is empty)."""
+        return (self.body_scheme is not None and not self._bootstrapping and not self._adaptation.mismatch
+                and not self._lack_of_fit)
+
+    @property
     def calibration_rms(self):
         """Root mean square normalised residual of the last joint fit (about 1 when the noise model holds), or NaN."""
         return math.nan if self._calibrated is None else self._calibrated.rms
@@ -271,15 +341,14 @@ class BodySchemeLearner:
         pool = self._pool
         by_pair = {frozenset((pool.tracked[i].parent, pool.tracked[i].child)): pool.tracked[i] for i in self._tree}
         out = []
-        c = self.config
         for parent, child, model, _ in scheme.edges:
             entry = by_pair[frozenset((parent, child))]
             st, valid = pool.window_stats([entry.row], [pool.n_now(entry)])
-            theta_t = float(st.theta_trans[0]) if st.n[0] else c.theta_trans
+            theta_t = float(st.theta_trans[0]) if st.n[0] else self.noise.theta_trans
             out.append({"parent": parent, "child": child, "model": entry.describe(), "model_id": entry.id,
                         "kind": model.kind,
                         "actions": list(model.actions), "n_test": int(st.n[0]), "trans_error": float(st.trans_error[0]),
-                        "rot_error": float(st.rot_error[0]), "theta_trans": theta_t, "theta_rot": c.theta_rot,
+                        "rot_error": float(st.rot_error[0]), "theta_trans": theta_t, "theta_rot": self.noise.theta_rot,
                         "valid": bool(valid[0]), "in_mismatch": entry.id in self._adaptation.mismatch,
                         "cusum": pool.monitor.cusum[entry.row].tolist()})
         return out
@@ -306,15 +375,37 @@ class BodySchemeLearner:
         InvalidInputError
             If ``actions`` are not real numbers of the right shape or not finite, ``stamp`` is not a finite real
             number or goes back in time, or ``observations`` is not a mapping; the learner is then unchanged.
+        LearnerStepError
+            If the step failed inside the learner (a defect): it was undone, the learner is exactly as before the call
+            (``step`` included) and the original error is the ``__cause__``; the next call may go on.
+
+        Notes
+        -----
+        A step is all or nothing: the inputs are checked first, then everything the step may change is copied
+        (:func:`~body_scheme_core.learner_state.snapshot`: the candidates' arrays and the book-keeping, never the
+        models or the recorded observations) and put back if it fails.
         """
         a = check_action_vector(actions, self.n_actions).copy()
         self._check_action_range(a)
         check_observation_mapping(observations)
         stamp = check_stamp(stamp, self.last_stamp)
+        saved = snapshot(self)
+        try:
+            return self._step(a, observations, stamp)
+        except BaseException as error:
+            restore(self, saved)
+            if not isinstance(error, Exception):
+                raise  # KeyboardInterrupt, SystemExit: undone, and passed on as they are
+            raise LearnerStepError(f"step {self.step} failed and was undone: {type(error).__name__}: "
+                                   f"{error}") from error
+
+    def _step(self, a, observations, stamp):
+        """The time step proper, on checked inputs (:meth:`update`)."""
         step = self.step
         events = []
-        obs = self._accept(observations, step, events)
-        self.last_stamp = stamp
+        obs = self._accept(a, observations, step, events)
+        if stamp is not None:
+            self.last_stamp = stamp
         self._root_pose.add(a, obs)
         self._history.append((step, a, obs))
         if self._bootstrapping:
@@ -322,11 +413,13 @@ class BodySchemeLearner:
         else:
             tree_changed = self._adapt_step(a, obs, step, events)
         if self._tree is not None and (tree_changed or self._calibration_due(step)):
-            self._calibrate(step)
+            self._calibrate(step, events)
             if self._bootstrapping:
                 self._veto_inconsistent_edges(step, events)
             elif self._just_finished:
                 self._sample_challengers(step, events)
+            else:
+                self._flag_unexplained(step, events)
         self._just_finished = False
         self.step = step + 1
         return events
@@ -342,14 +435,48 @@ class BodySchemeLearner:
             raise ActionOutOfRangeError(f"actions {np.flatnonzero(outside).tolist()} are beyond the joint limits "
                                     f"[{self.action_lower.tolist()}, {self.action_upper.tolist()}]: {a.tolist()}")
 
-    def _accept(self, observations, step, events):
+    def _accept(self, a, observations, step, events):
         """The valid observations ``{part: world2part}``; rejected ones are counted and reported."""
         valid, rejections = filter_observations(observations, self.part_ids, self.config.max_distance,
                                                 self._workspace())
         for part, reason, detail in rejections:
             self.rejected[reason] += 1
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))
+        for part, detail in self._mirrored(a, valid):
+            del valid[part]
+            self.rejected["flipped"] += 1
+            events.append(Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part))
         return valid
+
+    def _mirrored(self, a, observations):
+        """``[(part, detail)]``: observations whose orientation is the mirror image about the camera's ray of what the
+        calibrated body scheme predicts (the planar ambiguity a marker tracker falls into): off by more than
+        ``theta_rot`` while the mirror is within it and less than half as far off. Every predicted part is judged,
+        also one the scheme does not explain yet: a prediction that is wrong by a change or a poor fit makes a true
+        observation look neither near nor mirrored, and a flip let through would look like a lack of fit itself."""
+        cal = self._calibrated
+        if cal is None or not observations:
+            return []
+        parts = [p for p in observations if p in cal.scheme.parts]
+        if not parts:
+            return []
+        root2part = cal.scheme.predict(a)
+        predicted = np.stack([cal.world2root @ root2part[p] for p in parts])
+        observed = np.stack([observations[p] for p in parts])
+        error = rotational_error(predicted, observed)
+        mirrored = rotational_error(predicted, mirror_about_ray(observed))
+        theta = self.noise.theta_rot
+        flipped = (error > theta) & (mirrored <= theta) & (mirrored < 0.5 * error)
+        return [(p, f"the orientation of part {p} is {math.degrees(e):.0f} deg from the body scheme's prediction, "
+                    f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
+                    f"{math.degrees(theta):.1f} deg)")
+                for p, e, m, f in zip(parts, error, mirrored, flipped, strict=True) if f]
+
+    def _lacks_fit(self, cal, part):
+        """Whether the last joint fit's residuals of ``part`` depend on the commands (the lack-of-fit test at
+        ``config.consistency_alpha``, Bonferroni over the parts, and by a fraction that matters)."""
+        test = cal.consistency.get(part)
+        return test is not None and test.lacks_fit(self.config.consistency_alpha / len(self.part_ids))
 
     def _workspace(self):
         """``(root position, reach + workspace_margin)`` once a joint fit exists, else None (only ``max_distance``
@@ -369,6 +496,8 @@ class BodySchemeLearner:
         changed (the joint fit then runs at once)."""
         before = self._tree
         self._tree, _ = self._bootstrap.step(self._tree, a, self._pairs.observe(obs), step, events)
+        if self._tree is not None and self._choose_root():
+            return True  # a new root: the tree is fitted afresh
         if self._bootstrap.finish_if_ready(self._tree, step, events):
             self._bootstrapping = False
             self._just_finished = True
@@ -377,35 +506,74 @@ class BodySchemeLearner:
             return True
         return self._tree is not None and (before is None or set(before) != set(self._tree))
 
+    def _choose_root(self):
+        """Without ``config.root``: make the part whose observations move least the root, as the joint fit assumes
+        the root is fixed in the camera's view (:func:`still_part`). Returns whether the root changed."""
+        if self.config.root is not None:
+            return False
+        root = still_part(self.part_ids, [obs for _, _, obs in self._history], self.noise.sigma_trans,
+                          self.noise.sigma_rot)
+        if root is None or root == self.root:
+            return False
+        self.root = self._adaptation.root = self._root_pose.root = root
+        self._root_pose.invalidate()
+        self._root_watch.restart()
+        self._root_since = 0
+        self._calibrated = None  # its root pose belongs to the old root
+        return True
+
     def _adapt_step(self, a, obs, step, events):
         """Evaluate, detect and repair against the chain-consistent targets; returns whether the tree changed."""
         if self._calibrated is None or self._calibrated.tree != tuple(self._tree):
-            self._calibrate(step)  # a given scheme: its first joint fit (the root pose) before anything is tested
+            # A given scheme: its first joint fit (the root pose) before anything is tested.
+            self._calibrate(step, events)
         scheme, world2root = self._calibrated.scheme, self._calibrated.world2root
         untrusted = self._untrusted_parts(scheme)
-        config = self.config
-
+        noise = self.noise
         part_std = self._calibrated.part_std
 
         def chain_at(a_past, obs_past):
-            return ChainTargets(scheme, world2root, a_past, obs_past, config, untrusted, part_std)
+            return ChainTargets(scheme, world2root, a_past, obs_past, noise, untrusted, part_std)
 
-        if self._upstream_of is None or self._upstream_of[0] is not scheme:
-            self._upstream_of = (scheme, self._upstream(scheme))
-        changes = self._adaptation.step(self._tree, a, chain_at(a, obs), chain_at, self._upstream_of[1], step,
-                                        events)
+        targets = chain_at(a, obs)
+        changes = self._adaptation.step(self._tree, a, targets, chain_at, step, events)
         for change in changes:
             self._after_change(change)
-        return bool(changes)
+        seen, expected = obs.get(self.root), self._root_watch.expected(world2root)
+        errors = None if seen is None or expected is None else targets.observed_errors(expected, seen)
+        moved = self._root_watch.check(errors, step, noise.theta_trans, noise.theta_rot)
+        self._root_watch.learn_offset(world2root, seen)
+        if moved is not None:
+            self._root_moved(*moved, step, events)
+        return bool(changes) or moved is not None
+
+    def _root_moved(self, tau, cusum, stats, step, events):
+        """The root's observations left the calibrated root pose at ``tau`` (its marker moved on the base, or was
+        knocked): the root's own observations count from ``tau`` on, the edges at the root learn their new relation
+        without a prior, and every edge's detector restarts (its targets used the old root pose)."""
+        self._root_since = tau
+        pool = self._pool
+        for i in self._tree:
+            entry = pool.tracked[i]
+            if self.root in (entry.parent, entry.child) and isinstance(entry.model, RigidJointModel):
+                entry.prior = None
+            pool.monitor.forget_since([entry.row], tau)
+            pool.monitor.reset_cusum([entry.row])
+        events.append(Event(step, "mismatch_detected",
+                            f"the root part {self.root} no longer matches its pose in the camera's view: CUSUM "
+                            f"{cusum[0]:.2f} (trans) / {cusum[1]:.2f} (rot) reached {self.config.cusum_threshold:g}; "
+                            f"window mean {format_errors(stats.trans_error[0], stats.rot_error[0])}; change point "
+                            f"estimated at step {tau}: its marker moved; the root pose and the edges at the root are "
+                            f"fitted again from its observations since then", child=self.root, model="root pose"))
 
     def _chain_at(self):
         """``chain_at(a, observations)``: the chain-consistent targets of a step from the current joint fit."""
         cal = self._calibrated
         untrusted = self._untrusted_parts(cal.scheme)
-        config = self.config
+        noise = self.noise
 
         def chain_at(a, obs):
-            return ChainTargets(cal.scheme, cal.world2root, a, obs, config, untrusted, cal.part_std)
+            return ChainTargets(cal.scheme, cal.world2root, a, obs, noise, untrusted, cal.part_std)
         return chain_at
 
     def _sample_challengers(self, step, events):
@@ -425,15 +593,6 @@ class BodySchemeLearner:
             parts.update(p for p in scheme.parts if far in scheme.path(p))
         return parts
 
-    def _upstream(self, scheme):
-        """Per tree model id, the ids of the tree models on the path from the root to its near part."""
-        id_of = {id(model): i for model, i in zip(scheme.models, self._tree, strict=True)}
-        out = {}
-        for i, model in zip(self._tree, scheme.models, strict=True):
-            near = model.parent if len(scheme.path(model.parent)) < len(scheme.path(model.child)) else model.child
-            out[i] = [id_of[id(scheme.edge_into(p)[2])] for p in scheme.path(near)[1:]]
-        return out
-
     def _after_change(self, change):
         """Book-keeping of a replaced or reinstated edge: change point, priors below it, cleaned memory."""
         pool = self._pool
@@ -451,9 +610,13 @@ class BodySchemeLearner:
             near = entry.parent if len(scheme.path(entry.parent)) < len(scheme.path(entry.child)) else entry.child
             if far in scheme.path(near):
                 # Below the changed edge: its observations before tau followed the old body; keep what they taught
-                # as a prior, and restart its detector.
-                if isinstance(entry.model, RigidJointModel) and entry.prior is None:
-                    entry.prior = (entry.model.params_.copy(), entry.model.param_cov_.copy())
+                # as a prior, and restart its detector. An edge out of the changed edge's far part after a
+                # replacement gets none: its relation is to that part's marker, which may be what moved.
+                if isinstance(entry.model, RigidJointModel):
+                    if near == far and not reinstated:
+                        entry.prior = None
+                    elif entry.prior is None:
+                        entry.prior = (entry.model.params_.copy(), entry.model.param_cov_.copy())
                 pool.monitor.forget_since([entry.row], tau)
                 pool.monitor.reset_cusum([entry.row])
         if old.id in pool.tracked:
@@ -472,9 +635,9 @@ class BodySchemeLearner:
                 else (entry.child, entry.parent))
         A, Z, S = [], [], []
         for _, a, obs in steps:
-            chain = ChainTargets(scheme, cal.world2root, a, obs, self.config, std=cal.part_std)
+            chain = ChainTargets(scheme, cal.world2root, a, obs, self.noise, std=cal.part_std)
             if v in obs:
-                Zk, _, sk = chain.pair_target(u, v)
+                Zk, _, _, sk = chain.pair_target(u, v)
                 A.append(a)
                 Z.append(Zk if u == entry.parent else np.linalg.inv(Zk))
                 S.append(sk)
@@ -521,9 +684,10 @@ class BodySchemeLearner:
                 trial = self._bootstrap.search(self._tree, step, None, exclude=[self._tree[k]])
                 if trial is None:
                     continue
-                trial_cal = self._fit(trial, step, max_iterations=_TRIAL_ITERATIONS)
-                if trial_cal is None:
+                fitted = self._fit(trial, step, max_iterations=_TRIAL_ITERATIONS)
+                if fitted is None:
                     continue
+                trial_cal = fitted[0]
                 score = (len(self._inconsistent_edges(trial_cal)), trial_cal.rms)
                 if best is None or score < best[0]:
                     best = (score, k, trial_cal)
@@ -540,16 +704,17 @@ class BodySchemeLearner:
             if best is not None and best[2].tree == tuple(self._tree):
                 self._calibrated = best[2]
             else:
-                self._calibrate(step)
+                self._calibrate(step, events)
 
     def _inconsistent_edges(self, cal):
         """Positions (in ``cal.scheme.models``, breadth-first) of the edges whose child the calibrated scheme does
-        not explain: its observations' mean error of at least one threshold in either channel."""
+        not explain: its observations' mean error of at least one threshold in either channel, or residuals that
+        depend on the commands (:meth:`_lacks_fit`)."""
         position = {id(m): k for k, m in enumerate(cal.scheme.models)}
         bad = []
         for _, child, model, _ in cal.scheme.edges:
             n, ratio_t, ratio_r = cal.part_ratios.get(child, (0, 0.0, 0.0))
-            if n >= self.config.min_test_samples and max(ratio_t, ratio_r) >= 1.0:
+            if (n >= self.config.min_test_samples and max(ratio_t, ratio_r) >= 1.0) or self._lacks_fit(cal, child):
                 bad.append(position[id(model)])
         return bad
 
@@ -565,7 +730,7 @@ class BodySchemeLearner:
         growth = _CALIBRATION_GROWTH * max(1.0, n_params / _GROWTH_PARAMS)
         if step - cal.step < max(1, math.ceil(growth * cal.n_steps)):
             return False
-        since = max(self._pool.tracked[i].since for i in self._tree)
+        since = max((self._pool.tracked[i].since for i in self._tree), default=0)
         if self._history[0][0] >= since:
             usable = len(self._history)
         else:
@@ -573,8 +738,9 @@ class BodySchemeLearner:
         return usable > cal.n_steps
 
     def _fit(self, tree, step, warm=True, max_iterations=20):
-        """Joint fit of the root pose and the models of ``tree`` on the history (:func:`calibrate`); a
-        :class:`Calibrated`, or None if the fit failed. Changes nothing."""
+        """Joint fit of the root pose and the models of ``tree`` on the history (:func:`calibrate`), and the
+        lack-of-fit test of every part (:mod:`~body_scheme_core.consistency`): ``(Calibrated, Calibration)``, or None
+        if the fit failed. Changes nothing."""
         pool = self._pool
         entries = [pool.tracked[i] for i in tree]
         cal = self._calibrated
@@ -593,38 +759,104 @@ class BodySchemeLearner:
         priors = {k: e.prior for k, e in enumerate(entries)
                   if e.prior is not None and isinstance(models[k], RigidJointModel)}
         world2root = cal.world2root if cal is not None else self._root_pose.pose(scheme)
+        noise = self.noise
         try:
-            result = calibrate(scheme, world2root, A, observations, self.config.sigma_trans, self.config.sigma_rot,
+            result = calibrate(scheme, world2root, A, observations, noise.sigma_trans, noise.sigma_rot,
                                since=since, priors=priors, f_scale=self.config.f_scale,
-                               gp_optimize=self.config.gp_optimize, max_iterations=max_iterations)
+                               gp_optimize=self.config.gp_optimize, max_iterations=max_iterations,
+                               axis_sigmas=noise.axis_sigmas, root_since=int(np.searchsorted(steps, self._root_since)))
         except (np.linalg.LinAlgError, BodySchemeError):
             return None
-        c = self.config
         # The parts' predictive std, averaged over (at most 10 of) the window's action vectors: the chain targets'
         # thresholds use it every step without propagating every model's uncertainty each time.
         pick = np.linspace(0, len(A) - 1, min(len(A), 10)).round().astype(int)
         _, std = result.scheme.predict_batch(A[pick], return_std=True)
         part_std = {p: std[:, k].mean(axis=0) for k, p in enumerate(result.scheme.parts)}
-        usable = int(np.sum(steps >= max(e.since for e in entries)))
+        usable = int(np.sum(steps >= max((e.since for e in entries), default=0)))
+        consistency = part_consistency(result.parts, result.whitened, A[result.steps])
         return Calibrated(result.scheme, result.world2root, step, usable, tuple(tree), result.rms,
-                          result.part_ratios(c.theta_trans, c.theta_rot, c.cusum_clip), part_std)
+                          result.part_ratios(noise.theta_trans, noise.theta_rot, RATIO_CLIP), part_std,
+                          consistency), result
 
-    def _calibrate(self, step):
-        """Joint fit of the current tree; after bootstrapping its models replace the tree's models."""
-        result = self._fit(self._tree, step)
-        if result is None:
+    def _calibrate(self, step, events):
+        """Joint fit of the current tree; after bootstrapping its models replace the tree's models. Then the noise
+        estimate learns from the fit's residuals, and a change of what the scheme explains is reported."""
+        fitted = self._fit(self._tree, step)
+        if fitted is None:
             return  # keep the previous estimate; the next step tries again
-        self._calibrated = result
+        cal, result = fitted
+        self._calibrated = cal
+        self._learn_noise(cal, result)
         if not self._bootstrapping:
             pool = self._pool
             entries = [pool.tracked[i] for i in self._tree]
-            for entry, model in zip(entries, result.scheme.models, strict=True):
+            for entry, model in zip(entries, cal.scheme.models, strict=True):
                 entry.model = model
             history_full = len(self._history) == self._history.maxlen
             oldest = self._history[0][0]
             for entry in entries:
                 if entry.prior is not None and history_full and entry.since <= oldest:
                     entry.prior = None  # every observation in the window is usable: the window alone decides
+        self._report_trust(cal, step, events)
+
+    def _learn_noise(self, cal, result):
+        """Estimate the noise from the fit's residuals and hand the thresholds on.
+
+        Only parts the fit explains speak: tested by the lack-of-fit test and passing it, with mean errors below the
+        thresholds, and not below a GP edge; a wrong model's residuals, or a GP's approximation error, would otherwise
+        make the noise look larger, the thresholds looser and a wrong model valid. While bootstrapping the tree is
+        provisional: the estimate may lower the prior, not exceed it (``cap``)."""
+        explained = [p for p, test in cal.consistency.items()
+                     if test.tested and not self._lacks_fit(cal, p) and max(cal.part_ratios[p][1:]) < 1.0]
+        use = np.isin(result.parts, explained) & result.coupled  # below a GP edge its approximation would count
+        fraction = 1.0 - result.n_params / max(6 * int(result.coupled.sum()), 1)
+        self.noise.update(result.parts[use], result.residual_t[use], result.residual_r[use], result.positions[use],
+                          fraction, cap=self._bootstrapping)
+        self._pool.monitor.set_thresholds(self.noise.theta_trans, self.noise.theta_rot)
+
+    def _report_trust(self, cal, step, events):
+        """A ``trust_changed`` event when the set of parts whose residuals lack fit changed."""
+        failing = tuple(sorted(p for p in cal.consistency if self._lacks_fit(cal, p)))
+        if failing == self._lack_of_fit:
+            return
+        if failing:
+            worst = max(failing, key=lambda p: cal.consistency[p].F)
+            t = cal.consistency[worst]
+            reason = (f"not trusted: the body scheme does not explain part(s) {list(failing)}: their residuals depend "
+                      f"on the commands (part {worst}: F = {t.F:.1f}, p = {t.p:.1g}, {100 * t.explained:.0f} % of "
+                      f"the variance over {t.n} observations)")
+        else:
+            reason = "trusted again: the residuals of every part are independent of the commands (noise)"
+        events.append(Event(step, "trust_changed", reason))
+        self._lack_of_fit = failing
+
+    def _flag_unexplained(self, step, events):
+        """After a joint fit in steady state: the root-most part the scheme does not explain puts the edge into it
+        in mismatch (once per ``history_length`` steps and part), so that the pair, other classes and other pairs
+        across the cut are searched for a model that explains it (:meth:`Adaptation.flag`). A root it does not explain
+        moves: the part that moves least becomes the root (:meth:`_choose_root`)."""
+        cal = self._calibrated
+        if cal is None or cal.tree != tuple(self._tree):
+            return
+        scheme = cal.scheme
+        if scheme.root in self._lack_of_fit and not self._adaptation.mismatch and self._choose_root():
+            return  # the root moves: the next step fits the tree from the part that moves least
+        untrusted = self._untrusted_parts(scheme)
+        failing = [p for p in self._lack_of_fit if p not in untrusted and p != scheme.root
+                   and step - self._unexplained.get(p, -math.inf) >= self.config.history_length]
+        if not failing:
+            return
+        part = min(failing, key=lambda p: len(scheme.path(p)))
+        parent, child, _, _ = scheme.edge_into(part)
+        entry = next(self._pool.tracked[i] for i in self._tree
+                     if {self._pool.tracked[i].parent, self._pool.tracked[i].child} == {parent, child})
+        if entry.id in self._adaptation.mismatch:
+            return
+        self._unexplained[part] = step
+        t = cal.consistency[part]
+        self._adaptation.flag(entry, step, events,
+                              f"the body scheme does not explain part {part}: its residuals depend on the commands "
+                              f"(F = {t.F:.1f}, p = {t.p:.1g}, {100 * t.explained:.0f} % of their variance)")
 
     # ------------------------------------------------------------------ state (body_scheme_core.learner_state)
     def to_state(self):

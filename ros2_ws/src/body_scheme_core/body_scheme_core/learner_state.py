@@ -1,12 +1,15 @@
-"""The learner's saved state: a :class:`~body_scheme_core.learner.BodySchemeLearner` as a JSON dict and back.
+"""The learner's state: as a JSON dict and back (saved state), and in memory (the snapshot that makes a step atomic).
 
 Files (atomic writes, strict JSON reading) are :mod:`body_scheme_core.persistence`; the layout is documented in
 docs/core/state-file-format.md. Reading validates every value: a bad dict raises ``ModelFileError``, never a crash
-later on.
+later on. :func:`snapshot` and :func:`restore` copy what one time step may change and put it back, so that
+:meth:`~body_scheme_core.learner.BodySchemeLearner.update` either applies a whole step or none of it.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from collections import Counter, deque
 from typing import NamedTuple
@@ -15,21 +18,26 @@ import numpy as np
 
 from .adaptation import Adaptation
 from .config import BodySchemeConfig
+from .consistency import PartConsistency
 from .errors import InvalidInputError, ModelFileError, NotFittedError
-from .inputs import check_n_actions, check_part_ids
+from .inputs import check_n_actions, check_part_ids, rigidity_problem
 from .pool import ModelPool
-from .root_pose import RootPoseEstimator
+from .root_pose import RootPoseEstimator, RootWatch
 from .scheme import BodyScheme
+from .validity import ValidityMonitor
 
-__all__ = ["STATE_VERSION", "Calibrated", "learner_to_state", "learner_from_state"]
+__all__ = ["STATE_VERSION", "Calibrated", "learner_to_state", "learner_from_state", "snapshot", "restore",
+           "structural_problems"]
 
 #: Version of the dict layout of :func:`learner_to_state`.
-STATE_VERSION = 3  # 3: rigid-joint models, two candidate batches, the joint fit; 2: GP-only learner
+STATE_VERSION = 4  # 4: the learned noise and the lack-of-fit test; 3: rigid-joint models, two candidate batches, the
+#                    joint fit; 2: GP-only learner
 
 
 class Calibrated(NamedTuple):
-    """The last joint fit: the calibrated body scheme, the root pose, what it was computed from, and per part
-    ``(n, trans ratio, rot ratio)`` of its observations (:meth:`Calibration.part_ratios`)."""
+    """The last joint fit: the calibrated body scheme, the root pose, what it was computed from, per part
+    ``(n, trans ratio, rot ratio)`` of its observations (:meth:`Calibration.part_ratios`), its predicted std, and its
+    lack-of-fit test (:class:`~body_scheme_core.consistency.PartConsistency`)."""
 
     scheme: BodyScheme
     world2root: np.ndarray
@@ -39,6 +47,7 @@ class Calibrated(NamedTuple):
     rms: float
     part_ratios: dict
     part_std: dict
+    consistency: dict
 
 
 
@@ -54,6 +63,7 @@ def learner_to_state(self):
         "version": STATE_VERSION,
         "config": self.config.to_dict(),
         "part_ids": list(self.part_ids),
+        "root": self.root,
         "n_actions": self.n_actions,
         "action_lower": _bounds_to_json(self.action_lower),
         "action_upper": _bounds_to_json(self.action_upper),
@@ -68,6 +78,7 @@ def learner_to_state(self):
         "entries": self._pool.tracked_state(),
         "mismatch": self._adaptation.mismatch_state(),
         "refining": self._adaptation.refining_state(),
+        "failed": self._adaptation.failed_state(),
         "vetoed": [[k, v] for k, v in self._bootstrap.vetoed.items()],
         "monitor": self._pool.monitor.to_dict(),
         "gp_batch": self._pool.gp_batch.state_dict(),
@@ -76,7 +87,15 @@ def learner_to_state(self):
             "scheme": cal.scheme.to_dict(), "world2root": cal.world2root.tolist(), "step": cal.step,
             "n_steps": cal.n_steps, "tree": list(cal.tree), "rms": cal.rms,
             "part_ratios": [[p, n, t, r] for p, (n, t, r) in cal.part_ratios.items()],
-            "part_std": [[p, float(v[0]), float(v[1])] for p, v in cal.part_std.items()]},
+            "part_std": [[p, float(v[0]), float(v[1])] for p, v in cal.part_std.items()],
+            "consistency": [[p, t.n, _json_float(t.F), _json_float(t.p), _json_float(t.explained), _json_float(t.rms)]
+                            for p, t in cal.consistency.items()]},
+        "noise": self.noise.to_dict(),
+        "unexplained": [[p, s] for p, s in self._unexplained.items()],
+        "lack_of_fit": list(self._lack_of_fit),
+        "root_watch": self._root_watch.monitor.to_dict(),
+        "root_offset": {"pose": self._root_watch.offset.tolist(), "n": self._root_watch.n_offset},
+        "root_since": self._root_since,
         "history": [{"step": s, "actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
                     for s, a, obs in self._history],
         "root_samples": [{"actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
@@ -96,52 +115,80 @@ def learner_from_state(cls, state):
         raise ModelFileError(f"learner state must be a dict, got {type(state).__name__}")
     version = state.get("version")
     if version != STATE_VERSION:
-        hint = (" (version 2 is the GP-only learner before rigid-joint models and the joint fit: its models cannot "
-                "be carried over; learn again from scratch, or start from the robot's specification)"
-                if version == 2 else "")
+        hint = (" (versions 2 and 3 come from learners before the learned noise: learn again from scratch, or start "
+                "from the robot's specification)" if version in (2, 3) else "")
         raise ModelFileError(f"unsupported learner state version {version!r}; this reads {STATE_VERSION}{hint}")
     try:
         config = BodySchemeConfig.from_dict(state["config"])
         self = cls.__new__(cls)
         self._set_parts(config, check_part_ids(state["part_ids"]), check_n_actions(state["n_actions"]))
+        root = state["root"]
+        if isinstance(root, bool) or not isinstance(root, int) or root not in self.part_ids:
+            raise ModelFileError(f"root must be one of the parts {list(self.part_ids)}, got {root!r}")
+        if config.root is not None and root != config.root:
+            raise ModelFileError(f"root {root} is not the configuration's root {config.root}")
+        self.root = root
         self.action_lower = _bounds_from_json(state["action_lower"], self.n_actions, "action_lower")
         self.action_upper = _bounds_from_json(state["action_upper"], self.n_actions, "action_upper")
-        self.step = int(state["step"])
-        self.last_stamp = state["last_stamp"]
-        self.rejected = Counter({str(k): int(v) for k, v in state["rejected"].items()})
-        bootstrapping, found = bool(state["bootstrapping"]), bool(state["found"])
-        tree = None if state["tree"] is None else [int(i) for i in state["tree"]]
-        tree_since = int(state["tree_since"])
+        self.step = _integer(state["step"], "step")
+        self.last_stamp = _stamp(state["last_stamp"])
+        if not isinstance(state["rejected"], dict):
+            raise ModelFileError(f"rejected must be a dict of counts, got {state['rejected']!r}")
+        self.rejected = Counter({str(k): _integer(v, f"rejected[{k!r}]") for k, v in state["rejected"].items()})
+        bootstrapping, found = _boolean(state["bootstrapping"], "bootstrapping"), _boolean(state["found"], "found")
+        tree = None if state["tree"] is None else [_integer(i, "tree id") for i in _list(state["tree"], "tree")]
+        tree_since = _integer(state["tree_since"], "tree_since")
         pool = ModelPool.from_state(config, self.n_actions, set(self.part_ids), state["entries"],
                                     state["next_id"], state["monitor"], state["gp_batch"], state["rigid_batch"])
         if tree is not None and any(i not in pool.tracked for i in tree):
             raise ModelFileError(f"tree refers to unknown model ids {tree}")
         mismatch = Adaptation.mismatch_from_state(state["mismatch"], pool.tracked)
         refining = Adaptation.refining_from_state(state["refining"], pool.tracked)
-        vetoed = {int(k): int(v) for k, v in state["vetoed"]}
+        failed = Adaptation.failed_from_state(state["failed"], set(self.part_ids))
+        vetoed = {_integer(k, "vetoed id"): _integer(v, "vetoed size") for k, v in _list(state["vetoed"], "vetoed")}
         self._history = deque(maxlen=config.history_length)
-        for rec in state["history"]:
+        for rec in _list(state["history"], "history"):
             a = _finite_array(rec["actions"], (self.n_actions,), "history actions")
-            obs = {}
-            for part, Y in rec["observations"]:
-                if int(part) not in self._pairs.part_index:
-                    raise ModelFileError(f"history observation of unknown part {part}")
-                obs[int(part)] = _finite_array(Y, (4, 4), "history observation")
-            self._history.append((int(rec["step"]), a, obs))
+            self._history.append((_integer(rec["step"], "history step"), a,
+                                  _observations(rec["observations"], self.part_ids, "history")))
         self._root_pose = RootPoseEstimator(config.root_window, self.root, (
             (_finite_array(rec["actions"], (self.n_actions,), "root sample actions"),
-             {int(part): _finite_array(Y, (4, 4), "root sample observation") for part, Y in rec["observations"]})
-            for rec in state["root_samples"]))
+             _observations(rec["observations"], self.part_ids, "root sample"))
+            for rec in _list(state["root_samples"], "root_samples")))
         calibrated = _calibrated_from_state(state["calibration"])
-        self._set_models(pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed, refining)
+        self.noise.load_dict(state["noise"])
+        unexplained = {_part(p, self.part_ids, "unexplained"): _integer(s, "unexplained step")
+                       for p, s in _list(state["unexplained"], "unexplained")}
+        lack_of_fit = tuple(_part(p, self.part_ids, "lack_of_fit") for p in _list(state["lack_of_fit"], "lack_of_fit"))
+        watch = ValidityMonitor.from_dict(state["root_watch"])
+        if watch.capacity != 1 or not watch.in_use[0] or watch.window != config.test_window:
+            raise ModelFileError("root_watch must be one monitor row of the configuration's test window")
+        offset = state["root_offset"]
+        if not isinstance(offset, dict):
+            raise ModelFileError(f"root_offset must be an object, got {type(offset).__name__}")
+        offset_pose = _finite_array(offset["pose"], (4, 4), "root_offset pose")
+        if rigidity_problem(offset_pose) is not None:
+            raise ModelFileError("root_offset pose is not a rigid transform")
+        n_offset = _integer(offset["n"], "root_offset n")
+        self._set_models(pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed, refining,
+                         unexplained, lack_of_fit, failed, RootWatch(config, watch, offset_pose, n_offset),
+                         _integer(state["root_since"], "root_since"))
         if self._tree is not None:
             self.body_scheme  # noqa: B018 - validates that the stored tree is a spanning tree of fitted models
+        problems = structural_problems(self)
+        if problems:
+            raise ModelFileError(f"inconsistent learner state: {'; '.join(problems)}")
     except ModelFileError:
         raise
     except (KeyError, TypeError, ValueError, OverflowError, AttributeError, IndexError, InvalidInputError,
             NotFittedError) as exc:
         raise ModelFileError(f"bad learner state: {type(exc).__name__}: {exc}") from exc
     return self
+
+
+def _json_float(value):
+    """A float for JSON: None where it is not finite (an untested part's statistics)."""
+    return float(value) if math.isfinite(value) else None
 
 
 def _calibrated_from_state(data):
@@ -151,8 +198,55 @@ def _calibrated_from_state(data):
     world2root = _finite_array(data["world2root"], (4, 4), "calibration world2root")
     ratios = {int(p): (int(n), float(t), float(r)) for p, n, t, r in data["part_ratios"]}
     std = {int(p): _finite_array([t, r], (2,), "calibration part std") for p, t, r in data["part_std"]}
+    consistency = {int(p): PartConsistency(int(n), *(math.nan if v is None else float(v) for v in (F, pv, e, r)))
+                   for p, n, F, pv, e, r in data["consistency"]}
     return Calibrated(scheme, world2root, int(data["step"]), int(data["n_steps"]), tuple(int(i) for i in data["tree"]),
-                      float(data["rms"]), ratios, std)
+                      float(data["rms"]), ratios, std, consistency)
+
+
+def _integer(value, name, minimum=0):
+    """A JSON integer of at least ``minimum`` (bools and floats refused)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ModelFileError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
+def _boolean(value, name):
+    if not isinstance(value, bool):
+        raise ModelFileError(f"{name} must be true or false, got {value!r}")
+    return value
+
+
+def _list(value, name):
+    if not isinstance(value, list):
+        raise ModelFileError(f"{name} must be a list, got {type(value).__name__}")
+    return value
+
+
+def _stamp(value):
+    """The last stamp: None or a finite number."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ModelFileError(f"last_stamp must be a finite number or null, got {value!r}")
+    return float(value)
+
+
+def _part(value, part_ids, name):
+    if isinstance(value, bool) or not isinstance(value, int) or value not in part_ids:
+        raise ModelFileError(f"{name} refers to unknown part {value!r}")
+    return value
+
+
+def _observations(pairs, part_ids, name):
+    """``{part: world2part}`` from ``[[part, pose], ...]``: known parts, finite rigid poses."""
+    out = {}
+    for part, Y in _list(pairs, f"{name} observations"):
+        pose = _finite_array(Y, (4, 4), f"{name} observation")
+        if rigidity_problem(pose) is not None:
+            raise ModelFileError(f"{name} observation of part {part!r} is not a rigid transform")
+        out[_part(part, part_ids, f"{name} observation")] = pose
+    return out
 
 
 def _finite_array(value, shape, name):
@@ -185,3 +279,135 @@ def _bounds_from_json(value, n, name):
         else:
             raise ModelFileError(f"{name} contains an invalid limit {b!r}")
     return np.array(out)
+
+
+# ---------------------------------------------------------------------- in memory: one step, all or nothing
+def _with_copied_arrays(obj):
+    """A shallow copy of ``obj`` whose numpy arrays are copies (batches, the validity monitor: all their state is
+    arrays and immutable values)."""
+    clone = copy.copy(obj)
+    for name, value in vars(obj).items():
+        if isinstance(value, np.ndarray):
+            setattr(clone, name, value.copy())
+    return clone
+
+
+def snapshot(learner):
+    """Everything one :meth:`~body_scheme_core.learner.BodySchemeLearner.update` may change, copied.
+
+    Local models, the calibrated scheme and the recorded observations are never changed in place (a step replaces
+    them), so they are shared, not copied; what is copied is the book-keeping around them: the tracked models'
+    entries, the batches' and the monitor's arrays, the phase objects' dicts, the history and the counters.
+    """
+    pool, boot, adapt = learner._pool, learner._bootstrap, learner._adaptation
+    return {
+        "learner": {name: getattr(learner, name) for name in (
+            "step", "last_stamp", "root", "_bootstrapping", "_calibrated", "_reach", "_just_finished", "_lack_of_fit",
+            "_root_since")},
+        "unexplained": dict(learner._unexplained),
+        "lists": {"_tree": None if learner._tree is None else list(learner._tree),
+                  "rejected": Counter(learner.rejected),
+                  "_history": deque(learner._history, maxlen=learner._history.maxlen)},
+        "root_pose": (learner._root_pose, copy.copy(learner._root_pose), deque(learner._root_pose._samples,
+                                                                                maxlen=learner._root_pose._samples.maxlen)),
+        "noise": learner.noise.copy(),
+        "root_watch": (_with_copied_arrays(learner._root_watch.monitor), learner._root_watch.offset.copy(),
+                       learner._root_watch.n_offset),
+        "pool": (pool.next_id, {i: e.copy() for i, e in pool.tracked.items()},
+                 _with_copied_arrays(pool.gp_batch), _with_copied_arrays(pool.rigid_batch),
+                 _with_copied_arrays(pool.monitor)),
+        "bootstrap": (boot.found, boot.tree_since, dict(boot.vetoed)),
+        "adaptation": ({k: dataclasses.replace(v) for k, v in adapt.mismatch.items()}, dict(adapt.refining),
+                       dict(adapt.failed)),
+    }
+
+
+def restore(learner, saved):
+    """Put back a :func:`snapshot`: the learner is as it was when it was taken."""
+    for name, value in saved["learner"].items():
+        setattr(learner, name, value)
+    learner._tree = saved["lists"]["_tree"]
+    learner._unexplained = saved["unexplained"]
+    learner._adaptation.root = learner.root
+    learner.rejected = saved["lists"]["rejected"]
+    learner._history.clear()
+    learner._history.extend(saved["lists"]["_history"])  # the deque is shared with the adaptation object
+    estimator, fields, samples = saved["root_pose"]
+    vars(estimator).update(vars(fields))
+    estimator._samples = samples
+    vars(learner.noise).update(vars(saved["noise"]))  # in place: the part pairs read it
+    watch = learner._root_watch
+    watch.monitor, watch.offset, watch.n_offset = saved["root_watch"]
+    pool = learner._pool
+    pool.next_id, pool.tracked, pool.gp_batch, pool.rigid_batch, pool.monitor = saved["pool"]
+    pool._changed()
+    boot = learner._bootstrap
+    boot.found, boot.tree_since, boot.vetoed = saved["bootstrap"]
+    boot._pair_index = None
+    learner._adaptation.mismatch, learner._adaptation.refining, learner._adaptation.failed = saved["adaptation"]
+
+
+# ---------------------------------------------------------------------- structure
+def structural_problems(learner):
+    """What is wrong with the learner's structure, as a list of sentences (empty when it is sound).
+
+    The tree spans the parts with tracked tree models; every model in the tree, in memory, in mismatch or refining is
+    tracked; monitor rows and batch slots belong to exactly one tracked model each; the root is a part, the same for
+    every object that uses it; the history's steps increase and come before the learner's step. Checked when a state
+    is loaded, and after every step by the tests.
+    """
+    problems = []
+    pool = learner._pool
+    tracked = pool.tracked
+    parts = set(learner.part_ids)
+    tree = learner._tree
+    if tree is not None:
+        if len(tree) != len(parts) - 1 or len(set(tree)) != len(tree):
+            problems.append(f"the tree has {len(tree)} models for {len(parts)} parts")
+        missing = [i for i in tree if i not in tracked]
+        if missing:
+            problems.append(f"tree models {missing} are not tracked")
+        else:
+            role = "candidate" if learner._bootstrapping else "tree"  # bootstrapping: the tree is of candidates
+            if any(tracked[i].role != role for i in tree):
+                problems.append(f"a tree model is not in the {role} role")
+            graph = {p: set() for p in parts}
+            for i in tree:
+                e = tracked[i]
+                graph.setdefault(e.parent, set()).add(e.child)
+                graph.setdefault(e.child, set()).add(e.parent)
+            seen, stack = set(), [learner.root]
+            while stack:
+                p = stack.pop()
+                if p not in seen:
+                    seen.add(p)
+                    stack.extend(graph.get(p, ()))
+            if seen != parts or set(graph) != parts:
+                problems.append(f"the tree does not span the parts: reaches {sorted(seen)} of {sorted(parts)}")
+    in_tree = set(tree or ())
+    strays = [e.id for e in tracked.values() if e.role == "tree" and e.id not in in_tree]
+    if strays:
+        problems.append(f"models {strays} are in the tree role but not in the tree")
+    for name, ids in (("mismatch", learner._adaptation.mismatch), ("refining", learner._adaptation.refining),
+                      ("vetoed", learner._bootstrap.vetoed)):
+        unknown = [i for i in ids if i not in tracked]
+        if unknown:
+            problems.append(f"{name} refers to untracked models {unknown}")
+    if any(i not in in_tree for i in learner._adaptation.mismatch):
+        problems.append("an edge in mismatch is not in the tree")
+    rows = [e.row for e in tracked.values()]
+    if len(set(rows)) != len(rows) or int(np.count_nonzero(pool.monitor.in_use)) != len(rows) or any(
+            not (0 <= r < pool.monitor.capacity and pool.monitor.in_use[r]) for r in rows):
+        problems.append("monitor rows and tracked models do not match one to one")
+    for batch, rigid in ((pool.gp_batch, False), (pool.rigid_batch, True)):
+        slots = [e.slot for e in tracked.values() if e.slot >= 0 and (e.kind in ("static", "prismatic", "revolute"))
+                 == rigid]
+        if len(set(slots)) != len(slots) or batch.n_allocated != len(slots) or any(
+                not batch._allocated[s] for s in slots if 0 <= s < len(batch._allocated)):
+            problems.append(f"{'rigid' if rigid else 'GP'} batch slots and learning models do not match one to one")
+    if learner.root not in parts or learner._adaptation.root != learner.root or learner._root_pose.root != learner.root:
+        problems.append(f"the root {learner.root} is not the same everywhere or not a part")
+    steps = [s for s, _, _ in learner._history]
+    if any(b <= a for a, b in zip(steps, steps[1:], strict=False)) or (steps and steps[-1] >= learner.step):
+        problems.append("the history's steps do not increase up to the learner's step")
+    return problems

@@ -53,6 +53,8 @@ class Targets(NamedTuple):
         Observed ``parent2child`` per model, oriented as the model predicts.
     theta_trans : ndarray, shape (k,)
         Translational validity threshold of each sample (m).
+    theta_rot : ndarray, shape (k,)
+        Rotational validity threshold of each sample (rad).
     sigma : ndarray, shape (k, 2)
         Per-axis noise std of each sample (trans m, rot rad), for the rigid candidates' weighting.
     flip : ndarray of bool, shape (k,)
@@ -62,12 +64,14 @@ class Targets(NamedTuple):
 
     Z: np.ndarray
     theta_trans: np.ndarray
+    theta_rot: np.ndarray
     sigma: np.ndarray
     flip: np.ndarray
 
     def select(self, index):
         """The rows ``index``."""
-        return Targets(self.Z[index], self.theta_trans[index], self.sigma[index], self.flip[index])
+        return Targets(self.Z[index], self.theta_trans[index], self.theta_rot[index], self.sigma[index],
+                       self.flip[index])
 
 
 class LearningSlots(NamedTuple):
@@ -331,7 +335,7 @@ class ModelPool:
             Zp[targets.flip] = invert_transform(Zp[targets.flip])
         e_t, e_r = prediction_errors(Zp, targets.Z)
         return self.monitor.record([e.row for e in entries], e_t, e_r, step, n_train=[e.n_train for e in entries],
-                                   cusum=cusum, theta_trans=targets.theta_trans)
+                                   cusum=cusum, theta_trans=targets.theta_trans, theta_rot=targets.theta_rot)
 
     def train(self, ids, a, targets, step):
         """Prequential step of learning candidates: predict, record the error, then learn (until full).
@@ -370,7 +374,7 @@ class ModelPool:
                 if size > 0:  # an empty GP predicts the identity: its error says nothing about the model
                     e_t, e_r = prediction_errors(Zp, targets.Z[group])
                     self.monitor.record(rows[group], e_t, e_r, step, n_train=size, cusum=False,
-                                        theta_trans=targets.theta_trans[group])
+                                        theta_trans=targets.theta_trans[group], theta_rot=targets.theta_rot[group])
                 if size < limit:
                     self.gp_batch.add_samples(slots[group], a, targets.Z[group])
         if np.any(rigid):
@@ -382,7 +386,7 @@ class ModelPool:
                 seen = r[ready]
                 e_t, e_r = prediction_errors(Zp[ready], targets.Z[seen])
                 self.monitor.record(rows[seen], e_t, e_r, step, n_train=n[ready], cusum=False,
-                                    theta_trans=targets.theta_trans[seen])
+                                    theta_trans=targets.theta_trans[seen], theta_rot=targets.theta_rot[seen])
             open_ = n < limit
             if np.any(open_):
                 learn = r[open_]
@@ -431,6 +435,7 @@ class ModelPool:
         self.gp_batch = self.new_gp_batch(self.gp_batch.max_dim)
         self.rigid_batch = self.new_rigid_batch()
         self.monitor = ValidityMonitor.from_config(self.config)
+        self.monitor.set_thresholds(*old_monitor.theta)
         rows = self.monitor.allocate(len(keep))
         self.monitor.copy_rows(old_monitor, [e.row for e in keep], rows)
         self.monitor.reset_cusum(rows)

@@ -32,6 +32,8 @@ class RelativeObservations(NamedTuple):
         Row of each pair in ``Z``; -1 where the pair is not observed.
     theta_trans : ndarray, shape (k,)
         Translational validity threshold of each row of ``Z`` (m).
+    theta_rot : float
+        Rotational validity threshold (rad) of every row.
     sigma : ndarray, shape (k, 2)
         Per-axis noise std of each row (trans m, rot rad): two markers' noise, and the parent's orientation noise
         times the distance (the lever arm) in translation.
@@ -40,6 +42,7 @@ class RelativeObservations(NamedTuple):
     Z: np.ndarray
     row: np.ndarray
     theta_trans: np.ndarray
+    theta_rot: float
     sigma: np.ndarray
 
     def targets(self, pair):
@@ -47,7 +50,8 @@ class RelativeObservations(NamedTuple):
         from .pool import Targets
 
         rows = self.row[pair]
-        return Targets(self.Z[rows], self.theta_trans[rows], self.sigma[rows], np.zeros(len(rows), dtype=bool))
+        return Targets(self.Z[rows], self.theta_trans[rows], np.full(len(rows), self.theta_rot), self.sigma[rows],
+                       np.zeros(len(rows), dtype=bool))
 
     def of_pairs(self, pair, flip):
         """Observed transforms of models with pair indices ``pair`` (all observed), inverted where ``flip``.
@@ -75,10 +79,10 @@ class PartPairs:
     ----------
     part_ids : tuple of int
         Unique part ids; their order defines the canonical direction of each pair.
-    theta_trans, theta_rot : float
-        Validity thresholds (m, rad) behind :meth:`threshold`.
-    sigma_trans, sigma_rot : float, optional
-        3D RMS noise of one marker (m, rad); default a third of the thresholds.
+    noise : NoiseModel
+        The current marker noise (``sigma_trans``, ``sigma_rot``: 3D RMS, m and rad) and validity thresholds
+        (``theta_trans``, ``theta_rot``) behind :meth:`threshold`, read at every :meth:`observe`
+        (:mod:`~body_scheme_core.noise_model`).
 
     Attributes
     ----------
@@ -87,12 +91,9 @@ class PartPairs:
         Position of each part id in ``part_ids``.
     """
 
-    def __init__(self, part_ids, theta_trans, theta_rot, sigma_trans=None, sigma_rot=None):
+    def __init__(self, part_ids, noise):
         self.part_ids = tuple(part_ids)
-        self.theta_trans = theta_trans
-        self.theta_rot = theta_rot
-        self.sigma_trans = theta_trans / 3.0 if sigma_trans is None else sigma_trans
-        self.sigma_rot = theta_rot / 3.0 if sigma_rot is None else sigma_rot
+        self.noise = noise
         self.part_index = {p: k for k, p in enumerate(self.part_ids)}
         n = len(self.part_ids)
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
@@ -118,7 +119,8 @@ class PartPairs:
 
     def threshold(self, Z):
         """Translational validity thresholds (m) of relative transforms ``Z`` (..., 4, 4): they grow with distance."""
-        return translation_threshold(self.theta_trans, self.theta_rot, np.linalg.norm(Z[..., :3, 3], axis=-1))
+        distance = np.linalg.norm(Z[..., :3, 3], axis=-1)
+        return translation_threshold(self.noise.theta_trans, self.noise.theta_rot, distance)
 
     def observe(self, observations):
         """Relative observations of every pair with both parts observed.
@@ -143,11 +145,12 @@ class PartPairs:
         row = np.full(self._first.size, -1, dtype=np.intp)
         row[both] = np.arange(both.size)
         if both.size == 0:
-            return RelativeObservations(np.zeros((0, 4, 4)), row, np.zeros(0), np.ones((0, 2)))
+            return RelativeObservations(np.zeros((0, 4, 4)), row, np.zeros(0), self.noise.theta_rot, np.ones((0, 2)))
         Yinv = invert_transform(Y[seen])
         inv_index = np.cumsum(seen) - 1
         Z = Yinv[inv_index[self._first[both]]] @ Y[self._second[both]]
         d2 = np.sum(Z[:, :3, 3] ** 2, axis=1)
-        sigma = np.stack([np.sqrt((2.0 * self.sigma_trans**2 + (2.0 / 3.0) * self.sigma_rot**2 * d2) / 3.0),
-                          np.full(d2.shape, self.sigma_rot * math.sqrt(2.0 / 3.0))], axis=1)
-        return RelativeObservations(Z, row, self.threshold(Z), sigma)
+        sigma_t, sigma_r = self.noise.sigma_trans, self.noise.sigma_rot
+        sigma = np.stack([np.sqrt((2.0 * sigma_t**2 + (2.0 / 3.0) * sigma_r**2 * d2) / 3.0),
+                          np.full(d2.shape, sigma_r * math.sqrt(2.0 / 3.0))], axis=1)
+        return RelativeObservations(Z, row, self.threshold(Z), self.noise.theta_rot, sigma)

@@ -1,5 +1,8 @@
 """The root pose in the world (``world2root``): where the body scheme's predictions are placed.
 
+:class:`RootWatch` checks, once the body scheme is calibrated, that the root's own observations stay where the root pose
+puts them: the root has no edge whose detector would notice its marker being moved.
+
 Once a body scheme exists, the root pose is the rigid transform that best maps the scheme's predicted marker
 positions (root frame) onto the observed ones (world frame) over the last ``window`` samples: all markers, not
 just the root's, and positions only, whose noise (the paper's 44 mm) is far smaller in effect than the orientation
@@ -16,12 +19,15 @@ from collections import deque
 import numpy as np
 
 from .transforms import project_to_rotation
+from .validity import ValidityMonitor
 
-__all__ = ["RootPoseEstimator", "register_points", "OUTLIER_SIGMAS"]
+__all__ = ["RootPoseEstimator", "RootWatch", "register_points", "OUTLIER_SIGMAS", "OFFSET_SAMPLES"]
 
 #: Points whose residual after the first fit exceeds this many times the median residual are dropped (about 4.6 sigma
 #: per axis for Gaussian noise).
 OUTLIER_SIGMAS = 3.0
+#: Observations of the root's marker that set where :class:`RootWatch` expects it relative to the root pose.
+OFFSET_SAMPLES = 10
 # Below this many points, or points (nearly) on a line, the registration's rotation is not determined.
 _MIN_POINTS = 6
 _MIN_SPREAD = 1e-3  # m, second singular value of the centred points / sqrt(n)
@@ -72,6 +78,10 @@ class RootPoseEstimator:
     def samples(self):
         """The kept samples ``[(actions, {part: world2part})]``, oldest first."""
         return list(self._samples)
+
+    def invalidate(self):
+        """Forget the cached estimate (the root changed)."""
+        self._cache = None
 
     def add(self, a, observations):
         """Add one sample: the action vector (m,) and the accepted observations ``{part: world2part (4, 4)}``."""
@@ -134,3 +144,77 @@ def _well_spread(P):
         return False
     singular = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
     return singular[1] / np.sqrt(len(P)) > _MIN_SPREAD
+
+
+class RootWatch:
+    """The root's own observations against the calibrated root pose: a change detector for the part without an edge.
+
+    Every edge of the tree has a CUSUM on its child's errors (:mod:`~body_scheme_core.adaptation`); the root has no
+    edge, so a marker moved on the robot's base, or knocked, would go unnoticed while the joint fit slowly absorbed it.
+    One validity-monitor row, with the same thresholds, CUSUM and change point as the edges'.
+
+    After an alarm it detects a *change* from what followed: the root's marker is then expected where it was seen
+    relative to the root pose over the next :data:`OFFSET_SAMPLES` observations (its :attr:`offset`; identity until
+    the first alarm and after a restart). An offset the joint fit cannot follow (a real tracker's depth bias on the
+    base marker) then raises one alarm, not one every few steps.
+
+    Parameters
+    ----------
+    config : BodySchemeConfig
+    monitor : ValidityMonitor, optional
+        A restored state (one row).
+    offset : ndarray, shape (4, 4), optional
+        A restored :attr:`offset` (root pose to the observed root marker, on average).
+    n_offset : int, optional
+        Observations the offset was learnt from (default: :data:`OFFSET_SAMPLES`, the identity taken as learnt).
+    """
+
+    def __init__(self, config, monitor=None, offset=None, n_offset=None):
+        if monitor is None:
+            monitor = ValidityMonitor.from_config(config)
+            monitor.allocate(1)
+        self.monitor = monitor
+        self.offset = np.eye(4) if offset is None else np.array(offset, dtype=float)
+        self.n_offset = OFFSET_SAMPLES if n_offset is None else int(n_offset)
+
+    def expected(self, world2root):
+        """Where the root's marker is expected in the world ``(4, 4)``, or None while its offset is being learnt."""
+        return world2root @ self.offset if self.n_offset >= OFFSET_SAMPLES else None
+
+    def learn_offset(self, world2root, observation):
+        """One observation of the root's marker ``(4, 4)`` (or None) into its offset from the root pose ``world2root``,
+        while fewer than :data:`OFFSET_SAMPLES` were seen."""
+        if observation is None or self.n_offset >= OFFSET_SAMPLES:
+            return
+        D = np.linalg.inv(world2root) @ observation
+        n = self.n_offset = self.n_offset + 1
+        self.offset[:3, 3] += (D[:3, 3] - self.offset[:3, 3]) / n
+        self.offset[:3, :3] = project_to_rotation(self.offset[:3, :3] + (D[:3, :3] - self.offset[:3, :3]) / n)
+
+    def check(self, errors, step, theta_trans, theta_rot):
+        """Record the errors ``(trans, rot)`` of the root's observation against :meth:`expected` (or None when the
+        root was not seen; :meth:`~body_scheme_core.chain.ChainTargets.observed_errors`).
+
+        Returns
+        -------
+        alarm : tuple (int, ndarray (2,), WindowStats) or None
+            When the CUSUM alarms: the change point, the CUSUM and the window's statistics (then the detector starts
+            afresh from the change point and learns the offset again); else None.
+        """
+        self.monitor.set_thresholds(theta_trans, theta_rot)
+        if errors is None:
+            return None
+        alarm = self.monitor.record([0], [errors[0]], [errors[1]], step)
+        if not alarm[0]:
+            return None
+        tau = int(self.monitor.change_point([0])[0])
+        found = (tau, self.monitor.cusum[0].copy(), self.monitor.stats([0]))
+        self.monitor.reset_cusum([0])
+        self.monitor.forget_before([0], tau)
+        self.offset, self.n_offset = np.eye(4), 0
+        return found
+
+    def restart(self):
+        """Forget everything (a new root part)."""
+        self.monitor.clear([0])
+        self.offset, self.n_offset = np.eye(4), OFFSET_SAMPLES

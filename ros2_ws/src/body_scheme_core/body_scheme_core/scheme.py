@@ -235,47 +235,23 @@ class BodyScheme:
         a : array-like, shape (m,)
             Full action vector.
         return_std : bool
-            Also return a first-order isotropic standard deviation per part (see Notes).
+            Also return a first-order isotropic standard deviation per part (see :meth:`predict_batch`).
 
         Returns
         -------
         root2part : dict of int to ndarray, shape (4, 4)
         std : dict of int to ndarray, shape (2,)
             ``[trans (m), rot (rad)]``; only if ``return_std``. Zero for the root.
-
-        Notes
-        -----
-        Uncertainty is propagated along the chain to first order with isotropic errors and independent models. For
-        an edge with local translation ``t`` and local std ``(s_t, s_r)``::
-
-            var_trans(child) = var_trans(parent) + |t|^2 var_rot(parent) + s_t^2
-            var_rot(child)   = var_rot(parent) + s_r^2
-
-        The middle term moves the child by the lever arm ``|t|`` times the parent's rotation error; it bounds the
-        true displacement ``|dtheta x t|`` from above and so errs on the safe side. For an inverted edge the local
-        translation is ``-R^T t`` and its std additionally picks up the model's rotation error at lever arm ``|t|``:
-        ``s_t^2 + |t|^2 s_r^2``.
         """
         a = self._check_action_vector(a)
-        A = a[None, :]
-        root2part = {self.root: np.eye(4)}
-        var = {self.root: np.zeros(2)}
-        for parent, child, model, inverted in self.edges:
-            if return_std:
-                T, std = self.edge_transform(model, inverted, A, return_std=True)
-                T = T[0]
-                s_t2, s_r2 = np.asarray(std, dtype=float).reshape(-1)[:2] ** 2
-                lever2 = float(T[:3, 3] @ T[:3, 3])
-                if inverted:
-                    s_t2 = s_t2 + lever2 * s_r2
-                v_t, v_r = var[parent]
-                var[child] = np.array([v_t + lever2 * v_r + s_t2, v_r + s_r2])
-            else:
-                T = model.predict_one(a)
-                T = invert_transform(T) if inverted else T
-            root2part[child] = root2part[parent] @ T
         if return_std:
-            return root2part, {p: np.sqrt(np.maximum(v, 0.0)) for p, v in var.items()}
+            out, std = self.predict_batch(a[None, :], return_std=True)
+            return ({p: out[0, k] for k, p in enumerate(self.parts)},
+                    {p: std[0, k] for k, p in enumerate(self.parts)})
+        root2part = {self.root: np.eye(4)}
+        for parent, child, model, inverted in self.edges:
+            T = model.predict_one(a)
+            root2part[child] = root2part[parent] @ (invert_transform(T) if inverted else T)
         return root2part
 
     def predict_batch(self, A, return_std=False):
@@ -285,37 +261,59 @@ class BodyScheme:
         ----------
         A : array-like, shape (n, m)
         return_std : bool
-            Also return the propagated std (see :meth:`predict`).
+            Also return the propagated std (see Notes).
 
         Returns
         -------
         root2part : ndarray, shape (n, n_parts, 4, 4)
         std : ndarray, shape (n, n_parts, 2)
             ``[trans (m), rot (rad)]``; only if ``return_std``.
+
+        Notes
+        -----
+        Uncertainty is propagated along the chain to first order with isotropic errors and independent models. An
+        edge with local std ``(s_t, s_r)`` into part ``j`` moves every part ``v`` below it by ``s_t`` and turns it
+        about ``j``'s origin by ``s_r``, so that, with positions ``p`` in the root frame::
+
+            var_trans(v) = sum over the edges e -> j on v's path of  s_t(e)^2 + s_r(e)^2 |p_v - p_j|^2
+            var_rot(v)   = sum over the same edges of  s_r(e)^2
+
+        The lever term bounds the true displacement ``|dtheta x (p_v - p_j)|`` from above and so errs on the safe
+        side; it is exact in the lever arm over any number of edges (a rotation error near the root moves a far tip
+        by the whole arm's length, not by each link's). For an inverted edge with local translation ``t`` its
+        ``s_t^2`` additionally picks up the model's rotation error at lever arm ``|t|``: ``s_t^2 + |t|^2 s_r^2``.
+        The sum over edges is kept as ``sum s_r^2``, ``sum s_r^2 p_j`` and ``sum s_r^2 |p_j|^2`` per part.
         """
         A = check_action_batch(A)
         if A.shape[1] < self.min_n_actions:
             raise InvalidInputError(
                 f"A must have at least {self.min_n_actions} action columns, got {A.shape[1]}")
-        n = A.shape[0]
-        out = np.zeros((n, len(self.parts), 4, 4))
-        var = np.zeros((n, len(self.parts), 2))
+        n, k = A.shape[0], len(self.parts)
+        out = np.zeros((n, k, 4, 4))
         out[:, self._index[self.root]] = np.eye(4)
+        if return_std:
+            var_t, var_r = np.zeros((n, k)), np.zeros((n, k))
+            moment, square = np.zeros((n, k, 3)), np.zeros((n, k))  # sum s_r^2 p_j, sum s_r^2 |p_j|^2
         for parent, child, model, inverted in self.edges:
             i, j = self._index[parent], self._index[child]
-            if return_std:
-                T, std = self.edge_transform(model, inverted, A, return_std=True)
-                s2 = np.asarray(std, dtype=float).reshape(n, 2) ** 2
-                lever2 = np.einsum("ni,ni->n", T[:, :3, 3], T[:, :3, 3])
-                s_t2 = s2[:, 0] + (lever2 * s2[:, 1] if inverted else 0.0)
-                var[:, j, 0] = var[:, i, 0] + lever2 * var[:, i, 1] + s_t2
-                var[:, j, 1] = var[:, i, 1] + s2[:, 1]
-            else:
-                T = self.edge_transform(model, inverted, A)
+            if not return_std:
+                out[:, j] = out[:, i] @ self.edge_transform(model, inverted, A)
+                continue
+            T, std = self.edge_transform(model, inverted, A, return_std=True)
             out[:, j] = out[:, i] @ T
-        if return_std:
-            return out, np.sqrt(np.maximum(var, 0.0))
-        return out
+            s2 = np.asarray(std, dtype=float).reshape(n, 2) ** 2
+            p = out[:, j, :3, 3]
+            var_t[:, j] = var_t[:, i] + s2[:, 0] + (np.einsum("ni,ni->n", T[:, :3, 3], T[:, :3, 3]) * s2[:, 1]
+                                                    if inverted else 0.0)
+            var_r[:, j] = var_r[:, i] + s2[:, 1]
+            moment[:, j] = moment[:, i] + s2[:, 1, None] * p
+            square[:, j] = square[:, i] + s2[:, 1] * np.einsum("ni,ni->n", p, p)
+        if not return_std:
+            return out
+        p = out[:, :, :3, 3]
+        lever = var_r * np.einsum("nki,nki->nk", p, p) - 2.0 * np.einsum("nki,nki->nk", p, moment) + square
+        var = np.stack([var_t + np.maximum(lever, 0.0), var_r], axis=-1)
+        return out, np.sqrt(np.maximum(var, 0.0))
 
     def chain_transforms(self, a, part, derivative_step=None):
         """Local transforms along the path from the root to ``part``, each already in root-to-part direction.

@@ -79,6 +79,13 @@ class TrackedModel:
         self.since = int(since)
         self.prior = prior
 
+    def copy(self):
+        """A copy of the entry (its model and prior are shared: they are replaced, never changed in place)."""
+        clone = TrackedModel.__new__(TrackedModel)
+        for name in self.__slots__:
+            setattr(clone, name, getattr(self, name))
+        return clone
+
     @property
     def complexity(self):
         """Number of actions the model depends on."""

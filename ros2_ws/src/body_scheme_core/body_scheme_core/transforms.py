@@ -35,6 +35,7 @@ __all__ = [
     "project_to_rotation",
     "project_to_rotation_batch",
     "polar_derivative",
+    "mirror_about_ray",
 ]
 
 #: Tolerance on ``|R^T R - I|`` and ``det R`` for a matrix to count as a rotation.
@@ -516,3 +517,30 @@ def cross3(a, b):
     out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
     out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
     return out
+
+
+def mirror_about_ray(camera2marker):
+    """The other pose of a planar marker that looks alike from the camera: its orientation mirrored about the ray.
+
+    Seen from the camera's optical centre (the origin of the frame the pose is expressed in), a small planar marker
+    tilted one way across the line of sight projects almost like one tilted the other way: the two solutions of
+    planar pose estimation (IPPE), of which a tracker sometimes reports the wrong one. The mirrored pose keeps the
+    position; with ``v`` the unit ray to the marker and ``H = I - 2 v v^T``, its in-plane axes are ``H x`` and
+    ``H y`` (the same image, depth negated) and its normal ``-H z`` is the normal reflected about the ray, so its
+    rotation ``H R diag(1, 1, -1)`` is proper. A marker seen face-on is its own mirror.
+
+    Parameters
+    ----------
+    camera2marker : array-like, shape (..., 4, 4)
+
+    Returns
+    -------
+    mirrored : ndarray, shape (..., 4, 4)
+    """
+    T = np.array(camera2marker, dtype=float)
+    v = T[..., :3, 3] / np.maximum(np.linalg.norm(T[..., :3, 3], axis=-1, keepdims=True), 1e-12)
+    R = T[..., :3, :3]
+    mirrored = R - 2.0 * v[..., :, None] * np.einsum("...i,...ij->...j", v, R)[..., None, :]
+    mirrored[..., :, 2] *= -1.0
+    T[..., :3, :3] = mirrored
+    return T

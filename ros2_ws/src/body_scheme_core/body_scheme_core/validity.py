@@ -9,13 +9,15 @@ Errors are split into a translational part (m) and a rotational part (rad), beca
 and noise levels; the paper's single norm ``||Z - Z'||`` (Eq. 6) mixes them. A model is *valid* (Eq. 5-6 with
 ``theta = 3 sigma``) when its mean errors over the test window are below both thresholds.
 
-Thresholds. ``theta_trans`` and ``theta_rot`` are the configuration's (``BodySchemeConfig``, default
-``validity_sigmas`` times the marker noise); :meth:`ValidityMonitor.from_config` takes them from there, and the monitor
-saves them with its state. The rotational threshold is ``theta_rot`` for every sample. The translational threshold of
-a sample grows with the lever arm between its two parts, so it is computed per sample where the sample is formed and
-recorded with its errors: :func:`translation_threshold` for the relative observations of
-:mod:`~body_scheme_core.relative`, :meth:`~body_scheme_core.chain.ChainTargets.threshold` for chain-consistent targets;
-it travels to :meth:`ValidityMonitor.record` in :class:`~body_scheme_core.pool.Targets`.
+Thresholds. ``theta_trans`` and ``theta_rot`` are ``validity_sigmas`` times the marker noise, which the learner
+estimates as it goes (:mod:`~body_scheme_core.noise_model`): :meth:`ValidityMonitor.set_thresholds` gives the monitor
+the current ones, and every stored error is judged against them, old samples too. The rotational threshold is
+``theta_rot`` for every sample. The translational threshold of a sample grows with the lever arm between its two parts,
+so it is computed per sample where the sample is formed and recorded with its errors: :func:`translation_threshold`
+for the relative observations of :mod:`~body_scheme_core.relative`,
+:meth:`~body_scheme_core.chain.ChainTargets.threshold` for chain-consistent targets; it travels to
+:meth:`ValidityMonitor.record` in :class:`~body_scheme_core.pool.Targets`, and the monitor keeps it as a multiple of
+the ``theta_trans`` of that moment (the lever-arm factor, at least 1), so it follows the noise estimate too.
 
 The monitor is *batched*: one object holds the windows of hundreds of candidate models in ``(rows, W)`` arrays, with
 ``allocate``/``release`` row management like :class:`~body_scheme_core.models.gp_batch.GPBatch`, so one learner step
@@ -30,7 +32,12 @@ import numpy as np
 
 from .errors import InvalidInputError, ModelFileError
 
-__all__ = ["translation_threshold", "WindowStats", "ValidityMonitor"]
+__all__ = ["RATIO_CLIP", "translation_threshold", "WindowStats", "ValidityMonitor"]
+
+#: Per-sample errors enter window means (validity, quality, paired comparisons) in threshold units clipped to this:
+#: one outlier (a misdetection) moves a window mean by at most ``RATIO_CLIP / window`` thresholds, while a model whose
+#: errors all exceed the threshold still averages above 1.
+RATIO_CLIP = 2.0
 
 
 def translation_threshold(theta_trans, theta_rot, distance):
@@ -72,8 +79,8 @@ class WindowStats(NamedTuple):
         Mean errors (m, rad).
     trans_ratio, rot_ratio : ndarray
         Mean of the per-sample errors divided by their thresholds; the model is valid when both are below 1.
-    theta_trans : ndarray
-        Mean effective translational threshold (m) over the counted samples.
+    theta_trans, theta_rot : ndarray
+        Mean effective thresholds (m, rad) over the counted samples.
     """
 
     n: np.ndarray
@@ -82,6 +89,7 @@ class WindowStats(NamedTuple):
     trans_ratio: np.ndarray
     rot_ratio: np.ndarray
     theta_trans: np.ndarray
+    theta_rot: np.ndarray
 
 
 class ValidityMonitor:
@@ -100,27 +108,32 @@ class ValidityMonitor:
     theta_trans, theta_rot : float
         Validity thresholds (m, rad); ``theta_trans`` is the default per-sample translational threshold.
     cusum_drift : float
-        Reference value ``k`` of the CUSUM in threshold units: a sample raises the statistic only by the amount its
-        normalised error exceeds ``k``. With ``k = 1`` a model that is valid on average drifts back to zero.
+        Reference value ``k`` of the CUSUM: a sample raises the statistic by the amount its squared error in noise
+        units exceeds ``k`` (1 on average for a right model).
     cusum_threshold : float
-        Alarm level ``h`` in threshold units.
+        Alarm level ``h``, same units.
     cusum_clip : float
-        Normalised per-sample errors are clipped to this value before entering the CUSUM, so that one outlier (a
-        misdetected marker) raises it by at most ``cusum_clip - cusum_drift``; an alarm then needs at least
-        ``ceil(h / (cusum_clip - k))`` bad samples.
+        Squared errors are clipped to this value before entering the CUSUM, so that one outlier (a misdetected marker)
+        raises it by at most ``cusum_clip - cusum_drift``; an alarm then needs at least ``ceil(h / (cusum_clip - k))``
+        bad samples.
+    sigmas : float
+        Thresholds in noise sigmas (``validity_sigmas``, the paper's 3): a threshold over this is the sample's noise.
 
     Notes
     -----
-    The CUSUM of a channel is ``S <- max(0, S + min(x, clip) - k)`` with ``x = e / theta``. Its change-point estimate
-    is the step of the first sample of the current excursion above zero (where ``S`` last left zero): for an abrupt
-    change this is the first sample after the change whose error exceeded ``k``, so data from there on is clean
-    post-change data.
+    The CUSUM of a channel is ``S <- max(0, S + min(x, clip) - k)`` with ``x = (sigmas e / theta)^2``, the squared
+    error in units of the sample's noise (the marker's, plus the predicted parent's for chain-consistent targets): a
+    chi-square statistic with mean 1 while the model is right and ``1 + (d / sigma)^2`` after a change that moves the
+    part by ``d``, so a shift of one noise sigma is found within about ten samples and a shift of three within three
+    (docs/core/learning-and-adaptation.md). Its change-point estimate is the step of the first sample of the current
+    excursion above zero (where ``S`` last left zero): for an abrupt change this is about the first sample after the
+    change, so data from there on is post-change data.
     """
 
     _ARRAYS = ("errors", "thresholds", "steps", "n_train", "head", "count", "cusum", "cusum_start", "in_use")
 
-    def __init__(self, window, capacity=0, theta_trans=0.15, theta_rot=0.7853981633974483, cusum_drift=1.0,
-                 cusum_threshold=3.0, cusum_clip=2.0):
+    def __init__(self, window, capacity=0, theta_trans=0.15, theta_rot=0.7853981633974483, cusum_drift=1.5,
+                 cusum_threshold=12.0, cusum_clip=6.0, sigmas=3.0):
         if isinstance(window, bool) or not (isinstance(window, (int, np.integer)) and window >= 1):
             raise InvalidInputError(f"window must be an integer >= 1, got {window!r}")
         if not (theta_trans > 0 and theta_rot > 0):
@@ -131,23 +144,36 @@ class ValidityMonitor:
                 f"drift {cusum_drift}, threshold {cusum_threshold}")
         self.window = int(window)
         self.theta = np.array([theta_trans, theta_rot], dtype=float)
+        if not sigmas > 0:
+            raise InvalidInputError(f"sigmas must be > 0, got {sigmas!r}")
         self.cusum_drift = float(cusum_drift)
         self.cusum_threshold = float(cusum_threshold)
         self.cusum_clip = float(cusum_clip)
+        self.sigmas = float(sigmas)
         self._resize(int(capacity))
 
     @classmethod
     def from_config(cls, config, capacity=0):
-        """An empty monitor with the test window, the validity thresholds and the CUSUM settings of ``config``."""
+        """An empty monitor with the test window and the CUSUM settings of ``config``, and the thresholds of its noise
+        prior (or its fixed thresholds) until :meth:`set_thresholds`."""
         c = config
-        return cls(c.test_window, capacity, c.theta_trans, c.theta_rot, c.cusum_drift, c.cusum_threshold, c.cusum_clip)
+        theta_t = c.theta_trans if c.theta_trans is not None else c.validity_sigmas * c.prior_sigma_trans
+        theta_r = c.theta_rot if c.theta_rot is not None else c.validity_sigmas * c.prior_sigma_rot
+        return cls(c.test_window, capacity, theta_t, theta_r, c.cusum_drift, c.cusum_threshold, c.cusum_clip,
+                   c.validity_sigmas)
+
+    def set_thresholds(self, theta_trans, theta_rot):
+        """The current validity thresholds (m, rad) of one marker: every stored error is judged against them."""
+        if not (theta_trans > 0 and theta_rot > 0 and np.isfinite(theta_trans) and np.isfinite(theta_rot)):
+            raise InvalidInputError(f"thresholds must be finite and > 0, got {theta_trans!r}, {theta_rot!r}")
+        self.theta = np.array([theta_trans, theta_rot], dtype=float)
 
     # ------------------------------------------------------------------ rows
     def _empty(self, capacity):
         W = self.window
         return {
             "errors": np.zeros((capacity, W, 2)),
-            "thresholds": np.ones((capacity, W)),
+            "thresholds": np.ones((capacity, W, 2)),
             "steps": np.full((capacity, W), -1, dtype=np.int64),
             "n_train": np.zeros((capacity, W), dtype=np.int64),
             "head": np.zeros(capacity, dtype=np.int64),
@@ -207,7 +233,7 @@ class ValidityMonitor:
                 getattr(self, name)[d] = getattr(other, name)[s]
 
     # ------------------------------------------------------------------ recording
-    def record(self, rows, trans_error, rot_error, step, n_train=0, cusum=True, theta_trans=None):
+    def record(self, rows, trans_error, rot_error, step, n_train=0, cusum=True, theta_trans=None, theta_rot=None):
         """Append one error sample to each row and update its CUSUMs.
 
         Parameters
@@ -224,6 +250,9 @@ class ValidityMonitor:
             Whether to update the CUSUMs too (per row, or for all).
         theta_trans : float or array-like, shape (k,), optional
             Translational threshold of each sample (:func:`translation_threshold`); default ``theta[0]``.
+        theta_rot : float or array-like, shape (k,), optional
+            Rotational threshold of each sample (larger than ``theta[1]`` where the target's own orientation is
+            uncertain); default ``theta[1]``.
 
         Returns
         -------
@@ -235,11 +264,11 @@ class ValidityMonitor:
             return np.zeros(0, dtype=bool)
         e = np.stack([np.asarray(trans_error, dtype=float).reshape(-1),
                       np.asarray(rot_error, dtype=float).reshape(-1)], axis=1)
-        theta_t = np.broadcast_to(self.theta[0] if theta_trans is None else np.asarray(theta_trans, dtype=float),
-                                  rows.shape)
+        theta = np.stack([np.broadcast_to(self.theta[c] if value is None else np.asarray(value, dtype=float),
+                                          rows.shape) for c, value in enumerate((theta_trans, theta_rot))], axis=1)
         pos = self.head[rows]
         self.errors[rows, pos] = e
-        self.thresholds[rows, pos] = theta_t
+        self.thresholds[rows, pos] = theta / self.theta  # factors over the thresholds of the moment: follow them
         self.steps[rows, pos] = step
         self.n_train[rows, pos] = n_train
         self.head[rows] = (pos + 1) % self.window
@@ -247,7 +276,7 @@ class ValidityMonitor:
         use = np.broadcast_to(np.asarray(cusum, dtype=bool), rows.shape)
         if not np.any(use):
             return np.zeros(rows.size, dtype=bool)
-        x = e / np.stack([theta_t, np.full(rows.size, self.theta[1])], axis=1)
+        x = (self.sigmas * e / theta) ** 2
         if not np.all(use):
             alarm = np.zeros(rows.size, dtype=bool)
             alarm[use] = self._update_cusum(rows[use], x[use], step)
@@ -294,15 +323,11 @@ class ValidityMonitor:
         return mask
 
     def _ratios(self, rows):
-        """Per-sample errors in threshold units, clipped at ``cusum_clip``, shape (k, W, 2).
+        """Per-sample errors in threshold units, clipped at :data:`RATIO_CLIP`, shape (k, W, 2).
 
-        The clip bounds what one outlier (a mirrored marker orientation, a misdetection) does to a window mean: at
-        most ``cusum_clip / window`` thresholds, while a model whose errors all exceed the threshold still averages
-        above 1. Validity, quality and the paired comparisons all use these clipped ratios.
+        Validity, quality and the paired comparisons all use these clipped ratios.
         """
-        ratios = self.errors[rows] / np.stack(
-            [self.thresholds[rows], np.full(self.thresholds[rows].shape, self.theta[1])], axis=-1)
-        return np.minimum(ratios, self.cusum_clip)
+        return np.minimum(self.errors[rows] / (self.theta * self.thresholds[rows]), RATIO_CLIP)
 
     def stats(self, rows, since=None, n_train=None, stale_fraction=0.0):
         """Test-window statistics of ``rows``.
@@ -329,10 +354,10 @@ class ValidityMonitor:
             mask &= self.steps[rows] >= np.asarray(since, dtype=np.int64).reshape(-1, 1)
         n = mask.sum(axis=1)
         w = mask.astype(float)
-        values = np.concatenate([self.errors[rows], self._ratios(rows), self.thresholds[rows][..., None]], axis=-1)
+        values = np.concatenate([self.errors[rows], self._ratios(rows), self.theta * self.thresholds[rows]], axis=-1)
         total = np.einsum("kw,kwc->kc", w, values)
         mean = np.where(n[:, None] > 0, total / np.maximum(n, 1)[:, None], np.inf)
-        return WindowStats(n, mean[:, 0], mean[:, 1], mean[:, 2], mean[:, 3], mean[:, 4])
+        return WindowStats(n, mean[:, 0], mean[:, 1], mean[:, 2], mean[:, 3], mean[:, 4], mean[:, 5])
 
     def valid(self, stats, min_samples):
         """Validity (paper Eq. 5-6): at least ``min_samples`` samples and both mean error ratios below 1.
@@ -345,7 +370,10 @@ class ValidityMonitor:
         """Mean of ``(e_a - e_b) / theta`` per channel over the samples both rows observed at the same step.
 
         Two models of one pair of parts see the same observations, so this is a paired comparison on identical
-        samples: the observation noise largely cancels and a small mean difference is already significant.
+        samples: the observation noise largely cancels and a small mean difference is already significant. Both
+        errors of a sample are measured against the same threshold, the smaller of the two rows' (each clipped at
+        :data:`RATIO_CLIP`): a model whose own uncertainty widens its threshold (a GP far from its data) is judged
+        on how close it comes, not on what it claims.
 
         Parameters
         ----------
@@ -370,25 +398,35 @@ class ValidityMonitor:
         if since is not None:
             mask_a &= self.steps[rows_a] >= np.asarray(since, dtype=np.int64).reshape(-1, 1)
         steps_a, steps_b = self.steps[rows_a], self.steps[rows_b]
-        ratios_a, ratios_b = self._ratios(rows_a), self._ratios(rows_b)
+        errors_b, thresholds_b = self.errors[rows_b], self.thresholds[rows_b]
         # Rows that recorded the same steps from the same start (models created together) are aligned slot by
         # slot; the others are matched by step with a (W, W) comparison.
         aligned = np.all(steps_a == steps_b, axis=1)
         other = np.flatnonzero(~aligned)
         if other.size:
             match = ((steps_a[other][:, :, None] == steps_b[other][:, None, :])
-                     & mask_a[other][:, :, None] & mask_b[other][:, None, :])
+                     & mask_a[other][:, :, None] & mask_b[other][:, None, :]).astype(float)
             # Each step occurs at most once per row, so the matched sample of b is the masked row sum.
-            ratios_b[other] = np.einsum("kij,kjc->kic", match.astype(float), ratios_b[other])
+            errors_b[other] = np.einsum("kij,kjc->kic", match, errors_b[other])
+            thresholds_b[other] = np.einsum("kij,kjc->kic", match, thresholds_b[other])
             mask_b[other] = match.any(axis=2)
             mask_a[other] = mask_b[other]
         both = mask_a & mask_b
         n = both.sum(axis=1)
+        theta = self.theta * np.maximum(np.minimum(self.thresholds[rows_a], thresholds_b), 1e-12)
+        ratios_a = np.minimum(self.errors[rows_a] / theta, RATIO_CLIP)
+        ratios_b = np.minimum(errors_b / theta, RATIO_CLIP)
         d = np.where(both[..., None], ratios_a - ratios_b, 0.0)
         return n, d.sum(axis=1) / np.maximum(n, 1)[:, None]
 
     def change_point(self, rows):
-        """CUSUM change-point estimate per row: earliest excursion start over the alarmed channels, else over all.
+        """CUSUM change-point estimate per row, over the alarmed channels (else every channel above zero).
+
+        The excursion of a channel started where its statistic last left zero; with a drift near the noise's own
+        mean, a noise excursion may already be under way when the body changes, so the start alone can come several
+        samples early. Within the excursion's samples still in the window, the estimate is the step that maximises
+        ``sum(x_t - k')`` over the samples from it on, with ``k'`` halfway between the noise's mean (1) and the
+        excursion's: the maximum-likelihood change point of a shift in the mean. Over several channels, the latest.
 
         Returns
         -------
@@ -399,10 +437,27 @@ class ValidityMonitor:
         S = self.cusum[rows]
         start = self.cusum_start[rows]
         alarmed = S >= self.cusum_threshold
-        use = np.where(np.any(alarmed, axis=1, keepdims=True), alarmed, S > 0.0)
-        big = np.iinfo(np.int64).max
-        tau = np.where(use & (start >= 0), start, big).min(axis=1)
-        return np.where(tau == big, -1, tau)
+        use = np.where(np.any(alarmed, axis=1, keepdims=True), alarmed, S > 0.0) & (start >= 0)
+        tau = np.full(rows.size, -1, dtype=np.int64)
+        for k, row in enumerate(rows):
+            for c in np.flatnonzero(use[k]):
+                tau[k] = max(tau[k], self._refined_start(row, c, int(start[k, c])))
+        return tau
+
+    def _refined_start(self, row, channel, start):
+        """The change point of one channel's excursion that started at ``start`` (see :meth:`change_point`)."""
+        steps = self.steps[row]
+        keep = steps >= start
+        if np.count_nonzero(keep) < 2:
+            return start
+        order = np.argsort(steps[keep])
+        theta = self.theta[channel] * self.thresholds[row, keep, channel]
+        x = np.minimum((self.sigmas * self.errors[row, keep, channel] / theta) ** 2, self.cusum_clip)[order]
+        shift = float(x.mean())
+        if shift <= 1.0:
+            return start
+        gain = np.cumsum((x - 0.5 * (1.0 + shift))[::-1])[::-1]  # sum from each sample on
+        return int(steps[keep][order][int(np.argmax(gain))])
 
     def first_step(self, rows):
         """Oldest step in each row's window, -1 if empty."""
@@ -415,7 +470,7 @@ class ValidityMonitor:
     def to_dict(self):
         """JSON-serialisable state (all rows, used or free, so row indices survive a round trip)."""
         data = {"window": self.window, "theta": self.theta.tolist(), "cusum_drift": self.cusum_drift,
-                "cusum_threshold": self.cusum_threshold, "cusum_clip": self.cusum_clip}
+                "cusum_threshold": self.cusum_threshold, "cusum_clip": self.cusum_clip, "sigmas": self.sigmas}
         for name in self._ARRAYS:
             data[name] = getattr(self, name).tolist()
         return data
@@ -425,7 +480,8 @@ class ValidityMonitor:
         """Rebuild from :meth:`to_dict` output; raises ModelFileError on missing keys, bad shapes or NaN."""
         try:
             monitor = cls(int(data["window"]), 0, float(data["theta"][0]), float(data["theta"][1]),
-                          float(data["cusum_drift"]), float(data["cusum_threshold"]), float(data["cusum_clip"]))
+                          float(data["cusum_drift"]), float(data["cusum_threshold"]), float(data["cusum_clip"]),
+                          float(data["sigmas"]))
             n = len(data["in_use"])
             template = monitor._empty(n)
             arrays = {name: np.asarray(data[name], dtype=template[name].dtype) for name in cls._ARRAYS}

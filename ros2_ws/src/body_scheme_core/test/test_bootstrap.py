@@ -4,6 +4,7 @@ import numpy as np
 
 from body_scheme_core.bootstrap import Bootstrap
 from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.noise_model import NoiseModel
 from body_scheme_core.pool import ModelPool
 from body_scheme_core.relative import PartPairs
 from body_scheme_core.structure import n_candidates
@@ -13,7 +14,7 @@ from body_scheme_core.world import Fault, make_session, planar_2dof
 
 
 def _bootstrap(robot, config):
-    pairs = PartPairs(robot.marker_ids, config.theta_trans, config.theta_rot, config.sigma_trans, config.sigma_rot)
+    pairs = PartPairs(robot.marker_ids, NoiseModel.from_config(robot.marker_ids, config))
     pool = ModelPool(config, robot.n_actions)
     Bootstrap.add_candidates(pool, robot.marker_ids, robot.n_actions, config)
     return Bootstrap(config, pool, pairs)

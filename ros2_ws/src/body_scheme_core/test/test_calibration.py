@@ -62,15 +62,23 @@ def test_the_joint_fit_beats_independent_fits_on_a_chain(robot, gain):
     assert np.mean(ratios) < gain
 
 
+def _anisotropic(part):
+    """A camera's noise: four times worse along the ray than across it, and a little different per marker."""
+    return SIGMA_T / math.sqrt(3) * (1 + 0.1 * part), 4 * SIGMA_T / math.sqrt(3), SIGMA_R / math.sqrt(3)
+
+
+def _isotropic(part):
+    return SIGMA_T / math.sqrt(3), SIGMA_T / math.sqrt(3), SIGMA_R / math.sqrt(3)
+
+
 def test_the_jacobian_matches_finite_differences():
     """Every column of the analytic Jacobian (root pose and each model's increments) equals the finite difference
-    of the residuals through the models' charts."""
+    of the residuals through the models' charts, with noise that differs across and along the camera's ray."""
     robot = arm_4dof()
     # Low noise: the rotational residual's derivative uses d log(R) ~ dw, exact to first order in the residual.
     session = make_session(robot, 12, seed=1, sigma_trans=0.002, sigma_rot=0.002)
     scheme = _independent_fits(robot, session, 12)
-    problem = _Problem(scheme, session.actions, session.observations, [0] * 4, [0, 1, 2, 3],
-                       np.array([SIGMA_T, SIGMA_R]) / math.sqrt(3))
+    problem = _Problem(scheme, session.actions, session.observations, [0] * 4, [0, 1, 2, 3], _anisotropic)
     problem.set_fixed(list(scheme.models))
     params = problem.stack(list(scheme.models))
     world2root = session.world2root @ robot.marker(robot.root_marker).link2marker
@@ -94,8 +102,7 @@ def test_the_solution_is_scipys_least_squares_optimum():
     scheme = _independent_fits(robot, session, 20)
     joint = calibrate(scheme, session.world2root, session.actions, session.observations, SIGMA_T, SIGMA_R,
                       max_iterations=50)
-    problem = _Problem(joint.scheme, session.actions, session.observations, [0, 0], [0, 1],
-                       np.array([SIGMA_T, SIGMA_R]) / math.sqrt(3))
+    problem = _Problem(joint.scheme, session.actions, session.observations, [0, 0], [0, 1], _isotropic)
     problem.set_fixed(list(joint.scheme.models))
     params = problem.stack(list(joint.scheme.models))
 
@@ -170,6 +177,34 @@ def test_gp_edges_are_refitted_on_chain_consistent_targets():
     assert _effector_error(robot, session, joint.scheme, joint.world2root) < _effector_error(
         robot, session, scheme, joint.world2root)
 
+
+
+def test_rigid_edges_below_a_gp_edge_are_fitted_to_the_absolute_observations_without_steering_those_above():
+    """On a 4-joint chain with a GP as its second edge, the rigid edges below the GP are fitted last (better end
+    effector, a parameter covariance from that fit), and the observations below the GP leave the edge above it as it
+    is without them."""
+    robot = arm_4dof()
+    session = make_session(robot, 120, seed=3, visibility=0.9)
+    A = session.actions
+    rigid = _independent_fits(robot, session, 120)
+    seen = [t for t, obs in enumerate(session.observations) if 2 in obs and 3 in obs]
+    Z = np.stack([invert_transform(session.observations[t][2]) @ session.observations[t][3] for t in seen])
+    models = list(rigid.models)
+    models[1] = GPModel(2, 3, (1,)).fit(A[seen], Z)
+    scheme = BodyScheme(robot.marker_ids, robot.root_marker, models)
+    joint = calibrate(scheme, session.world2root, A, session.observations, SIGMA_T, SIGMA_R, gp_optimize=False)
+    for k in (2, 3):
+        assert not np.allclose(joint.scheme.models[k].params_, models[k].params_)
+        assert np.all(np.linalg.eigvalsh(joint.scheme.models[k].param_cov_) > 0)
+    held = BodyScheme(robot.marker_ids, robot.root_marker, [joint.scheme.models[0], joint.scheme.models[1]]
+                      + models[2:])
+    assert _effector_error(robot, session, joint.scheme, joint.world2root) < _effector_error(
+        robot, session, held, joint.world2root)
+    hidden = [{p: Y for p, Y in obs.items() if p in (1, 2, 3)} for obs in session.observations]
+    alone = calibrate(scheme, session.world2root, A, hidden, SIGMA_T, SIGMA_R, gp_optimize=False)
+    assert_allclose(alone.scheme.models[0].params_, joint.scheme.models[0].params_, atol=1e-9)
+    assert_allclose(alone.world2root, joint.world2root, atol=1e-9)
+    assert joint.coupled.sum() == sum(p in (1, 2) for obs in session.observations for p in obs)
 
 def test_bad_arguments_are_refused():
     """Not a scheme, mismatched lengths, wrong since: InvalidInputError."""

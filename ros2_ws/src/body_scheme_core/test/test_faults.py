@@ -5,9 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from body_scheme_core.errors import FaultScheduleError
+from body_scheme_core.errors import FaultScheduleError, InvalidInputError
 from body_scheme_core.transforms import transform_from_rotvec
-from body_scheme_core.world import Fault, parse_fault, parse_fault_schedule
+from body_scheme_core.world import (
+    RANDOM_FAULTS,
+    Body,
+    Fault,
+    Joint,
+    KinematicTree,
+    Marker,
+    parse_fault,
+    parse_fault_schedule,
+    random_fault,
+    zoo_robot,
+)
 
 EXAMPLE = ["150:block_joint:5:0.8", "250:repair", "300:deform_limb:joint6:0.1:0.785:0:0",
            "320:displace_marker:7:0.05:0:0:0:0:0.3"]
@@ -71,3 +82,26 @@ def test_entries_round_trip_and_the_core_body_refuses_what_only_a_world_can_appl
     with pytest.raises(Exception, match="fault history"):
         parse_fault("3:repair:block_joint")[1].apply(None, None)
     assert Fault("repair").apply("current", "original") == "original"
+
+
+def test_random_faults_act_on_every_zoo_body_and_move_a_marker_by_their_size():
+    """Every zoo body has something each fault kind can change, and the change moves some marker by about its size."""
+    for seed in range(40):
+        tree = zoo_robot(seed)
+        A = np.random.default_rng(seed).uniform(tree.action_lower, tree.action_upper, (30, tree.n_actions))
+        before = Body(tree).true_marker_array(A)
+        for kind in RANDOM_FAULTS:
+            fault = random_fault(tree, kind, np.random.default_rng(seed), 0.05)
+            after = fault.apply(Body(tree), Body(tree)).true_marker_array(A)
+            moved = np.linalg.norm(after[..., :3, 3] - before[..., :3, 3], axis=-1).max()
+            assert moved > (0.049 if kind in ("move_marker", "add_tool") else 1e-3), (seed, kind)
+
+
+def test_a_random_fault_of_an_unknown_kind_or_on_a_body_without_it_is_refused():
+    tree = zoo_robot(0)
+    with pytest.raises(InvalidInputError, match="kind must be one of"):
+        random_fault(tree, "melt", np.random.default_rng(0), 0.05)
+    frozen = KinematicTree([Joint("j", "fixed", "base", "tip", origin=np.eye(4))],
+                           [Marker(1, "base", np.eye(4), 0.05), Marker(2, "tip", np.eye(4), 0.05)], root_link="base")
+    with pytest.raises(InvalidInputError, match="no commanded joint"):
+        random_fault(frozen, "block_joint", np.random.default_rng(0), 0.05)

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError
 from body_scheme_core.inputs import (
+    MAX_ACTION,
     OBSERVATION_TOLERANCE,
     check_action_bounds,
     check_action_vector,
@@ -172,3 +173,15 @@ def test_stamps_must_not_go_back_in_time():
     for bad in (True, 1 + 0j, "3"):
         with pytest.raises(InvalidInputError, match="stamp"):
             check_stamp(bad)
+
+
+def test_an_action_no_joint_can_have_is_out_of_range_even_without_limits():
+    """1e300 rad (a corrupt command or other units) is refused as out of range, also by a learner without limits."""
+    assert check_action_vector([0.0, MAX_ACTION], 2).tolist() == [0.0, MAX_ACTION]
+    with pytest.raises(ActionOutOfRangeError, match="units"):
+        check_action_vector([0.0, 1e300], 2)
+    from body_scheme_core.learner import BodySchemeLearner
+    learner = BodySchemeLearner([1, 2], 2)
+    with pytest.raises(ActionOutOfRangeError):
+        learner.update([-1e300, 0.0], {})
+    assert learner.step == 0

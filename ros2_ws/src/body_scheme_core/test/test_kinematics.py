@@ -139,6 +139,16 @@ def test_marker_tree_edges_span_all_markers():
         assert {child for _, child in edges} == set(tree.marker_ids) - {tree.root_marker}
 
 
+def test_random_trees_keep_a_marker_on_every_leaf_and_a_commanded_joint():
+    """Unmarked links never end a branch, and a body of fixed joints still has one that moves."""
+    for seed in range(30):
+        tree = random_tree(3, seed, branching=seed % 2 == 0, unmarked_fraction=0.9, fixed_fraction=1.0)
+        parents = {j.parent for j in tree.joints}
+        leaves = {j.child for j in tree.joints} - parents
+        assert leaves <= {m.link for m in tree.markers}
+        assert tree.n_actions == 1
+
+
 @pytest.mark.parametrize("joints, markers, message", [
     ([Joint("a", "revolute", "base", "l1", action=0), Joint("b", "revolute", "l2", "l1", action=1)], [],
      "two parents"),

@@ -9,12 +9,14 @@ import pytest
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError, ModelFileError, NotFittedError
 from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.models import GPModel, StaticModel
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.transforms import transform_from_rotvec
+from body_scheme_core.transforms import invert_transform, mirror_about_ray, rotational_error, transform_from_rotvec
 from body_scheme_core.world import (
     REPAIR,
     Body,
     Fault,
+    arm_4dof,
     branching_tree,
     joint_blocked_protocol,
     limb_deformed_protocol,
@@ -115,7 +117,7 @@ def _check_failure_cycle(session, events, learner_at):
     assert {detected[0].parent, detected[0].child} == {6, 7}
     assert not _kinds(events, "mismatch_detected", 0, 100)
     replaced = _kinds(events, "model_replaced", 100, 200)
-    assert len(replaced) == 1 and replaced[0].step < 130
+    assert replaced and replaced[0].step < 130 and len(replaced) <= 2  # the first choice, then maybe a simpler one
     retired = _kinds(events, "model_retired", 100, 200)
     assert retired and retired[0].model.startswith("engineered(6->7")
     # Repair: the remembered engineered model comes back, within a few steps.
@@ -125,7 +127,7 @@ def _check_failure_cycle(session, events, learner_at):
     # The same failure again: the learned replacement comes back from memory, nothing new is sampled.
     again = _kinds(events, "model_reinstated", 300, 400)
     assert again and again[0].step < 320
-    assert again[0].model == replaced[0].model
+    assert again[0].model == replaced[-1].model
     assert not _kinds(events, "model_sampled", 200, 400)
 
 
@@ -139,9 +141,9 @@ def test_blocked_joint_detected_replaced_repaired_and_reused():
     assert learner.phase == "steady"
     assert all(status["valid"] for status in learner.edge_status())
     # The end-effector prediction is accurate again with the joint still blocked.
-    assert _position_error(learner, session, range(180, 200), 7) < BodySchemeConfig().theta_trans
+    assert _position_error(learner, session, range(180, 200), 7) < learner.noise.theta_trans
     tool_status = [s for s in learner.edge_status() if {s["parent"], s["child"]} == {6, 7}][0]
-    assert tool_status["kind"] == "gp"
+    assert tool_status["kind"] == "static" and tool_status["actions"] == []  # the blocked joint moves nothing
     events += _run(learner, session, 200, 300)
     # After the repair the very same engineered model object is back in the scheme; the learned one is remembered.
     assert any(m is original[-1] for m in learner.body_scheme.models)
@@ -150,9 +152,9 @@ def test_blocked_joint_detected_replaced_repaired_and_reused():
     _check_failure_cycle(session, events, learner)
     # The remembered model is back, refined by the joint fit on the data of its second life.
     (back,) = [m for m in learner.body_scheme.models if {m.parent, m.child} == {6, 7}]
-    assert back.kind == remembered.kind == "gp" and back.actions == remembered.actions
+    assert back.kind == remembered.kind == "static" and back.actions == remembered.actions
     assert [s["model"] for s in learner.edge_status() if {s["parent"], s["child"]} == {6, 7}] == [tool_status["model"]]
-    assert _position_error(learner, session, range(370, 400), 7) < BodySchemeConfig().theta_trans
+    assert _position_error(learner, session, range(370, 400), 7) < learner.noise.theta_trans
 
 
 def test_deformed_limb_detected_replaced_repaired_and_reused():
@@ -330,6 +332,27 @@ def _assert_states_equal(a, b, path="state"):
         assert a == b, path
 
 
+def test_a_rigid_challenger_takes_a_gp_edge_that_a_joint_describes():
+    """A GP edge on one action (here fitted on eight samples) is challenged by the rigid forms on the
+    chain-consistent history; the revolute joint that predicts as well takes the edge."""
+    robot = planar_2dof()
+    session = make_session(robot, 60, seed=1, visibility=0.95)
+    seen = [t for t in range(8) if 2 in session.observations[t] and 3 in session.observations[t]]
+    Z = np.stack([invert_transform(session.observations[t][2]) @ session.observations[t][3] for t in seen])
+    gp = GPModel(2, 3, (1,)).fit(session.actions[seen], Z)
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions,
+                                initial_models=[engineered_models(robot)[0], gp])
+    _run(learner, session, 0, 30)
+    events = []
+    learner._sample_challengers(30, events)  # as when bootstrapping ends
+    assert "prismatic and revolute joints for each of the 1 GP edges" in events[0].reason
+    events = _run(learner, session, 30, 60)
+    replaced = _kinds(events, "model_replaced")
+    assert len(replaced) == 1 and "fewer parameters" in replaced[0].reason
+    assert [m.kind for m in learner.body_scheme.models] == ["engineered", "revolute"]
+    assert learner.n_candidates == 0
+
+
 def test_memory_is_bounded_per_pair():
     """With memory_size 1 only the most recently retired model of a pair is kept."""
     robot = powercube_6dof()
@@ -347,8 +370,10 @@ def test_memory_is_bounded_per_pair():
 
 
 def test_rigid_joints_where_they_fit_and_a_gp_where_none_does():
-    """From scratch: revolute joints on the plain arm; with the nonlinear transmission the GP challenger takes the
-    second edge shortly after bootstrapping (relative observations could not tell them apart)."""
+    """From scratch: revolute joints on the plain arm; with the nonlinear transmission a GP takes the second edge
+    shortly after bootstrapping (relative observations could not tell them apart; the chain-consistent targets of
+    steady state can: by the GP challenger's dominance, or, when that is borderline, by the revolute joint's
+    mismatch)."""
     robot = planar_2dof()
     plain = BodySchemeLearner(robot.marker_ids, robot.n_actions)
     events = _run(plain, make_session(robot, 120, seed=0, visibility=0.95))
@@ -361,23 +386,23 @@ def test_rigid_joints_where_they_fit_and_a_gp_where_none_does():
     kinds = {(m.parent, m.child): m.kind for m in geared.body_scheme.models}
     assert kinds[(1, 2)] == "revolute"
     assert kinds.get((2, 3), kinds.get((3, 2))) == "gp"
-    (replaced,) = _kinds(events, "model_replaced")
-    assert "no rigid form explains this relation" in replaced.reason
+    assert _kinds(events, "model_replaced")[-1].model.startswith("gp(2->3")
 
 
 def test_a_state_keeps_the_rigid_models_and_old_versions_are_refused():
-    """Version 3 states carry the rigid joints and the joint fit; a version 2 state (the GP-only learner) gives a
-    clear error rather than a half-working learner."""
+    """Version 4 states carry the rigid joints, the joint fit and the learned noise; a version 2 or 3 state (learners
+    before them) gives a clear error rather than a half-working learner."""
     robot = planar_2dof()
     learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
     _run(learner, make_session(robot, 50, seed=1))
     state = json.loads(json.dumps(learner.to_state()))
-    assert state["version"] == 3
+    assert state["version"] == 4
     restored = BodySchemeLearner.from_state(state)
     assert [m.kind for m in restored.body_scheme.models] == [m.kind for m in learner.body_scheme.models]
     np.testing.assert_array_equal(restored.root_pose, learner.root_pose)
-    with pytest.raises(ModelFileError, match="version 2 is the GP-only learner"):
-        BodySchemeLearner.from_state(dict(state, version=2))
+    for old in (2, 3):
+        with pytest.raises(ModelFileError, match="before the learned noise"):
+            BodySchemeLearner.from_state(dict(state, version=old))
 
 
 def test_implausible_poses_are_counted_and_never_learnt_from():
@@ -435,9 +460,92 @@ def test_commands_beyond_the_joint_limits_are_refused():
     robot = planar_2dof()
     learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, action_lower=robot.action_lower,
                                 action_upper=robot.action_upper)
-    for bad in ([50.0, 0.0], [0.0, 1e300]):
-        with pytest.raises(InvalidInputError, match="beyond the joint limits"):
-            learner.update(bad, {})
+    with pytest.raises(InvalidInputError, match="beyond the joint limits"):
+        learner.update([50.0, 0.0], {})
+    with pytest.raises(InvalidInputError, match="no joint position is that large"):
+        learner.update([0.0, 1e300], {})
     assert learner.step == 0
     learner.update([robot.action_upper[0] * 1.01, 0.0], {})  # within the 5 % margin: accepted
     assert learner.step == 1
+
+
+# ---------------------------------------------------------------------- a learner that never breaks (issue 19)
+def test_a_wrongly_static_edge_is_caught_by_the_consistency_test_and_repaired():
+    """A given scheme whose elbow edge is static, at a noise where that static edge stays valid (its errors are
+    within three sigma): the residuals of the parts below it depend on the elbow's command, so the scheme is not
+    trusted, the edge is searched for again and a revolute joint on the elbow's action takes it."""
+    robot = arm_4dof()
+    session = make_session(robot, 220, seed=3, sigma_trans=0.076, sigma_rot=math.radians(26.0), visibility=0.95)
+    models = engineered_models(robot)
+    bad = next(m for m in models if m.actions == (2,))
+    fixed = StaticModel(bad.parent, bad.child).fit(np.zeros((1, robot.n_actions)), bad.predict(np.zeros((1, 4))))
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions,
+                                initial_models=[fixed if m is bad else m for m in models])
+    events = _run(learner, session)
+    untrusted = [e for e in _kinds(events, "trust_changed") if e.reason.startswith("not trusted")]
+    assert untrusted and untrusted[0].step < 120
+    flagged = [e for e in _kinds(events, "mismatch_detected") if "does not explain part" in e.reason]
+    assert flagged and {flagged[0].parent, flagged[0].child} == {bad.parent, bad.child}
+    edge = [m for m in learner.body_scheme.models if {m.parent, m.child} == {bad.parent, bad.child}]
+    assert edge and edge[0].actions == (2,) and edge[0].kind in ("revolute", "gp")
+    assert learner.trusted
+
+
+def test_a_flipped_orientation_is_counted_not_learnt():
+    """A marker orientation mirrored about the camera's ray (the planar ambiguity) is refused and counted as
+    flipped once the scheme explains the marker; the same pose unmirrored is accepted."""
+    robot = planar_2dof()
+    session = make_session(robot, 60, seed=4, sigma_trans=0.005, sigma_rot=math.radians(1.0))
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    _run(learner, session, 0, 59)
+    observations = dict(session.observations[59])
+    tilted = session.true_poses[59, 2] @ transform_from_rotvec([0.6, 0.0, 0.0], [0.0, 0.0, 0.0])
+    assert np.degrees(rotational_error(mirror_about_ray(tilted), tilted)) > 30
+    before = learner.rejected["flipped"]
+    learner.update(session.actions[59], {**observations, 3: mirror_about_ray(session.observations[59][3])})
+    assert learner.rejected["flipped"] == before + 1
+    learner.update(session.actions[59], observations)
+    assert learner.rejected["flipped"] == before + 1
+
+
+def test_the_noise_is_learnt_across_and_along_the_ray():
+    """Given no noise value, a camera 3 mm across the ray, 20 mm along it and 3 deg is estimated within 15 %
+    per channel after 200 steps, and the thresholds follow."""
+    robot = powercube_6dof()
+    sigma_t = math.sqrt(2 * 0.003**2 + 0.020**2)
+    session = make_session(robot, 200, seed=5, sigma_trans=sigma_t, sigma_rot=math.radians(3.0), depth_ratio=20 / 3,
+                           visibility=0.9, above_ground=True)
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    _run(learner, session)
+    lateral, depth, rotation = learner.noise.axis_sigmas()
+    assert lateral == pytest.approx(0.003, rel=0.15) and depth == pytest.approx(0.020, rel=0.15)
+    assert rotation * math.sqrt(3) == pytest.approx(math.radians(3.0), rel=0.15)
+    assert learner.noise.theta_trans == pytest.approx(3 * sigma_t, rel=0.25)
+    assert learner.trusted and _edges(learner) == _truth(robot)
+
+
+def test_the_root_is_the_part_that_moves_least_whatever_its_id():
+    """With the base marker carrying the highest id, the learner still roots its scheme there."""
+    robot = powercube_6dof()
+    renumber = {1: 9, 2: 2, 3: 3, 4: 4, 5: 5, 6: 6, 7: 7}
+    session = make_session(robot, 80, seed=6, visibility=0.9, above_ground=True)
+    learner = BodySchemeLearner(list(renumber.values()), robot.n_actions)
+    for t in range(80):
+        learner.update(session.actions[t], {renumber[p]: Y for p, Y in session.observations[t].items()})
+    assert learner.root == 9
+    assert learner.trusted and len(learner.body_scheme.models) == 6
+
+
+def test_a_moved_root_marker_is_detected_and_the_scheme_recovers():
+    """The base marker is knocked 10 cm after bootstrapping: the root's own detector finds it within 10 steps, the
+    edges at the root learn their new relation, and every part is predicted within the noise again."""
+    robot = powercube_6dof()
+    knock = Fault("displace_marker", marker_id=1, delta=transform_from_rotvec([0.0, 0.0, 0.3], [0.0, 0.1, 0.0]))
+    session = make_session(robot, 260, seed=7, faults=[(150, knock)], visibility=0.9, above_ground=True)
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    events = _run(learner, session)
+    detected = _kinds(events, "mismatch_detected", 150)
+    assert detected and detected[0].model == "root pose" and detected[0].step < 160
+    assert not _kinds(events, "mismatch_detected", 60, 150)
+    for part in robot.marker_ids:
+        assert _position_error(learner, session, range(240, 260), part) < 0.044

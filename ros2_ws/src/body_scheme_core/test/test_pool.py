@@ -8,6 +8,7 @@ import pytest
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import ModelFileError
 from body_scheme_core.models import GPModel, RevoluteModel, StaticModel
+from body_scheme_core.noise_model import NoiseModel
 from body_scheme_core.pool import ModelPool, Targets
 from body_scheme_core.quality import prediction_errors
 from body_scheme_core.relative import PartPairs
@@ -15,7 +16,8 @@ from body_scheme_core.tracked import MEMORY, TREE, TrackedModel, nested_models
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
 
 CONFIG = BodySchemeConfig()
-PAIRS = PartPairs((1, 2), CONFIG.theta_trans, CONFIG.theta_rot, CONFIG.sigma_trans, CONFIG.sigma_rot)
+NOISE = NoiseModel.from_config((1, 2), CONFIG)
+PAIRS = PartPairs((1, 2), NOISE)
 
 
 def _link(a):
@@ -126,7 +128,7 @@ def test_a_model_clearly_beaten_by_one_that_nests_it_is_dominated():
     """A paired advantage above dominance_margin marks the simpler model; a small one or an invalid model not."""
     pool = ModelPool(CONFIG, 1)
     rows = pool.monitor.allocate(3)
-    theta = CONFIG.theta_trans
+    theta = NOISE.theta_trans
     for t in range(5):
         pool.monitor.record(rows, [0.8 * theta, 0.2 * theta, 0.7 * theta], [0.1, 0.1, 0.1], t, n_train=10,
                             cusum=False)
@@ -169,7 +171,7 @@ def test_state_round_trip():
 
 def test_targets_select_rows():
     """Targets.select keeps the rows asked for, in order."""
-    targets = Targets(np.stack([np.eye(4)] * 3), np.array([1.0, 2.0, 3.0]), np.ones((3, 2)),
+    targets = Targets(np.stack([np.eye(4)] * 3), np.array([1.0, 2.0, 3.0]), np.full(3, 0.5), np.ones((3, 2)),
                       np.array([False, True, False]))
     sub = targets.select([2, 1])
     np.testing.assert_array_equal(sub.theta_trans, [3.0, 2.0])

@@ -5,11 +5,17 @@ import itertools
 import numpy as np
 import pytest
 
+from body_scheme_core.noise_model import NoiseModel
 from body_scheme_core.relative import PartPairs
 from body_scheme_core.transforms import invert_transform, relative_transform, transform_from_rotvec
 from body_scheme_core.validity import translation_threshold
 
 THETA_T, THETA_R = 0.15, np.radians(45.0)
+
+
+def _noise(parts):
+    """The noise of the thresholds THETA_T, THETA_R (3 sigma)."""
+    return NoiseModel(parts, THETA_T / 3, THETA_R / 3)
 
 
 def _poses(rng, parts):
@@ -18,7 +24,7 @@ def _poses(rng, parts):
 
 def test_pairs_are_numbered_once_and_symmetrically():
     """Every unordered pair gets one index; both directions map to it; flip follows the part order."""
-    pairs = PartPairs((7, 3, 5), THETA_T, THETA_R)
+    pairs = PartPairs((7, 3, 5), _noise((7, 3, 5)))
     assert pairs.n_pairs == 3
     indices = {pairs.index(i, j) for i, j in itertools.combinations((7, 3, 5), 2)}
     assert indices == {0, 1, 2}
@@ -30,7 +36,7 @@ def test_relative_observations_of_observed_pairs():
     """Z of each pair with both parts seen is Y_i^-1 Y_j in the part order; pairs with a missing part get row -1."""
     rng = np.random.default_rng(0)
     parts = (7, 3, 5, 9)
-    pairs = PartPairs(parts, THETA_T, THETA_R)
+    pairs = PartPairs(parts, _noise(parts))
     Y = _poses(rng, (9, 7, 5))  # part 3 not observed
     rel = pairs.observe(Y)
     for i, j in itertools.combinations(parts, 2):
@@ -45,7 +51,7 @@ def test_relative_observations_of_observed_pairs():
 def test_thresholds_grow_with_the_observed_distance():
     """Each row's translational threshold is translation_threshold at the distance of its parts."""
     rng = np.random.default_rng(1)
-    pairs = PartPairs((1, 2, 3), THETA_T, THETA_R)
+    pairs = PartPairs((1, 2, 3), _noise((1, 2, 3)))
     rel = pairs.observe(_poses(rng, (1, 2, 3)))
     distance = np.linalg.norm(rel.Z[:, :3, 3], axis=1)
     np.testing.assert_allclose(rel.theta_trans, translation_threshold(THETA_T, THETA_R, distance))
@@ -55,7 +61,7 @@ def test_thresholds_grow_with_the_observed_distance():
 def test_of_pairs_inverts_flipped_directions():
     """A model predicting child2parent of the canonical pair sees the inverse transform; the source is unchanged."""
     rng = np.random.default_rng(2)
-    pairs = PartPairs((1, 2, 3), THETA_T, THETA_R)
+    pairs = PartPairs((1, 2, 3), _noise((1, 2, 3)))
     Y = _poses(rng, (1, 2, 3))
     rel = pairs.observe(Y)
     before = rel.Z.copy()
@@ -69,6 +75,6 @@ def test_of_pairs_inverts_flipped_directions():
 
 def test_fewer_than_two_observed_parts_give_no_relative_observation():
     """With one part seen, nothing is observed and every row is -1."""
-    pairs = PartPairs((1, 2, 3), THETA_T, THETA_R)
+    pairs = PartPairs((1, 2, 3), _noise((1, 2, 3)))
     rel = pairs.observe({2: np.eye(4)})
     assert rel.Z.shape == (0, 4, 4) and rel.theta_trans.shape == (0,) and np.all(rel.row == -1)

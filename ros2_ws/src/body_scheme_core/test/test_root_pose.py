@@ -1,11 +1,13 @@
-"""Tests of the root-pose estimate: robust mean of the root's observations, then registration of all markers."""
+"""Tests of the root-pose estimate (robust mean of the root's observations, then registration of all markers) and of
+the root's change detector."""
 
 import numpy as np
 
+from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.root_pose import RootPoseEstimator, register_points
+from body_scheme_core.root_pose import OFFSET_SAMPLES, RootPoseEstimator, RootWatch, register_points
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.transforms import rotational_error, transform_from_rotvec
+from body_scheme_core.transforms import rotational_error, transform_from_rotvec, translational_error
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, make_session, powercube_6dof
 
 A0 = np.zeros(2)
@@ -102,3 +104,37 @@ def test_pose_is_cached_per_scheme_until_the_next_sample():
     assert estimator.pose(scheme) is first
     estimator.add(session.actions[9], session.observations[9])
     assert estimator.pose(scheme) is not first
+
+
+def _watch(observed, world2root, theta=0.015):
+    """Feed ``observed`` poses of the root's marker to a RootWatch; the steps at which it alarms."""
+    watch, alarms = RootWatch(BodySchemeConfig()), []
+    for t, Y in enumerate(observed):
+        expected = watch.expected(world2root)
+        errors = None if expected is None else (translational_error(expected, Y), rotational_error(expected, Y))
+        if watch.check(errors, t, theta, 0.1) is not None:
+            alarms.append(t)
+        watch.learn_offset(world2root, Y)
+    return alarms
+
+
+def test_the_root_watch_alarms_once_for_an_offset_the_fit_does_not_follow_and_once_when_the_marker_moves():
+    """A real tracker may see the root's marker 19 mm deeper than the joint fit puts it, for ever: one alarm, not one
+    every 3 steps as before the offset. A marker moved later by 5 thresholds alarms once more, within a few steps."""
+    rng = np.random.default_rng(0)
+    world2root = transform_from_rotvec([0.1, 0.2, 0.3], [0.1, 0.0, 2.0])
+    biased = world2root @ transform_from_rotvec(np.zeros(3), [0.0, 0.0, 0.019])
+    noisy = [biased @ transform_from_rotvec(rng.normal(0, 0.01, 3), rng.normal(0, 0.002, 3)) for _ in range(120)]
+    alarms = _watch(noisy, world2root)
+    assert len(alarms) == 1 and alarms[0] < 10
+    moved = noisy[:60] + [Y @ transform_from_rotvec(np.zeros(3), [0.075, 0.0, 0.0]) for Y in noisy[60:]]
+    alarms = _watch(moved, world2root)
+    assert len(alarms) == 2 and 60 <= alarms[1] <= 60 + 5
+    assert alarms[0] + OFFSET_SAMPLES < 60
+
+
+def test_without_an_offset_the_root_watch_is_quiet_on_noise():
+    rng = np.random.default_rng(1)
+    world2root = transform_from_rotvec([0.1, 0.2, 0.3], [0.1, 0.0, 2.0])
+    noisy = [world2root @ transform_from_rotvec(rng.normal(0, 0.01, 3), rng.normal(0, 0.0029, 3)) for _ in range(300)]
+    assert _watch(noisy, world2root) == []

@@ -191,6 +191,18 @@ def test_std_propagates_along_the_chain():
     assert_allclose(std[1], [np.sqrt(0.01**2 + 0.25 * 0.02**2), 0.02])
 
 
+
+def test_a_rotation_error_moves_a_far_tip_by_the_whole_lever_arm():
+    """Three straight links of 0.5 m, only the first edge uncertain in rotation: the tip 1.0 m beyond it moves by
+    s_r * 1.0 (not by sqrt(2) * 0.5 * s_r, which summing each link's lever arm alone would give)."""
+    offset = np.eye(4)
+    offset[:3, 3] = [0.5, 0.0, 0.0]
+    models = [RevoluteModel(0, 1, 0, B=offset, std=(0.0, 0.02)), RevoluteModel(1, 2, 1, B=offset),
+              RevoluteModel(2, 3, 2, B=offset)]
+    _, std = BodyScheme((0, 1, 2, 3), 0, models).predict([0.0, 0.0, 0.0], return_std=True)
+    assert_allclose(std[3], [0.02 * 1.0, 0.02])
+    assert_allclose(std[2], [0.02 * 0.5, 0.02])
+
 @pytest.mark.parametrize("analytic", [True, False])
 def test_jacobian_matches_finite_differences(analytic):
     """The product-rule Jacobian (incl. inverted edges) equals central differences of predict."""

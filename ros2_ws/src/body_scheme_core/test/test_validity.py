@@ -8,7 +8,7 @@ import pytest
 
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError, ModelFileError
-from body_scheme_core.validity import ValidityMonitor, translation_threshold
+from body_scheme_core.validity import RATIO_CLIP, ValidityMonitor, translation_threshold
 
 THETA_T, THETA_R = 0.15, math.radians(45.0)
 
@@ -75,14 +75,14 @@ def test_stale_predictions_of_a_learning_model_are_ignored():
 
 
 def test_one_outlier_cannot_invalidate_a_window():
-    """Per-sample ratios are clipped at cusum_clip: one wild error moves a window mean by at most clip/window."""
+    """Per-sample ratios are clipped at RATIO_CLIP: one wild error moves a window mean by at most clip/window."""
     mon = _monitor(window=10)
     (row,) = mon.allocate(1)
     for step in range(10):
         mon.record([row], [0.05 if step != 4 else 100.0], [0.1], step)
     st = mon.stats([row])
     assert mon.valid(st, 3)[0]
-    assert st.trans_ratio[0] == pytest.approx((9 * 0.05 / 0.15 + mon.cusum_clip) / 10)
+    assert st.trans_ratio[0] == pytest.approx((9 * 0.05 / 0.15 + RATIO_CLIP) / 10)
 
 
 def test_stats_since_a_change_point():
@@ -97,25 +97,51 @@ def test_stats_since_a_change_point():
 
 
 def test_cusum_alarms_after_a_shift_and_estimates_the_change_point():
-    """Clean samples keep the CUSUM at zero; a shift to twice the threshold alarms within two samples."""
-    mon = _monitor(window=15, cusum_drift=0.75, cusum_threshold=2.5, cusum_clip=2.0)
+    """Errors within half the threshold keep the CUSUM low; errors of twice the threshold (six noise sigmas) alarm at
+    the third sample, and the change point is the first of them."""
+    mon = _monitor(window=15)
     (row,) = mon.allocate(1)
     rng = np.random.default_rng(0)
     for step in range(100):
         alarm = mon.record([row], [rng.uniform(0, 0.5) * THETA_T], [rng.uniform(0, 0.5) * THETA_R], step)
         assert not alarm[0]
-    assert mon.change_point([row])[0] == -1
-    alarms = [mon.record([row], [2.0 * THETA_T], [0.1], step)[0] for step in range(100, 103)]
-    assert alarms == [False, True, True]
+    mon.reset_cusum([row])
+    alarms = [mon.record([row], [2.0 * THETA_T], [0.1], step)[0] for step in range(100, 104)]
+    assert alarms == [False, False, True, True]
     assert mon.change_point([row])[0] == 100
+
+
+def _gaussian_errors(rng, n, sigma, shift=0.0):
+    """Norms of 3D errors with RMS ``sigma`` (isotropic), shifted by ``shift`` along one axis."""
+    e = rng.normal(scale=sigma / math.sqrt(3.0), size=(n, 3))
+    e[:, 0] += shift
+    return np.linalg.norm(e, axis=1)
+
+
+def test_cusum_is_quiet_on_noise_and_finds_a_shift_of_one_sigma():
+    """On Gaussian noise of the thresholds' sigma the CUSUM does not alarm in 20,000 samples; a lasting shift of
+    1.33 sigma (a 20 deg bend at 15 deg of noise) alarms within 25 samples, a shift of 3 sigma within 5."""
+    rng = np.random.default_rng(0)
+    sigma_t, sigma_r = THETA_T / 3.0, THETA_R / 3.0
+    mon = _monitor(window=15)
+    (row,) = mon.allocate(1)
+    quiet = [mon.record([row], [et], [er], step)[0]
+             for step, (et, er) in enumerate(zip(_gaussian_errors(rng, 20000, sigma_t),
+                                                 _gaussian_errors(rng, 20000, sigma_r), strict=True))]
+    assert not any(quiet)
+    for shift, within in ((1.33, 25), (3.0, 5)):
+        mon.reset_cusum([row])
+        errors = _gaussian_errors(rng, within, sigma_r, shift * sigma_r)
+        alarms = [mon.record([row], [0.0], [er], 30000 + k)[0] for k, er in enumerate(errors)]
+        assert any(alarms)
 
 
 def test_cusum_needs_more_than_one_outlier():
     """A single huge error is clipped: it raises the statistic by at most clip - drift."""
-    mon = _monitor(window=15, cusum_drift=0.75, cusum_threshold=2.5, cusum_clip=2.0)
+    mon = _monitor(window=15)
     (row,) = mon.allocate(1)
     assert not mon.record([row], [100.0], [3.0], 0)[0]
-    np.testing.assert_allclose(mon.cusum[row], [1.25, 1.25])
+    np.testing.assert_allclose(mon.cusum[row], [6.0 - 1.5, 6.0 - 1.5])
     mon.reset_cusum([row])
     assert np.all(mon.cusum[row] == 0.0)
 
@@ -202,5 +228,5 @@ def test_monitor_from_config_takes_window_thresholds_and_cusum_settings():
     config = BodySchemeConfig(sigma_trans=0.02, sigma_rot=0.1, test_window=7, cusum_drift=0.5, cusum_threshold=2.0)
     mon = ValidityMonitor.from_config(config)
     assert mon.window == 7 and mon.capacity == 0
-    np.testing.assert_array_equal(mon.theta, [config.theta_trans, config.theta_rot])
+    np.testing.assert_allclose(mon.theta, [3 * 0.02, 3 * 0.1])  # validity_sigmas times the noise prior
     assert (mon.cusum_drift, mon.cusum_threshold, mon.cusum_clip) == (0.5, 2.0, config.cusum_clip)

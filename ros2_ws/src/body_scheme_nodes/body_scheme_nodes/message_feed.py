@@ -8,7 +8,7 @@ learn from identical samples.
 
 from __future__ import annotations
 
-from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
+from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError, LearnerStepError, StampOrderError
 
 from . import conversions
 
@@ -59,7 +59,8 @@ def learn_sample(learner, stamp, actions, observations):
     events : list of SchemeEvent, or None if the sample was refused (the learner is then unchanged)
     rejection : (str, str) or None
         Reason code and detail: ``command_out_of_range``, ``older_than_state`` (a stamp before the learner's last
-        step, e.g. a bag replayed into a restored state) or ``bad_sample``.
+        step, e.g. a bag replayed into a restored state), ``bad_sample`` or ``learner_error`` (a defect inside the
+        learner: the step was undone, the learner goes on).
     """
     try:
         return learner.update(actions, observations, stamp=stamp), None
@@ -69,3 +70,5 @@ def learn_sample(learner, stamp, actions, observations):
         return None, ("older_than_state", str(error))
     except InvalidInputError as error:
         return None, ("bad_sample", str(error))
+    except LearnerStepError as error:
+        return None, ("learner_error", str(error))

@@ -65,6 +65,7 @@ learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...)
 
 from __future__ import annotations
 
+import math
 import os
 import pathlib
 import threading
@@ -393,6 +394,9 @@ class SchemeNode(Node):
             level, message = DiagnosticStatus.WARN, f"no body scheme yet ({learner.phase}, step {learner.step})"
         elif n_invalid:
             level, message = DiagnosticStatus.ERROR, f"{n_invalid} local model(s) invalid ({learner.phase})"
+        elif learner.unexplained_parts:
+            level, message = DiagnosticStatus.WARN, (f"not trusted: the body scheme does not explain part(s) "
+                                                     f"{list(learner.unexplained_parts)} ({learner.phase})")
         else:
             level, message = DiagnosticStatus.OK, f"body scheme valid ({learner.phase})"
         stalled = self._stalled_for()
@@ -401,7 +405,13 @@ class SchemeNode(Node):
                                                       f"(see rejected.*): {message}")
         latency = sorted(self.latency)
         rejected = Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected)
+        lateral, depth, rotation = learner.noise.axis_sigmas()
         values = {"phase": learner.phase, "step": learner.step, "edges": len(edges), "invalid_edges": n_invalid,
+                  "trusted": learner.trusted, "unexplained_parts": list(learner.unexplained_parts),
+                  "noise.trans_mm": 1e3 * learner.noise.sigma_trans,
+                  "noise.rot_deg": math.degrees(learner.noise.sigma_rot),
+                  "noise.lateral_mm": 1e3 * lateral, "noise.depth_mm": 1e3 * depth,
+                  "noise.rotation_deg": math.degrees(rotation), "noise.residuals": learner.noise.n_observations,
                   "update_latency_median_ms": 1e3 * latency[len(latency) // 2] if latency else float("nan"),
                   "update_latency_max_ms": 1e3 * latency[-1] if latency else float("nan"),
                   "rejected_total": sum(rejected.values())}

@@ -23,12 +23,15 @@ from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.pairing import CommandObservationPairer
 from body_scheme_core.world import KinematicTree, load_markers_yaml
 
-__all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "SchemeSettings", "engineered_body_scheme", "parameter_defaults"]
+__all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "AUTO_SENTINELS", "SchemeSettings", "engineered_body_scheme",
+           "parameter_defaults"]
 
 #: ROS parameter prefix of the BodySchemeConfig fields.
 LEARNER_PREFIX = "learner."
 #: Optional config fields that ROS parameters cannot hold as None: this value stands for None.
 NONE_SENTINELS = {"theta_trans": 0.0, "theta_rot": 0.0, "root": -1}
+#: Noise priors that a ROS double parameter cannot hold as "auto": 0.0 stands for "auto" (learned from the start).
+AUTO_SENTINELS = {"sigma_trans": 0.0, "sigma_rot": 0.0}
 
 
 def parameter_defaults(n_joints=1):
@@ -49,6 +52,8 @@ def parameter_defaults(n_joints=1):
         value = getattr(config, field.name)
         if field.name in NONE_SENTINELS:
             value = NONE_SENTINELS[field.name]
+        if field.name in AUTO_SENTINELS and value == "auto":
+            value = AUTO_SENTINELS[field.name]
         defaults[LEARNER_PREFIX + field.name] = list(value) if isinstance(value, tuple) else value
     return defaults
 
@@ -125,7 +130,11 @@ class SchemeSettings:
         for name, value in merged.items():
             if name.startswith(LEARNER_PREFIX):
                 field = name[len(LEARNER_PREFIX):]
-                learner[field] = None if field in NONE_SENTINELS and value == NONE_SENTINELS[field] else value
+                if field in NONE_SENTINELS and value == NONE_SENTINELS[field]:
+                    value = None
+                elif field in AUTO_SENTINELS and value in (AUTO_SENTINELS[field], "auto"):
+                    value = "auto"
+                learner[field] = value
         plain = {k: v for k, v in merged.items() if not k.startswith(LEARNER_PREFIX)}
         lists = {}
         for name, kind in (("part_ids", int), ("joint_names", str), ("action_lower", float), ("action_upper", float)):

@@ -12,7 +12,13 @@ from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.scheme import BodyScheme
 from body_scheme_core.world import markers_to_yaml, powercube_6dof
-from body_scheme_nodes.settings import NONE_SENTINELS, SchemeSettings, engineered_body_scheme, parameter_defaults
+from body_scheme_nodes.settings import (
+    AUTO_SENTINELS,
+    NONE_SENTINELS,
+    SchemeSettings,
+    engineered_body_scheme,
+    parameter_defaults,
+)
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "scheme_node.yaml"
 
@@ -24,6 +30,7 @@ def test_yaml_lists_every_learner_field_with_its_default():
     assert set(learner) == set(fields)
     for name, default in fields.items():
         expected = NONE_SENTINELS[name] if default is None else default
+        expected = AUTO_SENTINELS[name] if default == "auto" else expected
         if isinstance(expected, tuple):  # a list in YAML and as a ROS parameter
             assert learner[name] == list(expected), name
             continue

@@ -8,10 +8,12 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.control`: Sec. IV-D, the 4-DOF arm following a trajectory by IK with a deformed middle limb.
 - :mod:`.branching`: not in the paper: a branching body learned from scratch (true tree found, no false alarm).
 - :mod:`.transmission`: not in the paper: a nonlinear gear learned from scratch (GP edge, its hyperparameters).
+- :mod:`.zoo`: not in the paper: random bodies at four noise levels, learned from scratch and changed once.
 
 A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``PERCEPTIONS`` (default both
-``"noise"`` and ``"rendered"``), ``MIN_TARGETS`` (figures where higher is better) and ``NOTES`` (text under its
-table).
+``"noise"`` and ``"rendered"``), ``NOISE_LEVELS`` (the noise-model runs of one seed, each passed as
+``perception``; default ``("noise",)``), ``summarize(runs)`` (its figures from its runs; default: the mean and std of
+every scalar), ``MIN_TARGETS`` (figures where higher is better) and ``NOTES`` (text under its table).
 
 :mod:`.runner` runs them in parallel over seeds and :mod:`.report` writes ``docs/results/`` and ``docs/RESULTS.md``.
 """

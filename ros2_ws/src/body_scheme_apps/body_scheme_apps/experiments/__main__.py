@@ -3,12 +3,15 @@
 ``make experiments``: 20 noise-model runs and 1 rendered-camera run per experiment into ``docs/results/`` and
 ``docs/RESULTS.md``. ``make experiments-quick`` (CI): 2 quick noise runs and 1 quick rendered run into
 ``out/experiments-quick/``, then checks that every figure is finite and within loose sanity bounds (exit 1 if not).
+``--only NAME --keep`` reruns one experiment and keeps the others' figures and plots from the ``results.json`` in
+``--out`` (the header then sums both runs' seconds and names the commit of this one).
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import pathlib
 import subprocess
@@ -32,6 +35,20 @@ def _commit():
         return "unknown"
 
 
+def _kept(out, rerun):
+    """Figures, rendered figures, plots and meta of the experiments not in ``rerun`` from ``out/results.json``."""
+    path = out / "results.json"
+    if not path.is_file():
+        raise SystemExit(f"--keep needs an earlier {path}")
+    old = json.loads(path.read_text())
+    names = [name for name in EXPERIMENTS if name not in rerun]
+    figures = {key for name in names for key in experiment_module(name).FIGURES}
+    noise = {k: v for k, v in old.items() if k in figures or (k.endswith("_std") and k[:-4] in figures)}
+    rendered = {k: v for k, v in old.get("rendered", {}).items() if k in figures}
+    plots = {name: sorted(out.glob(f"{name}*.png")) for name in names}
+    return noise, rendered, plots, old
+
+
 def main(argv=None):
     """Console entry point."""
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.experiments", description=__doc__.split("\n")[0])
@@ -47,6 +64,8 @@ def main(argv=None):
     parser.add_argument("--md", default="docs/RESULTS.md", help="the RESULTS.md to write ('' for none)")
     parser.add_argument("--check", action="store_true", help="exit 1 unless all figures are finite and sane")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep the figures of the experiments not in --only from the results.json in --out")
     args = parser.parse_args(argv)
     if args.runs < 1 or args.rendered_runs < 0:
         parser.error("--runs must be >= 1 and --rendered-runs >= 0")
@@ -57,8 +76,8 @@ def main(argv=None):
                   for name, module in experiments.items()}
     rendered_runs = {name: args.rendered_runs if "rendered" in getattr(module, "PERCEPTIONS", ("noise", "rendered"))
                      else 0 for name, module in experiments.items()}
-    tasks = [Task(name, args.seed + k, "noise", args.quick) for name in experiments
-             for k in range(run_counts[name])]
+    tasks = [Task(name, args.seed + k, variant, args.quick) for name, module in experiments.items()
+             for k in range(run_counts[name]) for variant in tuple(getattr(module, "NOISE_LEVELS", ("noise",)))]
     tasks += [Task(name, args.seed + k, "rendered", args.quick) for name in experiments
               for k in range(rendered_runs[name])]
     start = time.monotonic()
@@ -69,35 +88,47 @@ def main(argv=None):
         print(f"FAILED {outcome.task}: {outcome.error}", file=sys.stderr)
 
     noise, rendered, plots, problems = {}, {}, {}, []
+    old_meta = {}
+    if args.keep:
+        noise, rendered, plots, old_meta = _kept(out, experiments)
     for name, module in experiments.items():
-        runs = [o.result for o in outcomes if o.task.experiment == name and o.task.perception == "noise" and o.result]
+        variants = tuple(getattr(module, "NOISE_LEVELS", ("noise",)))
+        runs = [o.result for o in outcomes if o.task.experiment == name and o.task.perception in variants
+                and o.result]
         shown = [o.result for o in outcomes if o.task.experiment == name and o.task.perception == "rendered"
                  and o.result]
+        summarize = getattr(module, "summarize", aggregate)
         if runs:
-            noise.update(aggregate(runs))
+            noise.update(summarize(runs))
             plots[name] = module.plot(runs, out / name)
         if shown:
             rendered.update(aggregate(shown))
         bounds = getattr(module, "SANITY", {})
-        problems += [f"{name} (noise): {p}" for p in sanity_problems(aggregate(runs), bounds)] if runs else \
+        problems += [f"{name} (noise): {p}" for p in sanity_problems(summarize(runs), bounds)] if runs else \
             [f"{name}: no successful noise run"]
         if rendered_runs[name]:
             problems += [f"{name} (rendered): {p}" for p in sanity_problems(aggregate(shown), bounds)] if shown \
                 else [f"{name}: no successful rendered run"]
-    meta = {"seed": args.seed, "commit": _commit(), "runs": args.runs, "runs_per_experiment": run_counts,
+    meta = {"seed": args.seed, "commit": _commit(), "runs": args.runs,
+            "runs_per_experiment": {**old_meta.get("runs_per_experiment", {}), **run_counts},
             "rendered_runs": args.rendered_runs,
-            "quick": args.quick, "jobs": args.jobs, "seconds": round(seconds, 1),
+            "quick": args.quick, "jobs": args.jobs, "seconds": round(seconds + old_meta.get("seconds", 0.0), 1),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     write_results_json(out / "results.json", noise, rendered, meta)
     command = "make experiments-quick" if args.quick else "make experiments"
     if args.md:
-        write_results_md(pathlib.Path(args.md), experiments, noise, rendered, plots, meta, command)
+        if args.keep:
+            command += f"`, then `python -m body_scheme_apps.experiments --only {' '.join(experiments)} --keep"
+        reported = {name: experiment_module(name) for name in EXPERIMENTS if name in experiments or name in plots}
+        write_results_md(pathlib.Path(args.md), reported, noise, rendered, plots, meta, command)
     print(f"{len(outcomes) - len(failed)}/{len(outcomes)} runs in {seconds:.0f} s; wrote {out / 'results.json'}"
           + (f" and {args.md}" if args.md else ""))
     for key, value in noise.items():
         if not key.endswith("_std"):
             shown = rendered.get(key, float("nan"))
-            print(f"  {key:32s} {value:10.2f} ± {noise[key + '_std']:.2f}   rendered {shown:.2f}")
+            spread = noise.get(key + "_std")
+            spread = "" if spread is None else f" ± {spread:.3f}"
+            print(f"  {key:40s} {value:10.3f}{spread:8s}   rendered {shown:.2f}")
     if args.check and (problems or failed):
         print("sanity check FAILED:\n  " + "\n  ".join(problems + [f"{o.task}: {o.error}" for o in failed]),
               file=sys.stderr)

@@ -7,9 +7,10 @@ nothing observed). :func:`~body_scheme_core.world.make_session` babbles :data:`N
 noise (44 mm / 15 deg) with every marker dropped independently in 20 % of the steps; the body never changes. A
 :class:`~body_scheme_core.learner.BodySchemeLearner` with the default configuration learns from scratch.
 
-*True tree*: the learned tree, with the markers of one link merged, connects the same links as the robot's marker tree,
-every edge between two links depends on exactly the actions on the kinematic path between them, and every edge within
-a link on none (so ``2 - 3`` and ``7 - 3`` are equally right, and a model using the dummy action is wrong).
+*True tree*: :func:`~body_scheme_core.world.is_true_tree`: the learned tree, with the markers of one link merged,
+connects the same links as the robot's marker tree, every edge between two links depends on exactly the actions on
+the kinematic path between them, and every edge within a link on none (so ``2 - 3`` and ``7 - 3`` are equally right,
+and a model using the dummy action is wrong).
 Rendered mode is not run for this experiment (the simulator's robots have no branching arm).
 """
 
@@ -18,10 +19,10 @@ from __future__ import annotations
 import numpy as np
 
 from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.world import Body, branching_tree, make_session
+from body_scheme_core.world import Body, branching_tree, is_correct_model, is_true_tree, make_session
 
-__all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERCEPTIONS", "N_STEPS", "robot",
-           "is_true_tree", "run", "plot"]
+__all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERCEPTIONS", "N_STEPS", "robot", "run",
+           "plot"]
 
 #: Runs of ``make experiments`` (more than the other experiments: the fraction needs them); noise model only.
 RUNS = 30
@@ -52,28 +53,6 @@ def robot(seed):
     return branching_tree(seed, second_torso_marker=True, dummy_action=True)
 
 
-def _is_correct(tree, model):
-    """Whether a local model describes the true relation of its two markers (see the module docstring)."""
-    same_link = tree.marker(model.parent).link == tree.marker(model.child).link
-    if same_link:
-        return not model.actions
-    return set(model.actions) == set(tree.path_actions(model.parent, model.child))
-
-
-def _link_pairs(tree, pairs):
-    return {frozenset((tree.marker(p).link, tree.marker(c).link)) for p, c in pairs
-            if tree.marker(p).link != tree.marker(c).link}
-
-
-def is_true_tree(tree, scheme):
-    """Whether ``scheme`` is the true body scheme of ``tree``, up to markers sharing a link."""
-    if scheme is None:
-        return False
-    learned = [(m.parent, m.child) for m in scheme.models]
-    return (_link_pairs(tree, learned) == _link_pairs(tree, tree.marker_tree_edges())
-            and all(_is_correct(tree, m) for m in scheme.models))
-
-
 def run(seed, perception="noise", quick=False):
     """One run (see the module docstring); only ``perception="noise"`` exists."""
     if perception != "noise":
@@ -92,8 +71,8 @@ def run(seed, perception="noise", quick=False):
                 continue
             events.append(f"{event.step} {event.kind} {event.model or ''}")
             if event.kind == "mismatch_detected":
-                model = next(m for m in scheme.models if {m.parent, m.child} == {event.parent, event.child})
-                if _is_correct(tree, model):
+                model = next((m for m in scheme.models if {m.parent, m.child} == {event.parent, event.child}), None)
+                if model is None or is_correct_model(tree, model):  # None: the root pose (the body is healthy)
                     false_mismatches += 1
                 else:
                     repairs += 1

@@ -249,13 +249,14 @@ def true_structure_error_mm(tree, actions, observations, A, truth, config):
             return math.nan
         Z = np.array([invert_transform(observations[t][parent]) @ observations[t][child] for t in seen])
         d2 = np.sum(Z[:, :3, 3] ** 2, axis=1)
-        S = np.stack([np.sqrt((2 * config.sigma_trans**2 + (2 / 3) * config.sigma_rot**2 * d2) / 3),
-                      np.full(len(seen), config.sigma_rot * math.sqrt(2 / 3))], axis=1)
+        sigma_trans, sigma_rot = config.prior_sigma_trans, config.prior_sigma_rot
+        S = np.stack([np.sqrt((2 * sigma_trans**2 + (2 / 3) * sigma_rot**2 * d2) / 3),
+                      np.full(len(seen), sigma_rot * math.sqrt(2 / 3))], axis=1)
         models.append(RevoluteModel(parent, child, (action,)).fit(actions[seen], Z, sigma=S))
     scheme = BodyScheme(tree.marker_ids, tree.root_marker, models)
     world2root = RootPoseEstimator(config.root_window, tree.root_marker, zip(actions, observations, strict=True)).pose(
         scheme)
-    fit = calibrate(scheme, world2root, actions, observations, config.sigma_trans, config.sigma_rot)
+    fit = calibrate(scheme, world2root, actions, observations, config.prior_sigma_trans, config.prior_sigma_rot)
     predicted = (fit.world2root @ fit.scheme.predict_batch(A)[:, fit.scheme.parts.index(EFFECTOR)])[:, :3, 3]
     return 1e3 * float(np.mean(np.linalg.norm(predicted - truth, axis=1)))
 

@@ -181,9 +181,9 @@ class GPHyperparameters:
     @classmethod
     def from_config(cls, config):
         """Derive the hyperparameters from a :class:`~body_scheme_core.config.BodySchemeConfig`: its marker noise
-        ``sigma_trans``, ``sigma_rot`` and its ``gp_length_scale``, ``gp_signal_std_trans``, ``gp_signal_std_rot``
-        (see :meth:`from_marker_noise`)."""
-        return cls.from_marker_noise(config.sigma_trans, config.sigma_rot, config.gp_length_scale,
+        prior (``prior_sigma_trans``, ``prior_sigma_rot``) and its ``gp_length_scale``, ``gp_signal_std_trans``,
+        ``gp_signal_std_rot`` (see :meth:`from_marker_noise`)."""
+        return cls.from_marker_noise(config.prior_sigma_trans, config.prior_sigma_rot, config.gp_length_scale,
                                      config.gp_signal_std_trans, config.gp_signal_std_rot)
 
     @classmethod

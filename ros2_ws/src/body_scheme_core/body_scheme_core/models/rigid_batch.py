@@ -53,9 +53,9 @@ class RigidBatch(SlotArrays):
     """
 
     def __init__(self, n_actions, capacity, f_scale=DEFAULT_F_SCALE, fit_scale=False):
-        for name, value in [("n_actions", n_actions), ("capacity", capacity)]:
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
+        for name, value, least in [("n_actions", n_actions, 0), ("capacity", capacity, 1)]:
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise InvalidInputError(f"{name} must be an integer >= {least}, got {value!r}")
         self.n_actions = int(n_actions)
         self.capacity = int(capacity)
         self.f_scale = float(f_scale)
@@ -127,7 +127,8 @@ class RigidBatch(SlotArrays):
 
     def _values(self, slots, a):
         """Each slot's own action value in ``a`` (0 for static slots), shape (k,)."""
-        return np.where(self._action[slots] >= 0, a[np.maximum(self._action[slots], 0)], 0.0)
+        padded = np.append(a, 0.0)  # static slots (action -1) read the appended 0
+        return padded[np.where(self._action[slots] >= 0, self._action[slots], self.n_actions)]
 
     # ------------------------------------------------------------------ inference and learning
     def predict(self, slots, a):

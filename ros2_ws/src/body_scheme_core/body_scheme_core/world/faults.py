@@ -27,7 +27,7 @@ from ..transforms import transform_from_rotvec
 from .body import block_joint, deform_limb, displace_marker
 
 __all__ = ["Fault", "REPAIR", "FAULT_KINDS", "parse_fault", "parse_fault_schedule", "delta_from_vector",
-           "PROTOCOL_FAULTS", "protocol_schedule"]
+           "PROTOCOL_FAULTS", "protocol_schedule", "RANDOM_FAULTS", "random_fault"]
 
 #: Kinds of faults that change the body (``"repair"`` undoes them).
 FAULT_KINDS = ("block_joint", "deform_limb", "displace_marker")
@@ -218,3 +218,75 @@ def protocol_schedule(protocol, n_per_block=100, fault=None):
     fault = PROTOCOL_FAULTS[protocol]() if fault is None else fault
     n = n_per_block
     return [(n, fault), (2 * n, REPAIR), (3 * n, fault)]
+
+
+#: What :func:`random_fault` can do to a body: the four changes of physiology the paper names.
+RANDOM_FAULTS = ("block_joint", "bend_limb", "move_marker", "add_tool")
+
+
+def _observed_below(tree, joint):
+    """Whether a marker sits on ``joint``'s child link or below it."""
+    below = {joint.child}
+    changed = True
+    while changed:
+        changed = False
+        for other in tree.joints:
+            if other.parent in below and other.child not in below:
+                below.add(other.child)
+                changed = True
+    return any(m.link in below for m in tree.markers)
+
+
+def random_fault(tree, kind, rng, size):
+    """A random change of ``tree``'s physiology that moves observed markers by about ``size`` or more.
+
+    Parameters
+    ----------
+    tree : KinematicTree
+    kind : str
+        One of :data:`RANDOM_FAULTS`: ``block_joint`` (a commanded joint that moves a marker stops somewhere in the
+        middle half of its range), ``bend_limb`` (a limb above a marker bends by 20 deg about a random axis),
+        ``move_marker`` (a marker slides ``size`` m in a random direction on its link) or ``add_tool`` (the limb of a
+        joint with markers below it and none below those grows by ``size`` m, like a tool in the gripper).
+    rng : numpy.random.Generator
+    size : float
+        Smallest displacement, m: e.g. three times the noise RMS, so the change is detectable.
+
+    Returns
+    -------
+    fault : Fault
+
+    Raises
+    ------
+    InvalidInputError
+        If the tree has nothing the fault can act on (e.g. no commanded joint moving a marker).
+    """
+    if kind not in RANDOM_FAULTS:
+        raise InvalidInputError(f"kind must be one of {RANDOM_FAULTS}, got {kind!r}")
+    observed = [j for j in tree.joints if _observed_below(tree, j)]
+    if kind == "move_marker":
+        direction = rng.normal(size=3)
+        delta = np.eye(4)
+        delta[:3, 3] = size * direction / np.linalg.norm(direction)
+        return Fault("displace_marker", marker_id=int(rng.choice(tree.marker_ids)), delta=delta)
+    if kind == "block_joint":
+        joints = [j for j in observed if j.action is not None]
+        if not joints:
+            raise InvalidInputError(f"{tree!r} has no commanded joint that moves a marker")
+        joint = joints[int(rng.integers(len(joints)))]
+        middle, half = 0.5 * (joint.lower + joint.upper), 0.25 * (joint.upper - joint.lower)
+        return Fault("block_joint", action_index=joint.action, angle=float(rng.uniform(middle - half, middle + half)))
+    if kind == "bend_limb":
+        joints = [j for j in observed if np.linalg.norm(j.origin[:3, 3]) > 1e-3]
+        if not joints:
+            raise InvalidInputError(f"{tree!r} has no limb above a marker")
+        axis = rng.normal(size=3)
+        return Fault("deform_limb", joint_or_link=joints[int(rng.integers(len(joints)))].name, delta_length=0.0,
+                     delta_rotvec=tuple(math.radians(20.0) * axis / np.linalg.norm(axis)))
+    # add_tool: a last limb (markers on its link, none further out) that is long enough to grow along.
+    parents = {j.parent for j in observed}
+    joints = [j for j in observed if j.child not in parents and np.linalg.norm(j.origin[:3, 3]) > 1e-3]
+    if not joints:
+        raise InvalidInputError(f"{tree!r} has no last limb with a marker")
+    return Fault("deform_limb", joint_or_link=joints[int(rng.integers(len(joints)))].name, delta_length=float(size),
+                 delta_rotvec=(0.0, 0.0, 0.0))

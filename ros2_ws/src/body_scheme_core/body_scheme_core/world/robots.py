@@ -14,7 +14,8 @@ from ..errors import InvalidInputError
 from ..transforms import transform_from_xyz_rpy
 from .tree import Joint, KinematicTree, Marker
 
-__all__ = ["planar_2dof", "arm_4dof", "powercube_6dof", "branching_tree", "random_tree", "default_world2root"]
+__all__ = ["planar_2dof", "arm_4dof", "powercube_6dof", "branching_tree", "random_tree", "zoo_robot",
+           "default_world2root"]
 
 
 #: Rotation of a marker frame so that its normal (z) points along the link's +x axis, towards the default camera.
@@ -170,21 +171,47 @@ def branching_tree(seed=None, second_torso_marker=False, dummy_action=False):
     return KinematicTree(joints, markers)
 
 
-def random_tree(n_joints, seed, branching=True, prismatic_fraction=0.0):
-    """A random kinematic tree with one marker per link.
+def random_tree(n_joints, seed, branching=True, prismatic_fraction=0.0, *, link_length=(0.1, 0.4),
+                marker_offset=0.05, second_marker_fraction=0.0, fixed_fraction=0.0, unmarked_fraction=0.0,
+                dummy_actions=0,
+                shuffle_ids=False, revolute_range=(0.5, math.pi), prismatic_range=(0.05, 0.3)):
+    """A random kinematic tree with markers on its links.
 
     Link ``k`` (k = 1..n_joints) hangs off a uniformly chosen earlier link (``branching``) or off link ``k-1``
-    (a chain) through joint ``k-1`` commanded by action ``k-1``: origin with a random rotation and a translation of
-    0.1-0.4 m in a random direction, random unit axis, limits ``+-U(0.5, pi)`` rad (``+-U(0.05, 0.3)`` m for
-    prismatic joints). Marker ``k+1`` sits on link ``k`` at a random offset of up to 5 cm with a random orientation.
+    (a chain) through joint ``k-1``: origin with a random rotation and a translation of ``link_length`` m in a random
+    direction, random unit axis, limits ``+-U(revolute_range)`` rad (``+-U(prismatic_range)`` m for prismatic
+    joints). A commanded joint gets the next action index. Marker ``k+1`` sits on link ``k`` at a random offset of up
+    to ``marker_offset`` m with a random orientation. With the defaults every link carries one marker and every joint
+    is commanded; the options make the bodies of the robot zoo (:func:`zoo_robot`), which the defaults do not draw
+    (the same seed gives the same tree as before they existed):
 
     Parameters
     ----------
     n_joints : int
+        Joints of the main tree (movable or fixed), ``dummy_actions`` not counted.
     seed : int
     branching : bool
     prismatic_fraction : float
-        Probability that a joint is prismatic instead of revolute.
+        Probability that a movable joint is prismatic instead of revolute.
+    link_length : (float, float)
+        Range of the joint origins' distance from their parent link's origin, m.
+    marker_offset : float
+        Largest offset of a marker from its link's origin along each axis, m.
+    second_marker_fraction : float
+        Probability that a marked link carries a second marker (two markers on one link).
+    fixed_fraction : float
+        Probability that a joint is fixed (no action): a passive link, e.g. a tool, whose markers move with its
+        parent. The last joint is movable when all others are fixed.
+    unmarked_fraction : float
+        Probability that a link carries no marker, as long as every marker stays within two commanded joints of the
+        nearest marker above it (the learner's default ``max_complexity``) and a marked link lies below it (a leaf
+        link keeps its marker).
+    dummy_actions : int
+        Extra revolute joints whose child links carry no marker and nothing else: actions that move nothing observed.
+    shuffle_ids : bool
+        Marker ids drawn at random from 1..99 instead of 1..n in link order.
+    revolute_range, prismatic_range : (float, float)
+        Ranges of the joints' symmetric limits (rad, m).
 
     Returns
     -------
@@ -193,28 +220,96 @@ def random_tree(n_joints, seed, branching=True, prismatic_fraction=0.0):
     if not (isinstance(n_joints, (int, np.integer)) and n_joints >= 1):
         raise InvalidInputError(f"n_joints must be an integer >= 1, got {n_joints!r}")
     rng = np.random.default_rng(seed)
-    joints, markers = [], []
+    options = np.random.default_rng([int(seed), 1]) if seed is not None else np.random.default_rng()
+    joints, markers, actions = [], [], 0
+    # Per link: commanded joints between it and the nearest marked link above it (0 when it is marked).
+    unmarked_depth, skipped = {}, {}
     for k in range(n_joints + 1):
         link = f"link{k}"
+        movable = True
         if k > 0:
             parent = f"link{int(rng.integers(0, k)) if branching else k - 1}"
             origin = np.eye(4)
             origin[:3, :3] = Rotation.random(random_state=rng).as_matrix()
             direction = rng.normal(size=3)
-            origin[:3, 3] = direction / np.linalg.norm(direction) * rng.uniform(0.1, 0.4)
+            origin[:3, 3] = direction / np.linalg.norm(direction) * rng.uniform(*link_length)
             axis = rng.normal(size=3)
             prismatic = rng.uniform() < prismatic_fraction
-            limit = rng.uniform(0.05, 0.3) if prismatic else rng.uniform(0.5, math.pi)
-            joints.append(Joint(f"joint{k - 1}", "prismatic" if prismatic else "revolute", parent, link,
-                                origin=origin, axis=axis / np.linalg.norm(axis), lower=-limit, upper=limit,
-                                action=k - 1))
+            limit = rng.uniform(*prismatic_range) if prismatic else rng.uniform(*revolute_range)
+            movable = (not (fixed_fraction > 0 and options.uniform() < fixed_fraction)
+                       or (k == n_joints and actions == 0))  # at least one joint moves
+            kind = "fixed" if not movable else ("prismatic" if prismatic else "revolute")
+            joints.append(Joint(f"joint{k - 1}", kind, parent, link, origin=origin, axis=axis / np.linalg.norm(axis),
+                                lower=-limit, upper=limit, action=actions if movable else None))
+            actions += int(movable)
+            depth = unmarked_depth[parent] + int(movable)
+        else:
+            depth = 0
+        unmarked = (k > 0 and depth < 2 and unmarked_fraction > 0 and options.uniform() < unmarked_fraction)
+        unmarked_depth[link] = depth if unmarked else 0
         link2marker = np.eye(4)
         link2marker[:3, :3] = Rotation.random(random_state=rng).as_matrix()
-        link2marker[:3, 3] = rng.uniform(-0.05, 0.05, size=3)
+        link2marker[:3, 3] = rng.uniform(-marker_offset, marker_offset, size=3)
+        if unmarked:
+            skipped[link] = Marker(k + 1, link, link2marker, 0.05)
+            continue
         markers.append(Marker(k + 1, link, link2marker, 0.05))
+        if second_marker_fraction > 0 and options.uniform() < second_marker_fraction:
+            extra = np.eye(4)
+            extra[:3, :3] = Rotation.random(random_state=options).as_matrix()
+            extra[:3, 3] = options.uniform(-marker_offset, marker_offset, size=3)
+            markers.append(Marker(100 + len(markers), link, extra, 0.05))
+    # A marked link ends every unmarked one's branch, or its joint would move nothing observed.
+    marked = {m.link for m in markers}
+    for link in reversed(list(skipped)):
+        if not _marked_below(joints, link, marked):
+            markers.append(skipped[link])
+            marked.add(link)
+    for d in range(dummy_actions):
+        parent = f"link{int(options.integers(0, n_joints + 1))}"
+        axis = options.normal(size=3)
+        joints.append(Joint(f"dummy_joint{d}", "revolute", parent, f"dummy_link{d}",
+                            origin=transform_from_xyz_rpy(options.uniform(-0.1, 0.1, size=3), (0.0, 0.0, 0.0)),
+                            axis=axis / np.linalg.norm(axis), lower=-1.5, upper=1.5, action=actions))
+        actions += 1
+    ids = [m.id for m in markers]
+    new_ids = (options.choice(np.arange(1, 100), size=len(ids), replace=False).tolist() if shuffle_ids
+               else list(range(1, len(ids) + 1)) if second_marker_fraction > 0 or unmarked_fraction > 0 else ids)
+    markers = [Marker(int(i), m.link, m.link2marker, m.size) for i, m in zip(new_ids, markers, strict=True)]
     return KinematicTree(joints, markers, root_link="link0")
 
 
+def _marked_below(joints, link, marked):
+    children = [j.child for j in joints if j.parent == link]
+    return any(c in marked or _marked_below(joints, c, marked) for c in children)
+
+
+def zoo_robot(seed, n_joints=None):
+    """A body of the robot zoo: everything that makes body-scheme learning hard, drawn from ``seed``.
+
+    Serial or branching (half each), 1-14 joints (``n_joints`` to fix it), a fifth of the movable joints prismatic,
+    a tenth fixed (passive links, e.g. a tool), a tenth of the links without a marker (an edge then spans two
+    joints), a fifth with a second marker, up to two dummy actions (joints moving nothing observed) and marker ids
+    drawn at random (so the lowest id, the learner's default root, may sit anywhere). Links are 0.08-0.25 m long,
+    markers up to 8 cm from their link's origin; revolute ranges +-(0.8 .. pi) rad, prismatic +-(0.15 .. 0.4) m, so
+    every joint moves its markers clearly at the paper's noise. Every marker is within two commanded joints of the
+    nearest marker above it (the learner's default ``max_complexity``).
+
+    Parameters
+    ----------
+    seed : int
+    n_joints : int, optional
+
+    Returns
+    -------
+    tree : KinematicTree
+    """
+    rng = np.random.default_rng([int(seed), 2])
+    n = int(rng.integers(1, 15)) if n_joints is None else int(n_joints)
+    return random_tree(n, seed, branching=bool(rng.uniform() < 0.5), prismatic_fraction=0.2,
+                       link_length=(0.08, 0.25), marker_offset=0.08, second_marker_fraction=0.2, fixed_fraction=0.1,
+                       unmarked_fraction=0.1, dummy_actions=int(rng.integers(0, 3)), shuffle_ids=True,
+                       revolute_range=(0.8, math.pi), prismatic_range=(0.15, 0.4))
 
 
 def default_world2root(distance=2.0, drop=0.5):

@@ -75,8 +75,8 @@ class Session:
     seed : int or None
     protocol : str
         ``"none"`` or the protocol that made the fault schedule.
-    sigma_trans, sigma_rot, visibility : float
-        Noise-model settings.
+    sigma_trans, sigma_rot, visibility, depth_ratio, flip_rate : float
+        Noise-model settings (:class:`~body_scheme_core.world.noise.ObservationModel`).
     frame_id : str
     tracker_rejected : dict of str to int
         Rendered perception: tracker detections that gave no pose, by reason.
@@ -104,6 +104,8 @@ class Session:
     sigma_trans: float = PAPER_SIGMA_TRANS
     sigma_rot: float = PAPER_SIGMA_ROT
     visibility: float = 1.0
+    depth_ratio: float = 1.0
+    flip_rate: float = 0.0
     frame_id: str = FRAME_ID
     tracker_rejected: dict = field(default_factory=dict)
     visible_truth: np.ndarray | None = None
@@ -179,7 +181,8 @@ class Session:
 
 
 def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS, sigma_rot=PAPER_SIGMA_ROT,
-                 visibility=1.0, world2root=None, always_visible=(), above_ground=None, ground_z=0.0):
+                 visibility=1.0, world2root=None, always_visible=(), above_ground=None, ground_z=0.0, depth_ratio=1.0,
+                 flip_rate=0.0):
     """Simulate motor babbling with noisy observations and faults.
 
     The commands are babbled on the nominal robot and the noise comes from a separate random stream, so sessions
@@ -194,7 +197,7 @@ def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS,
         Seed of ``np.random.default_rng``; equal seeds give identical sessions.
     faults : iterable of (int, Fault)
         Fault taking effect at each step, applied in step order to the body of the previous phase.
-    sigma_trans, sigma_rot, visibility, world2root, always_visible
+    sigma_trans, sigma_rot, visibility, world2root, always_visible, depth_ratio, flip_rate
         See :class:`ObservationModel`.
     above_ground, ground_z
         See :func:`babble`.
@@ -224,7 +227,8 @@ def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS,
         if index < len(faults):
             body = faults[index][1].apply(body, original)
             start = end
-    observer = ObservationModel(sigma_trans, sigma_rot, visibility, rng_noise, world2root, always_visible)
+    observer = ObservationModel(sigma_trans, sigma_rot, visibility, rng_noise, world2root, always_visible,
+                                depth_ratio, flip_rate)
     observations = observer.observe_array(root2marker, tree.marker_ids)
     command_stamps = START_STAMP_NS + int(round(DEFAULT_PERIOD * 1e9)) * np.arange(n_steps, dtype=np.int64)
     return Session(tree=tree, actions=A, executed=executed, observations=observations,
@@ -232,7 +236,8 @@ def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS,
                    faults=[(step, f"{step}:{fault.entry}") for step, fault in faults],
                    joint_names=tuple(tree.action_joint_names), command_stamps=command_stamps,
                    observation_stamps=command_stamps + IMAGE_DELAY_NS, world2root=observer.world2root,
-                   sigma_trans=sigma_trans, sigma_rot=sigma_rot, visibility=visibility, seed=seed)
+                   sigma_trans=sigma_trans, sigma_rot=sigma_rot, visibility=visibility, depth_ratio=depth_ratio,
+                   flip_rate=flip_rate, seed=seed)
 
 
 def joint_blocked_protocol(seed, n_per_block=100, blocked_angle=0.8, sigma_trans=PAPER_SIGMA_TRANS,

@@ -1,0 +1,351 @@
+"""The observation noise as the learner knows it: a prior at first, then estimated from the joint fit's residuals.
+
+The paper's validity thresholds are ``theta = 3 sigma`` (Sec. IV), with ``sigma`` the camera's marker noise; a user
+rarely knows it, and a real camera's is not isotropic: along the ray to a marker the position is several times worse
+than across it, and planar markers are now and then seen mirrored (the planar ambiguity). :class:`NoiseModel` starts
+from a prior (the configuration's ``sigma_trans``/``sigma_rot``, or a generous default for ``"auto"``) and, after
+every joint fit of the body scheme (:mod:`~body_scheme_core.calibration`), estimates per marker, in the camera frame:
+
+- ``lateral``: the per-axis standard deviation of the position across the ray (two axes),
+- ``depth``: the same along the ray,
+- ``rotation``: the per-axis standard deviation of the orientation's rotation vector.
+
+Each is a robust scale of the marker's residuals over the fit's window (:func:`robust_variance`: a median start, then
+the mean of the squares below the 99 % quantile, corrected for the cut), so mirrored orientations and misdetections
+are outliers, not noise. A residual of a fitted model is a little smaller than the noise (the fit used some of it):
+the estimate is divided by ``1 - p / N`` (``p`` fitted parameters, ``N`` residual components).
+
+A wrong local model makes its markers' residuals larger, and a noise estimate that followed them would hide the very
+error the validity thresholds must reveal. So the *pooled* estimate, which sets every threshold and detector, is the
+median over the markers (a minority of wrong markers cannot move it), and a marker's own estimate is only used to
+weigh its observations in the joint fit, shrunk towards the pooled one and kept within a factor 2 of it. Whether the
+body scheme explains each marker is a separate test that does not depend on the noise level
+(:mod:`~body_scheme_core.consistency`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import stats
+
+from .errors import InvalidInputError, ModelFileError
+
+__all__ = ["NoiseModel", "robust_variance", "ray_components"]
+
+#: Observations (over all markers) before the estimate replaces an ``auto`` prior, and per marker before its own
+#: estimate counts.
+MIN_OBSERVATIONS = 20
+MIN_PART_OBSERVATIONS = 10
+#: Pseudo-observations of a prior the user gave (it still yields to data, but not to the first few residuals).
+PRIOR_WEIGHT = 50
+#: Shrinkage of a marker's own estimate towards the pooled one (pseudo-observations), and the largest factor between
+#: the two (standard deviations).
+PART_SHRINKAGE = 20
+PART_FACTOR = 2.0
+#: The thresholds use the estimate's upper confidence bound: sigma times ``1 + THRESHOLD_MARGIN / sqrt(2 N)`` for ``N``
+#: residual components (the estimate's relative standard error is ``1 / sqrt(2 N)``), so that a CUSUM sensitive to a
+#: shift of one sigma does not alarm because the first few hundred residuals happened to be small.
+THRESHOLD_MARGIN = 3.0
+#: Smallest standard deviations (per axis) the thresholds may use: below this a simulator is noise-free, not a camera.
+MIN_SIGMA_TRANS = 2e-4
+MIN_SIGMA_ROT = 2e-4
+_QUANTILE = 0.99
+_CHANNELS = ("lateral", "depth", "rotation")
+#: Degrees of freedom of one residual's squared norm per channel: lateral 2 axes, depth 1, rotation 3.
+_DOF = np.array([2, 1, 3])
+
+
+def _truncation(dof):
+    """``(cut, factor)``: the chi-square quantile at :data:`_QUANTILE` and the mean of ``chi2(dof)`` below it."""
+    cut = stats.chi2.ppf(_QUANTILE, dof)
+    # E[X | X < c] for X ~ chi2(k): k P(chi2(k + 2) < c) / P(chi2(k) < c)
+    return cut, dof * stats.chi2.cdf(cut, dof + 2) / _QUANTILE
+
+
+_CUTS = [_truncation(k) for k in _DOF]
+_MEDIANS = stats.chi2.median(_DOF)
+
+
+def robust_variance(q, dof):
+    """Per-axis variance from squared residual norms ``q`` of ``dof`` axes each, robust to a minority of outliers.
+
+    ``q = sum of dof squared N(0, s^2)`` values, so ``q / s^2 ~ chi2(dof)``. Start from the median, ``s^2 =
+    median(q) / median(chi2)``, then average the ``q`` below the chi-square's 99 % quantile at that scale and correct
+    for the cut: efficient on Gaussian residuals, unmoved by a few mirrored orientations.
+
+    Parameters
+    ----------
+    q : array-like, shape (n,)
+    dof : int
+        1, 2 or 3.
+
+    Returns
+    -------
+    variance : float
+        NaN for an empty ``q``.
+    """
+    q = np.asarray(q, dtype=float)
+    if q.size == 0:
+        return math.nan
+    k = int(np.flatnonzero(_DOF == dof)[0]) if dof in _DOF else None
+    cut, factor = _CUTS[k] if k is not None else _truncation(dof)
+    median = _MEDIANS[k] if k is not None else stats.chi2.median(dof)
+    s2 = float(np.median(q)) / median
+    if s2 <= 0.0:
+        return float(np.mean(q)) / dof
+    for _ in range(2):
+        kept = q[q <= cut * s2]
+        if kept.size == 0:
+            break
+        s2 = float(np.mean(kept)) / factor
+    return s2
+
+
+def ray_components(residual, position):
+    """Squared lengths of a position residual across and along the ray to the observed marker.
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n, 3)
+        ``t_pred - t_obs`` in the camera frame (m).
+    position : ndarray, shape (n, 3)
+        Observed positions in the camera frame (the camera at the origin).
+
+    Returns
+    -------
+    lateral, depth : ndarray, shape (n,)
+        Squared norms (m^2) of the components perpendicular to and along the ray.
+    """
+    ray = position / np.maximum(np.linalg.norm(position, axis=1, keepdims=True), 1e-12)
+    along = np.einsum("ni,ni->n", residual, ray)
+    depth = along * along
+    return np.maximum(np.einsum("ni,ni->n", residual, residual) - depth, 0.0), depth
+
+
+class NoiseModel:
+    """The marker noise the learner works with (see the module docstring).
+
+    Parameters
+    ----------
+    part_ids : tuple of int
+    sigma_trans, sigma_rot : float
+        Prior: the 3D RMS of one marker's position (m) and rotation-vector (rad) error.
+    auto : (bool, bool)
+        Per channel (position, orientation): the prior is only a start, replaced by the estimate once
+        :data:`MIN_OBSERVATIONS` residuals exist (the configuration's ``"auto"``, whose prior is generous so that the
+        first trees form even with a noisy camera); otherwise it weighs like :data:`PRIOR_WEIGHT` observations.
+    validity_sigmas : float
+        ``theta = validity_sigmas * sigma`` (the paper's 3).
+    theta_trans, theta_rot : float or None
+        Fixed validity thresholds (m, rad); ``None``: ``validity_sigmas`` times the current estimate.
+
+    Attributes
+    ----------
+    n_observations : int
+        Residuals behind the pooled estimate (0 while it is the prior).
+    """
+
+    def __init__(self, part_ids, sigma_trans, sigma_rot, auto=(False, False), validity_sigmas=3.0, theta_trans=None,
+                 theta_rot=None):
+        self.part_ids = tuple(part_ids)
+        self._index = {p: k for k, p in enumerate(self.part_ids)}
+        self.auto = (bool(auto[0]), bool(auto[1]))
+        prior_t, prior_r = float(sigma_trans), float(sigma_rot)
+        if not (prior_t > 0 and prior_r > 0 and math.isfinite(prior_t) and math.isfinite(prior_r)):
+            raise InvalidInputError(f"noise priors must be finite and > 0, got {sigma_trans!r}, {sigma_rot!r}")
+        # Per-axis variances [lateral, depth, rotation]: the prior, isotropic.
+        self.prior = np.array([prior_t**2 / 3.0, prior_t**2 / 3.0, prior_r**2 / 3.0])
+        self.validity_sigmas = float(validity_sigmas)
+        self.fixed_theta = (theta_trans, theta_rot)
+        self.parts = np.full((len(self.part_ids), 3), np.nan)  # per-axis variances per marker (NaN: unknown)
+        self.part_n = np.zeros(len(self.part_ids), dtype=np.int64)
+        self.pooled = self.prior.copy()
+        self.n_observations = 0
+
+    @classmethod
+    def from_config(cls, part_ids, config):
+        """The noise model of a :class:`~body_scheme_core.config.BodySchemeConfig`: its priors (``"auto"`` or a
+        number), ``validity_sigmas`` and fixed thresholds."""
+        return cls(part_ids, config.prior_sigma_trans, config.prior_sigma_rot,
+                   (config.sigma_trans == "auto", config.sigma_rot == "auto"), config.validity_sigmas,
+                   config.theta_trans, config.theta_rot)
+
+    # ------------------------------------------------------------------ what the learner uses
+    @property
+    def sigma_trans(self):
+        """Pooled 3D RMS position noise (m): ``sqrt(2 lateral^2 + depth^2)``."""
+        lateral, depth, _ = self.axis_sigmas()
+        return math.sqrt(2.0 * lateral**2 + depth**2)
+
+    @property
+    def sigma_rot(self):
+        """Pooled 3D RMS orientation noise (rad)."""
+        return math.sqrt(3.0) * self.axis_sigmas()[2]
+
+    @property
+    def theta_trans(self):
+        """Translational validity threshold (m) of one marker: fixed, or ``validity_sigmas`` times the upper
+        confidence bound of ``sigma_trans`` (:data:`THRESHOLD_MARGIN`)."""
+        fixed = self.fixed_theta[0]
+        return float(fixed) if fixed is not None else self.validity_sigmas * self.sigma_trans * self._margin(0)
+
+    @property
+    def theta_rot(self):
+        """Rotational validity threshold (rad), likewise."""
+        fixed = self.fixed_theta[1]
+        return float(fixed) if fixed is not None else self.validity_sigmas * self.sigma_rot * self._margin(1)
+
+    def _margin(self, channel):
+        """``1 + THRESHOLD_MARGIN / sqrt(2 N)`` for the residual components behind a channel's estimate (1 for a
+        prior the user gave and no data; the generous ``auto`` prior needs none)."""
+        n = 3 * self.n_observations + (0 if self.auto[channel] else PRIOR_WEIGHT)
+        return 1.0 + THRESHOLD_MARGIN / math.sqrt(2.0 * n) if self.n_observations else 1.0
+
+    @property
+    def pooled(self):
+        """Pooled per-axis variances ``[lateral, depth, rotation]``, shape (3,)."""
+        return self._pooled
+
+    @pooled.setter
+    def pooled(self, value):
+        self._pooled = np.asarray(value, dtype=float)
+        floored = np.maximum(self._pooled, [MIN_SIGMA_TRANS**2, MIN_SIGMA_TRANS**2, MIN_SIGMA_ROT**2])
+        self._pooled_sigmas = tuple(float(v) for v in np.sqrt(floored))
+
+    def axis_sigmas(self, part=None):
+        """Per-axis standard deviations ``(lateral, depth, rotation)``: pooled, or of one marker for the joint fit
+        (its own estimate shrunk towards the pooled one and kept within a factor :data:`PART_FACTOR` of it)."""
+        if part is None or part not in self._index:
+            return self._pooled_sigmas
+        k = self._index[part]
+        n = self.part_n[k]
+        if n < MIN_PART_OBSERVATIONS:
+            return self._pooled_sigmas
+        pooled = np.square(self._pooled_sigmas)
+        own = (n * self.parts[k] + PART_SHRINKAGE * pooled) / (n + PART_SHRINKAGE)
+        own = np.clip(own, pooled / PART_FACTOR**2, pooled * PART_FACTOR**2)
+        return tuple(np.sqrt(own))
+
+    def rms(self):
+        """``(sigma_trans, sigma_rot)``: the pooled 3D RMS noise (m, rad)."""
+        return self.sigma_trans, self.sigma_rot
+
+    def per_part(self):
+        """``{part: (lateral, depth, rotation, n)}``: each marker's own per-axis estimate and its residual count
+        (NaN where it has none)."""
+        return {p: (*np.sqrt(self.parts[k]).tolist(), int(self.part_n[k])) for p, k in self._index.items()}
+
+    # ------------------------------------------------------------------ estimation
+    def update(self, parts, residual_t, residual_r, positions, dof_fraction=1.0, cap=False):
+        """Estimate the noise from the residuals of a joint fit.
+
+        Parameters
+        ----------
+        parts : array-like of int, shape (n,)
+            The marker of each residual.
+        residual_t : ndarray, shape (n, 3)
+            Position residuals ``t_pred - t_obs`` in the camera frame (m).
+        residual_r : ndarray, shape (n, 3)
+            Orientation residuals as rotation vectors (rad).
+        positions : ndarray, shape (n, 3)
+            Observed positions (camera frame), for the rays.
+        dof_fraction : float
+            ``1 - p / N`` of the fit: the expected fraction of the noise variance left in its residuals.
+        cap : bool
+            The pooled estimate may not exceed the prior (a provisional body scheme's residuals can only lower a
+            generous prior).
+
+        Returns
+        -------
+        changed : float
+            Largest relative change of a pooled per-axis standard deviation.
+        """
+        parts = np.asarray(parts)
+        if parts.size == 0:
+            return 0.0  # nothing explained yet: keep what is known
+        lateral, depth = ray_components(np.asarray(residual_t, dtype=float), np.asarray(positions, dtype=float))
+        q = np.stack([lateral, depth, np.einsum("ni,ni->n", residual_r, residual_r)], axis=1)
+        fraction = min(max(float(dof_fraction), 0.5), 1.0)
+        estimates, counts = [], []
+        self.parts[:] = np.nan
+        self.part_n[:] = 0
+        for part in np.unique(parts):
+            k = self._index.get(int(part))
+            if k is None:
+                continue
+            sel = parts == part
+            self.parts[k] = [robust_variance(q[sel, c], _DOF[c]) / fraction for c in range(3)]
+            self.part_n[k] = int(sel.sum())
+            if self.part_n[k] >= MIN_PART_OBSERVATIONS:
+                estimates.append(self.parts[k])
+                counts.append(self.part_n[k])
+        before = np.sqrt(self.pooled)
+        pooled = self.pooled.copy()
+        n = int(parts.size)
+        if estimates:
+            data = np.median(np.asarray(estimates), axis=0)
+        else:  # every marker seen only a few times: pool the residuals themselves
+            data = np.array([robust_variance(q[:, c], _DOF[c]) / fraction for c in range(3)])
+        for c, auto in ((0, self.auto[0]), (1, self.auto[0]), (2, self.auto[1])):
+            if auto:
+                pooled[c] = data[c] if n >= MIN_OBSERVATIONS else self.prior[c]
+            else:
+                pooled[c] = (PRIOR_WEIGHT * self.prior[c] + n * data[c]) / (PRIOR_WEIGHT + n)
+        if cap:
+            pooled = np.minimum(pooled, self.prior)
+        self.pooled = pooled
+        self.n_observations = n
+        return float(np.max(np.abs(np.sqrt(self.pooled) / before - 1.0)))
+
+    # ------------------------------------------------------------------ copies and state
+    def copy(self):
+        """An independent copy (for the learner's step snapshot)."""
+        clone = NoiseModel.__new__(NoiseModel)
+        vars(clone).update(vars(self))
+        clone.parts, clone.part_n = self.parts.copy(), self.part_n.copy()
+        return clone
+
+    def to_dict(self):
+        """JSON-serialisable state: the per-marker and pooled per-axis variances and the residual count."""
+        return {"parts": [[p, *(None if not math.isfinite(v) else float(v) for v in self.parts[k]),
+                           int(self.part_n[k])] for p, k in self._index.items()],
+                "pooled": self.pooled.tolist(), "n_observations": self.n_observations}
+
+    def load_dict(self, data):
+        """Restore :meth:`to_dict` output into this model (its parts and priors come from the configuration).
+
+        Raises
+        ------
+        ModelFileError
+            On a missing key, an unknown part, or a variance that is not a finite number >= 0.
+        """
+        try:
+            pooled = np.array(data["pooled"], dtype=float)
+            n = data["n_observations"]
+            rows = list(data["parts"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"bad noise state: {type(exc).__name__}: {exc}") from exc
+        if pooled.shape != (3,) or not np.all(np.isfinite(pooled)) or np.any(pooled <= 0):
+            raise ModelFileError(f"noise state: pooled variances must be 3 finite numbers > 0, got {data['pooled']!r}")
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise ModelFileError(f"noise state: n_observations must be an integer >= 0, got {n!r}")
+        parts = np.full((len(self.part_ids), 3), np.nan)
+        part_n = np.zeros(len(self.part_ids), dtype=np.int64)
+        for row in rows:
+            if not (isinstance(row, list) and len(row) == 5):
+                raise ModelFileError(f"noise state: a part row is [id, lateral, depth, rotation, n], got {row!r}")
+            part, values, count = row[0], row[1:4], row[4]
+            if isinstance(part, bool) or not isinstance(part, int) or part not in self._index:
+                raise ModelFileError(f"noise state refers to unknown part {part!r}")
+            if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+                raise ModelFileError(f"noise state: count of part {part} must be an integer >= 0, got {count!r}")
+            for v in values:
+                if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                                      or v < 0):
+                    raise ModelFileError(f"noise state: variance of part {part} must be a number >= 0, got {v!r}")
+            parts[self._index[part]] = [math.nan if v is None else float(v) for v in values]
+            part_n[self._index[part]] = count
+        self.parts, self.part_n, self.pooled, self.n_observations = parts, part_n, pooled, n
+        return self

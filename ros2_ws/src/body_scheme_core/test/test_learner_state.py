@@ -1,0 +1,151 @@
+"""Tests of the learner's state in memory and on disk: atomic steps, structure checks and strict state files
+(learner_state.py)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from body_scheme_core.errors import LearnerStepError, ModelFileError, StampOrderError
+from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learner_state import structural_problems
+from body_scheme_core.world import make_session, planar_2dof, powercube_6dof
+
+
+@pytest.fixture(scope="module")
+def session():
+    """The 6-DOF arm at the paper's noise."""
+    return make_session(powercube_6dof(), 160, seed=0, visibility=0.9, above_ground=True)
+
+
+def _learner(session, steps):
+    tree = session.tree
+    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions)
+    for t in range(steps):
+        learner.update(session.actions[t], session.observations[t])
+    return learner
+
+
+@pytest.mark.parametrize("where, steps", [("_bootstrap_step", 10), ("_calibrate", 10), ("_adapt_step", 70),
+                                          ("_learn_noise", 70)])
+def test_a_step_that_fails_inside_is_undone_whole(session, monkeypatch, where, steps):
+    """A defect raised anywhere in a step (while bootstrapping or after) leaves the learner exactly as it was: the
+    same state, step counter and structure; the error is a LearnerStepError caused by the original, and the next
+    step goes on."""
+    learner = _learner(session, steps)
+    original = getattr(BodySchemeLearner, where)
+
+    def broken(self, *args, **kwargs):
+        original(self, *args, **kwargs)  # change things first, then fail
+        raise KeyError("a defect")
+
+    monkeypatch.setattr(BodySchemeLearner, where, broken)
+    for t in range(steps, steps + 80):  # until the broken piece runs (the joint fit is not due every step)
+        before = json.dumps(learner.to_state(), sort_keys=True)
+        try:
+            learner.update(session.actions[t], session.observations[t])
+        except LearnerStepError as error:
+            assert isinstance(error.__cause__, KeyError) and "failed and was undone: KeyError" in str(error)
+            break
+    else:
+        pytest.fail(f"{where} never ran")
+    assert json.dumps(learner.to_state(), sort_keys=True) == before and learner.step == t
+    assert structural_problems(learner) == []
+    monkeypatch.undo()
+    learner.update(session.actions[t], session.observations[t])
+    assert learner.step == t + 1
+
+
+def test_undone_means_identical_to_a_learner_that_never_saw_the_step(session, monkeypatch):
+    """After a failed step the learner continues exactly like one that never tried it."""
+    a, b = _learner(session, 70), _learner(session, 70)
+
+    def broken(self, *args, **kwargs):
+        raise RuntimeError("a defect")
+
+    monkeypatch.setattr(BodySchemeLearner, "_flag_unexplained", broken)
+    monkeypatch.setattr(BodySchemeLearner, "_calibration_due", lambda self, step: True)
+    with pytest.raises(LearnerStepError):
+        a.update(session.actions[70], session.observations[70])
+    monkeypatch.undo()
+    for t in range(70, 80):
+        events_a = a.update(session.actions[t], session.observations[t])
+        events_b = b.update(session.actions[t], session.observations[t])
+        assert events_a == events_b
+    assert json.dumps(a.to_state(), sort_keys=True) == json.dumps(b.to_state(), sort_keys=True)
+
+
+def test_a_missing_stamp_does_not_reset_the_time_order():
+    """Stamps 10, None, 5: the third goes back in time and is refused."""
+    robot = planar_2dof()
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    learner.update([0.0, 0.0], {}, stamp=10.0)
+    learner.update([0.0, 0.0], {}, stamp=None)
+    with pytest.raises(StampOrderError):
+        learner.update([0.0, 0.0], {}, stamp=5.0)
+    assert learner.step == 2 and learner.last_stamp == 10.0
+
+
+def test_a_learner_without_actions_learns_static_relations():
+    """n_actions 0: markers on one rigid body, every relation static."""
+    rng = np.random.default_rng(0)
+    learner = BodySchemeLearner([1, 2], 0)
+    for _ in range(40):
+        Y2 = np.eye(4)
+        Y2[:3, 3] = [0.1, 0.0, 2.0] + rng.normal(scale=0.003, size=3)
+        Y1 = np.eye(4)
+        Y1[:3, 3] = [0.0, 0.0, 2.0] + rng.normal(scale=0.003, size=3)
+        learner.update([], {1: Y1, 2: Y2})
+    assert learner.phase == "steady" and [m.kind for m in learner.body_scheme.models] == ["static"]
+
+
+@pytest.fixture(scope="module")
+def state():
+    """A JSON state of a learner in steady state."""
+    robot = planar_2dof()
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    session = make_session(robot, 60, seed=1)
+    for t in range(60):
+        learner.update(session.actions[t], session.observations[t], stamp=float(t))
+    return json.loads(json.dumps(learner.to_state()))
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("last_stamp", "abc", "last_stamp must be a finite number"),
+    ("step", -5, "step must be an integer >= 0"),
+    ("step", 3.5, "step must be an integer"),
+    ("bootstrapping", 1, "bootstrapping must be true or false"),
+    ("rejected", {"flipped": -1}, "must be an integer >= 0"),
+    ("root", 99, "root must be one of the parts"),
+    ("lack_of_fit", [7], "unknown part"),
+    ("tree", [0, 0], "tree refers to unknown model ids"),
+    ("root_offset", {"pose": (2 * np.eye(4)).tolist(), "n": 3}, "root_offset pose is not a rigid transform"),
+    ("root_offset", {"pose": np.eye(4).tolist(), "n": -1}, "root_offset n must be an integer >= 0"),
+    ("root_offset", [], "root_offset must be an object"),
+])
+def test_every_field_of_a_state_is_checked(state, field, value, message):
+    """A field of the wrong type or out of range gives ModelFileError naming it."""
+    with pytest.raises(ModelFileError, match=message):
+        BodySchemeLearner.from_state(dict(state, **{field: value}))
+
+
+def test_a_non_rigid_pose_in_the_history_is_refused(state):
+    """A history observation that is not a rigid transform gives ModelFileError."""
+    history = json.loads(json.dumps(state["history"]))
+    pose = np.array(history[-1]["observations"][0][1])
+    pose[:3, :3] *= 2.0
+    history[-1]["observations"][0][1] = pose.tolist()
+    with pytest.raises(ModelFileError, match="not a rigid transform"):
+        BodySchemeLearner.from_state(dict(state, history=history))
+
+
+def test_structural_problems_name_what_is_wrong(state):
+    """A sound learner has none; a tree edge that is not tracked, or a monitor row shared by two models, is named."""
+    learner = BodySchemeLearner.from_state(state)
+    assert structural_problems(learner) == []
+    learner._tree[0] = 10_000
+    assert any("not tracked" in p for p in structural_problems(learner))
+    learner = BodySchemeLearner.from_state(state)
+    entries = list(learner._pool.tracked.values())
+    entries[1].row = entries[0].row
+    assert any("monitor rows" in p for p in structural_problems(learner))
