@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from .pool import Targets
-from .transforms import invert_transform
+from .transforms import invert_transform, rotational_error
 
 __all__ = ["ChainTargets"]
 
@@ -174,8 +174,7 @@ class ChainTargets:
         edges (:meth:`_isotropic_error`, m) and the rotation angle (rad)."""
         scale = self._theta[0] / math.sqrt(self._k2 * (2.0 * self._axis[0] + self._axis[1]))
         e_t = self._isotropic_error(predicted[:3, 3] - observed[:3, 3], observed[:3, 3], 0.0, scale)
-        cos = (float(np.sum(predicted[:3, :3] * observed[:3, :3])) - 1.0) / 2.0
-        return e_t, math.acos(max(-1.0, min(1.0, cos)))
+        return e_t, float(rotational_error(predicted, observed))
 
     def for_entries(self, entries, own=False, reverse=True):
         """Targets of the tracked models that have one.

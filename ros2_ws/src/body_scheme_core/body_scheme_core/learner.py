@@ -73,7 +73,7 @@ from .relative import PartPairs
 from .root_pose import RootPoseEstimator, RootWatch
 from .scheme import BodyScheme
 from .tracked import MEMORY, TREE
-from .transforms import mirror_about_ray, project_to_rotation, rotational_error
+from .transforms import invert_transform, mirror_about_ray, project_to_rotation, rotational_error
 from .validity import RATIO_CLIP
 
 __all__ = ["BodySchemeLearner", "PHASES", "STATE_VERSION"]
@@ -639,7 +639,7 @@ class BodySchemeLearner:
             if v in obs:
                 Zk, _, _, sk = chain.pair_target(u, v)
                 A.append(a)
-                Z.append(Zk if u == entry.parent else np.linalg.inv(Zk))
+                Z.append(Zk if u == entry.parent else invert_transform(Zk))
                 S.append(sk)
         model = entry.model
         try:

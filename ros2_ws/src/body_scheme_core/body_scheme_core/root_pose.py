@@ -18,7 +18,7 @@ from collections import deque
 
 import numpy as np
 
-from .transforms import project_to_rotation
+from .transforms import invert_transform, project_to_rotation
 from .validity import ValidityMonitor
 
 __all__ = ["RootPoseEstimator", "RootWatch", "register_points", "OUTLIER_SIGMAS", "OFFSET_SAMPLES"]
@@ -186,7 +186,7 @@ class RootWatch:
         while fewer than :data:`OFFSET_SAMPLES` were seen."""
         if observation is None or self.n_offset >= OFFSET_SAMPLES:
             return
-        D = np.linalg.inv(world2root) @ observation
+        D = invert_transform(world2root) @ observation
         n = self.n_offset = self.n_offset + 1
         self.offset[:3, 3] += (D[:3, 3] - self.offset[:3, 3]) / n
         self.offset[:3, :3] = project_to_rotation(self.offset[:3, :3] + (D[:3, :3] - self.offset[:3, :3]) / n)
