@@ -126,7 +126,7 @@ def main(argv=None):
                                               "URDF's, else joint_0, joint_1, ...)")
     parser.add_argument("--urdf", help="nominal URDF of the robot (with --markers): write the calibration report")
     parser.add_argument("--markers", help="nominal marker placement YAML")
-    parser.add_argument("--prefix", default="", help="prefix of link and joint names (default: none)")
+    parser.add_argument("--prefix", default="", help="prefix of link names (joints keep the robot's)")
     parser.add_argument("--steps", type=int, default=300, help="--simulate: babbling steps (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output directory")

@@ -18,9 +18,10 @@ pairs per second and measures:
 ``rss_growth_mb``
     Growth of the node's resident memory from 5 s into the run to its end (target <= 50).
 ``uncounted_drops``
-    Messages published minus those the node counted as received (``received.*`` on /diagnostics): messages lost
-    with no count anywhere (target 0). Everything received is learnt, refused (``rejected.*``), shed under overload
-    (``shed.*``) or still pending, each counted.
+    Messages published minus those the node counted as received (``received.*`` on /diagnostics) or as lost inside
+    DDS before it took them (``lost.*_messages``: keep-last overwrites, from the publisher's sequence numbers): messages
+    lost with no count anywhere (target 0). Everything received is learnt, refused (``rejected.*``), shed under
+    overload (``shed.*``) or still pending, each counted. ``lost_in_dds`` reports the lost ones apart.
 
 Also reported: the samples learnt, shed and pending at the end, and the counts by reason.
 """
@@ -132,7 +133,8 @@ def run_load(rate=1000.0, seconds=60.0, max_sample_age=0.05, seed=0):
         return float(np.max(np.diff([start, *times, until]))) if times else float(until - start)
 
     received = int(last.get("received.command", 0)) + int(last.get("received.observations", 0))
-    counts = {k: int(v) for k, v in last.items() if k.startswith(("rejected.", "shed.", "received."))}
+    lost = int(last.get("lost.command_messages", 0)) + int(last.get("lost.observations_messages", 0))
+    counts = {k: int(v) for k, v in last.items() if k.startswith(("rejected.", "shed.", "received.", "lost."))}
     return {
         "rate_hz": rate, "seconds": seconds, "max_sample_age_s": max_sample_age, "published_messages": 2 * n,
         "node_alive": alive,
@@ -141,7 +143,7 @@ def run_load(rate=1000.0, seconds=60.0, max_sample_age=0.05, seed=0):
         "prediction_latency_p99_ms": float(1e3 * np.percentile(latencies, 99)) if latencies else float("nan"),
         "prediction_latency_median_ms": float(1e3 * np.median(latencies)) if latencies else float("nan"),
         "rss_growth_mb": float(rss_end - rss_start) if rss_start is not None else float("nan"),
-        "uncounted_drops": 2 * n - received,
+        "uncounted_drops": 2 * n - received - lost, "lost_in_dds": lost,
         "samples_learnt": int(last.get("step", 0)), "pending_samples": int(last.get("pending_samples", 0)),
         "counts": counts,
     }

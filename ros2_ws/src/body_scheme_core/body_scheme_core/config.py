@@ -124,7 +124,8 @@ class BodySchemeConfig:
         Plausibility gate derived from the robot, m: once the body scheme is calibrated, an observed pose farther
         from the root part than the robot's learned reach (the largest root-to-part distance the calibrated scheme
         predicts over the history's actions) plus this margin is rejected as ``out_of_workspace``. Faults (a bent
-        limb, a tool) move parts by less than this; a 5 m outlier is refused. ``inf`` turns the gate off.
+        limb, a tool) move parts by less than this; a 5 m outlier is refused. Finite: a large margin (100 m)
+        turns the gate off in effect.
     action_margin : float
         Plausibility gate on commands, as a fraction of each joint's range: actions beyond the joint limits by more
         than this are refused (``update`` raises ``InvalidInputError``).
@@ -196,12 +197,10 @@ class BodySchemeConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
                 raise InvalidInputError(f"{name} must be an integer >= 0, got {value!r}")
-        for name in ["dominance_margin", "challenge_margin", "max_distance"]:
+        for name in ["dominance_margin", "challenge_margin", "max_distance", "workspace_margin"]:
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
-        if not (isinstance(self.workspace_margin, (int, float)) and self.workspace_margin > 0):  # inf allowed
-            raise InvalidInputError(f"workspace_margin must be a number > 0 (inf: off), got {self.workspace_margin!r}")
         if not (isinstance(self.action_margin, (int, float)) and math.isfinite(self.action_margin)
                 and self.action_margin >= 0):
             raise InvalidInputError(f"action_margin must be a finite number >= 0, got {self.action_margin!r}")

@@ -21,10 +21,15 @@ import numpy as np
 from .config import BodySchemeConfig
 from .errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
 from .scheme import BodyScheme
+from .structure import n_candidates
 
 __all__ = [
     "OBSERVATION_TOLERANCE",
     "MAX_ACTION",
+    "MAX_PARTS",
+    "MAX_ACTIONS",
+    "MAX_CANDIDATES",
+    "check_body_size",
     "Rejection",
     "check_config",
     "check_part_ids",
@@ -44,6 +49,11 @@ OBSERVATION_TOLERANCE = 1e-4
 #: Largest magnitude of an action (rad or m) taken without joint limits: no joint position is this large (a continuous
 #: joint 1,500 turns away from zero), so a larger command is in other units or corrupt, and kernels would overflow.
 MAX_ACTION = 1e4
+#: Most parts (markers) and actions (joints) of one learner: two arms and a torso with hands have about 40 of each.
+MAX_PARTS = 100
+MAX_ACTIONS = 100
+#: Most candidate local models bootstrapping may start with (about 16 kB each: 60,000 is about 1 GB).
+MAX_CANDIDATES = 60_000
 
 
 class Rejection(NamedTuple):
@@ -97,6 +107,9 @@ def check_part_ids(part_ids):
     parts = tuple(int(p) for p in parts)
     if not parts or len(set(parts)) != len(parts):
         raise InvalidInputError(f"part_ids must be non-empty and unique, got {parts}")
+    if len(parts) > MAX_PARTS:
+        raise InvalidInputError(f"{len(parts)} parts: a learner takes at most {MAX_PARTS} (split the robot into "
+                                f"learners of one limb each)")
     return parts
 
 
@@ -104,7 +117,24 @@ def check_n_actions(n_actions):
     """The number of actions m as an int >= 0 (bools refused)."""
     if isinstance(n_actions, bool) or not isinstance(n_actions, (int, np.integer)) or n_actions < 0:
         raise InvalidInputError(f"n_actions must be an integer >= 0, got {n_actions!r}")
+    if n_actions > MAX_ACTIONS:
+        raise InvalidInputError(f"{n_actions} actions: a learner takes at most {MAX_ACTIONS} (split the robot into "
+                                f"learners of one limb each)")
     return int(n_actions)
+
+
+def check_body_size(n_parts, n_actions, config):
+    """Refuse a body whose bootstrapping would start with more than :data:`MAX_CANDIDATES` candidate models.
+
+    The candidates are every pair of parts times every action subset of at most ``config.max_complexity`` actions and
+    model class (:func:`~body_scheme_core.structure.n_candidates`): quadratic in the parts, polynomial in the actions.
+    """
+    count = n_candidates(n_parts, n_actions, config.max_complexity, config.candidate_kinds)
+    if count > MAX_CANDIDATES:
+        raise InvalidInputError(
+            f"{n_parts} parts and {n_actions} actions at max_complexity {config.max_complexity} make {count:,} "
+            f"candidate models to bootstrap; at most {MAX_CANDIDATES:,} fit in memory: lower max_complexity, or "
+            f"start from the robot's specification (urdf_path)")
 
 
 def root_part(parts, root=None):

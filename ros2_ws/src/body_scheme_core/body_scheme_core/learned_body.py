@@ -4,7 +4,8 @@
 :class:`~body_scheme_core.world.tree.KinematicTree` (and :func:`learned_urdf` that into URDF text for
 robot_state_publisher, MoveIt or pybullet):
 
-- a link ``<prefix>part_<id>`` per body part and a link ``<prefix>marker_<id>`` on a fixed joint for its marker; the
+- a link ``<prefix>part_<id>`` per body part and a link ``<prefix>marker_<id>`` on a fixed joint ``marker_<id>_joint``
+  for its marker (the prefix goes on links only: joints keep the robot's names); the
   root part's link is its marker's frame;
 - a ``revolute`` or ``prismatic`` joint per one-action rigid-joint edge, named after the action's joint (so the
   commands drive it), its axis through the learned axis line, its limits the trained range; the joint frame has the
@@ -112,7 +113,8 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
     lower, upper : array-like, shape (m,)
         The trained range of each action (the joints' limits; mid-range actions fix GP edges).
     prefix : str
-        Prefix of every link and joint name (two robots in one TF tree).
+        Prefix of every link name (two robots in one TF tree). Joint names keep the robot's joint names, so its
+        JointState drives them, as robot_state_publisher's ``frame_prefix`` expects.
 
     Returns
     -------
@@ -141,19 +143,19 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
             if c is not None:
                 joint_frame[:3, 3] = c
             limits = sorted((scale * lower[action], scale * upper[action]))
-            joints.append(Joint(prefix + joint_names[action], kind, part[parent], part[child],
+            joints.append(Joint(joint_names[action], kind, part[parent], part[child],
                                 origin=link2marker[parent] @ joint_frame, axis=u, lower=limits[0], upper=limits[1],
                                 action=len(used)))
             used.append(action)
             link2marker[child] = invert_transform(joint_frame) @ Z0
-            exported.append(LearnedJoint(parent, child, kind, prefix + joint_names[action], action, model.kind,
+            exported.append(LearnedJoint(parent, child, kind, joint_names[action], action, model.kind,
                                          scale, tuple(u), () if c is None else tuple(c)))
             if scale != 1.0:
                 notes.append(f"{parent}->{child}: joint {joint_names[action]} turns {scale:.6g} per action unit; "
                              f"its position is {scale:.6g} x the command")
             continue
         Z = _edge_transforms(edge, n_actions, [mid[list(model.actions)]])[0]  # fixed at mid-range
-        name = f"{prefix}part_{parent}_to_part_{child}"
+        name = f"part_{parent}_to_part_{child}"
         joints.append(Joint(name, "fixed", part[parent], part[child], origin=link2marker[parent] @ Z))
         link2marker[child] = np.eye(4)
         exported.append(LearnedJoint(parent, child, "fixed", name, None, model.kind))
@@ -163,7 +165,7 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
                          f"its prediction for mid-range actions {mid[list(model.actions)].round(4).tolist()}")
     markers = []
     for p in scheme.parts:
-        joints.append(Joint(f"{marker_link(prefix, p)}_joint", "fixed", part[p], marker_link(prefix, p),
+        joints.append(Joint(f"marker_{p}_joint", "fixed", part[p], marker_link(prefix, p),
                             origin=link2marker[p]))
         markers.append(Marker(p, marker_link(prefix, p)))
     tree = KinematicTree(joints, markers, root_link=part[scheme.root])

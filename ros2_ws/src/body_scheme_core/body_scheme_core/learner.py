@@ -55,6 +55,7 @@ from .events import Event, format_errors
 from .inputs import (
     check_action_bounds,
     check_action_vector,
+    check_body_size,
     check_config,
     check_initial_models,
     check_n_actions,
@@ -173,6 +174,7 @@ class BodySchemeLearner:
         self._history = deque(maxlen=config.history_length)
         self._root_pose = RootPoseEstimator(config.root_window, self.root)
         if initial_models is None:
+            check_body_size(len(self.part_ids), self.n_actions, config)
             max_dim = config.max_complexity
         else:
             models = check_initial_models(initial_models, self.part_ids, self.root, self.n_actions)

@@ -119,6 +119,18 @@ def _finite_float(text):
     return value
 
 
+#: Longest integer a state file may hold (int64 has 19 digits); Python refuses to parse beyond 4,300 digits anyway.
+MAX_INTEGER_DIGITS = 20
+
+
+def _bounded_int(text):
+    """JSON integer -> int, refusing numbers longer than :data:`MAX_INTEGER_DIGITS` before converting them."""
+    if len(text.lstrip("-")) > MAX_INTEGER_DIGITS:
+        raise ModelFileError(f"state file contains an integer of {len(text)} characters; at most "
+                             f"{MAX_INTEGER_DIGITS} digits are allowed")
+    return int(text)
+
+
 def load_state(path):
     """Read a state file written by :func:`save_state` and rebuild the learner.
 
@@ -147,13 +159,18 @@ def load_state(path):
     if not text.strip():
         raise ModelFileError(f"state file {path!r} is empty")
     try:
-        document = json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float)
+        document = json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float,
+                              parse_int=_bounded_int)
+    except ModelFileError as exc:
+        raise ModelFileError(f"state file {path!r}: {exc}") from exc
     except json.JSONDecodeError as exc:
         raise ModelFileError(
             f"state file {path!r} is not valid JSON (truncated or corrupt?): {exc.msg} at line {exc.lineno} "
             f"column {exc.colno} of {len(text)} characters") from exc
     except RecursionError as exc:
         raise ModelFileError(f"state file {path!r} is nested too deeply to be a state file") from exc
+    except ValueError as exc:  # numbers Python will not convert, whatever the parser's hooks
+        raise ModelFileError(f"state file {path!r} holds a number that cannot be read: {exc}") from exc
     if not isinstance(document, dict):
         raise ModelFileError(f"state file {path!r} must hold a JSON object, got {type(document).__name__}")
     if document.get("format") != STATE_FORMAT:
@@ -173,3 +190,6 @@ def load_state(path):
         return BodySchemeLearner.from_state(document["state"])
     except ModelFileError as exc:
         raise ModelFileError(f"state file {path!r}: {exc}") from exc
+    except (RecursionError, MemoryError, ArithmeticError, LookupError, TypeError, ValueError) as exc:
+        # learner_from_state checks every field; anything it lets through is still a bad file, never a crash
+        raise ModelFileError(f"state file {path!r}: bad learner state: {type(exc).__name__}: {exc}") from exc

@@ -185,3 +185,18 @@ def test_an_action_no_joint_can_have_is_out_of_range_even_without_limits():
     with pytest.raises(ActionOutOfRangeError):
         learner.update([-1e300, 0.0], {})
     assert learner.step == 0
+
+
+def test_bodies_beyond_what_fits_in_memory_are_refused_with_the_reason():
+    """200 parts or 300 joints ended in a MemoryError after 4-5 GB before issue 20; now one clear line, at once."""
+    from body_scheme_core.config import BodySchemeConfig
+    from body_scheme_core.inputs import MAX_CANDIDATES, check_body_size, check_n_actions, check_part_ids
+
+    with pytest.raises(InvalidInputError, match="200 parts"):
+        check_part_ids(range(200))
+    with pytest.raises(InvalidInputError, match="300 actions"):
+        check_n_actions(300)
+    with pytest.raises(InvalidInputError, match=f"at most {MAX_CANDIDATES:,}"):
+        check_body_size(40, 30, BodySchemeConfig())
+    check_body_size(20, 14, BodySchemeConfig())  # 20 markers on a 14-joint dual arm: fine
+    check_body_size(40, 30, BodySchemeConfig(max_complexity=1, candidate_kinds=("static", "gp")))  # fewer: fine

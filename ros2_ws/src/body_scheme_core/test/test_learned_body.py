@@ -59,7 +59,7 @@ def test_gp_edges_are_fixed_at_mid_range_and_flagged():
     urdf = learned_urdf(learned_tree(learner.body_scheme, robot.action_joint_names, robot.action_lower,
                                      robot.action_upper, prefix="robot2/"))
     assert urdf.count("NOTE ") == 2 and "gp model" in urdf and 'type="revolute"' not in urdf
-    assert 'name="robot2/part_1"' in urdf
+    assert 'name="robot2/part_1"' in urdf and 'name="marker_1_joint"' in urdf and "robot2/marker_1_joint" not in urdf
     body = learned_tree(learner.body_scheme, robot.action_joint_names, robot.action_lower, robot.action_upper)
     report = calibration_report(body, robot)
     assert report["joints"] == [] and len(report["fixed"]) == 2 and "gp" in format_report(report)
@@ -72,3 +72,15 @@ def test_bad_limits_and_too_few_joint_names_are_refused():
         learned_tree(learner.body_scheme, robot.action_joint_names, [1.0, 1.0], [0.0, 0.0])
     with pytest.raises(InvalidInputError, match="joint names"):
         learned_tree(learner.body_scheme, ["only_one"], [0.0], [1.0])
+
+
+def test_a_prefix_goes_on_links_only_joints_keep_the_robots_names():
+    """With a prefix (two robots in one TF tree) the robot's JointState names still drive the learned joints, as
+    robot_state_publisher's frame_prefix expects; before issue 20 they became ``robot2/joint1``."""
+    robot = planar_2dof()
+    learner, _ = _learn(robot)
+    body = learned_tree(learner.body_scheme, robot.action_joint_names, robot.action_lower, robot.action_upper,
+                        prefix="robot2/")
+    joints = body.tree.joints
+    assert sorted(j.name for j in joints if j.type == "revolute") == sorted(robot.action_joint_names)
+    assert all(link.startswith("robot2/") for j in joints for link in (j.parent, j.child))

@@ -230,3 +230,17 @@ def test_encoding_then_writing_is_saving(trained, tmp_path):
     saved, encoded = (json.loads((tmp_path / name).read_text()) for name in ("saved.json", "written.json"))
     assert {k: v for k, v in saved.items() if k != "saved_at"} == {k: v for k, v in encoded.items() if k != "saved_at"}
     assert load_state(written).step == learner.step
+
+
+def test_huge_integers_and_deep_nesting_are_model_file_errors(trained, tmp_path):
+    """A 5000-digit integer (Python refuses to convert it: a ValueError before issue 20) or a number nested 100,000
+    lists deep is refused as a ModelFileError, anywhere in the file."""
+    learner, _ = trained
+    path, _ = _document(learner, tmp_path)
+    text = path.read_text()
+    for mutated in (text.replace('"step":', '"step":' + "7" * 5000 + ',"was":', 1),
+                    text.replace('"version":1', '"version":' + "1" * 30, 1),
+                    text.replace('"step":', '"step":' + "[" * 100_000 + "]" * 100_000 + ',"was":', 1)):
+        path.write_text(mutated)
+        with pytest.raises(ModelFileError):
+            load_state(path)

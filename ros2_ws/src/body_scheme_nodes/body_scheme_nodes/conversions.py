@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -153,7 +154,7 @@ def actions_from_joint_state(msg, joint_names):
     """
     if len(msg.name) != len(msg.position):
         raise InvalidInputError(f"JointState has {len(msg.name)} names but {len(msg.position)} positions")
-    repeated = sorted({name for name in msg.name if list(msg.name).count(name) > 1})
+    repeated = sorted(name for name, count in Counter(msg.name).items() if count > 1)  # linear in the names
     if repeated:
         raise InvalidInputError(f"JointState names joint(s) {repeated} more than once")
     by_name = dict(zip(msg.name, msg.position, strict=True))

@@ -8,18 +8,47 @@ learn from identical samples.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError, LearnerStepError, StampOrderError
 
 from . import conversions
 
-__all__ = ["MESSAGE_KINDS", "feed_message", "learn_sample"]
+__all__ = ["MESSAGE_KINDS", "MessageLimits", "DEFAULT_LIMITS", "oversize_problem", "feed_message", "learn_sample"]
 
 #: Kinds of message scheme_node learns from: a ``sensor_msgs/JointState`` command or a ``MarkerPoses`` observation.
 MESSAGE_KINDS = ("command", "observations")
 
 
-def feed_message(pairer, kind, msg, joint_names):
-    """Convert one message and hand it to the pairer.
+class MessageLimits(NamedTuple):
+    """The largest message scheme_node works on; a larger one is refused whole (``oversized_message``) before any
+    conversion. ``max_bytes`` is checked on the serialized message, before it is even deserialized
+    (:class:`~body_scheme_nodes.intake.BatchIntake`); the counts here, on the deserialized one."""
+
+    max_bytes: int = 1 << 20
+    max_joint_names: int = 1000
+    max_markers: int = 1000
+
+
+#: The defaults of scheme_node's ``max_message_bytes``, ``max_joint_names`` and ``max_markers``.
+DEFAULT_LIMITS = MessageLimits()
+
+
+def oversize_problem(kind, msg, limits):
+    """Why a deserialized message is too large for ``limits`` (more joint names or markers), or None; O(1)."""
+    if kind == "command":
+        count = max(len(msg.name), len(msg.position))
+        if count > limits.max_joint_names:
+            return f"JointState with {count} joints (at most {limits.max_joint_names}; max_joint_names)"
+    else:
+        count = max(len(msg.marker_ids), len(msg.poses))
+        if count > limits.max_markers:
+            return f"MarkerPoses with {count} markers (at most {limits.max_markers}; max_markers)"
+    return None
+
+
+def feed_message(pairer, kind, msg, joint_names, frame_id="", limits=DEFAULT_LIMITS):
+    """Check one message's size and frame, convert it and hand it to the pairer.
 
     Parameters
     ----------
@@ -29,6 +58,10 @@ def feed_message(pairer, kind, msg, joint_names):
     msg : object
     joint_names : sequence of str
         Joint names in action-vector order.
+    frame_id : str
+        The camera frame: observations in another frame are refused (``wrong_frame``); an observation with an empty
+        ``frame_id`` is taken to be in it. ``""`` accepts every frame.
+    limits : MessageLimits
 
     Returns
     -------
@@ -36,10 +69,17 @@ def feed_message(pairer, kind, msg, joint_names):
         Learning samples ``(observation stamp, actions, observations)`` this message resolved (commands only).
     rejections : list of (str, str)
         Reason code and detail of everything dropped: ``invalid_pose`` / ``repeated_id`` per marker, or
-        ``bad_command_message`` / ``bad_observations_message`` for a message that is unusable as a whole.
+        ``bad_command_message`` / ``bad_observations_message`` for a message that is unusable as a whole,
+        ``oversized_message`` (more names or markers than ``limits`` allow) or ``wrong_frame``.
     """
     if kind not in MESSAGE_KINDS:
         raise ValueError(f"kind must be one of {MESSAGE_KINDS}, got {kind!r}")
+    problem = oversize_problem(kind, msg, limits)
+    if problem is not None:
+        return [], [("oversized_message", problem)]
+    if kind == "observations" and frame_id and msg.header.frame_id and msg.header.frame_id != frame_id:
+        return [], [("wrong_frame", f"MarkerPoses in frame {msg.header.frame_id[:100]!r}, not the camera frame "
+                                    f"{frame_id!r}")]
     try:
         if kind == "command":
             stamp, actions = conversions.actions_from_joint_state(msg, joint_names)

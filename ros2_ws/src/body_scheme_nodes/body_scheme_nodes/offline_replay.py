@@ -175,7 +175,8 @@ def replay_bag(path, settings, progress=None):
     start = time.perf_counter()
     for item in read_messages(path, [COMMANDS, OBSERVATIONS]):
         kind = "command" if item.topic == COMMANDS else "observations"
-        samples, rejections = feed_message(pairer, kind, item.msg, settings.joint_names)
+        samples, rejections = feed_message(pairer, kind, item.msg, settings.joint_names, settings.frame_id,
+                                           settings.message_limits)
         result.rejected.update(code for code, _ in rejections)
         learn(samples)
         if kind == "command":

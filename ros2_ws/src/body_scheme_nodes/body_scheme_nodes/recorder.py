@@ -3,7 +3,9 @@
 :class:`GraphRecorder` subscribes to each topic with ``raw=True`` (the CDR bytes as they came over DDS, not decoded
 and re-encoded) and writes them with ``rosbags`` into a zstd-compressed mcap, each channel with its message definition
 embedded, so Foxglove, ``ros2 bag play`` and the ``mcap`` library's ROS 2 decoder read it from the file alone.
-Latched topics are subscribed transient local, so their last message is recorded even if it was sent before.
+Latched topics are subscribed transient local, so their last message is recorded even if it was sent before. Each
+channel carries its QoS in the bag's metadata (``offered_qos_profiles``, as ``ros2 bag record`` writes it), so a replay
+offers latched topics latched again.
 """
 
 from __future__ import annotations
@@ -12,14 +14,28 @@ import pathlib
 import threading
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
 from .bag_io import name_the_distro, typestore
 
-__all__ = ["GraphRecorder"]
+__all__ = ["GraphRecorder", "bag_qos"]
 
 _VOLATILE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-_LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def bag_qos(profile):
+    """The rosbags ``Qos`` of an rclpy ``QoSProfile`` (reliable or best effort, volatile or transient local, keep
+    last with its depth); durations are left at the middleware's default (0)."""
+    default = QosTime(0, 0)
+    return Qos(history=QosHistory.KEEP_LAST, depth=profile.depth,
+               reliability=QosReliability.RELIABLE if profile.reliability == ReliabilityPolicy.RELIABLE
+               else QosReliability.BEST_EFFORT,
+               durability=QosDurability.TRANSIENT_LOCAL if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+               else QosDurability.VOLATILE,
+               deadline=default, lifespan=default, liveliness=QosLiveliness.AUTOMATIC,
+               liveliness_lease_duration=default, avoid_ros_namespace_conventions=False)
 
 
 def _type_name(msg_class):
@@ -51,10 +67,12 @@ class GraphRecorder:
         store = typestore()
         for topic, msg_class, latched in topics:
             name = topic if topic.startswith("/") else f"/{topic}"
-            connection = self._writer.add_connection(name, _type_name(msg_class), typestore=store)
+            qos = LATCHED_QOS if latched else _VOLATILE
+            connection = self._writer.add_connection(name, _type_name(msg_class), typestore=store,
+                                                     offered_qos_profiles=[bag_qos(qos)])
             self.counts[name] = 0
             node.create_subscription(msg_class, topic, lambda data, c=connection, n=name: self._write(c, n, data),
-                                     _LATCHED if latched else _VOLATILE, raw=True)
+                                     qos, raw=True)
 
     def _write(self, connection, name, data):
         with self._lock:

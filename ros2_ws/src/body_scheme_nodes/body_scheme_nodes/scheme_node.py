@@ -35,7 +35,7 @@ Parameters
 part_ids : int[]  (required)          marker ids of the body parts
 joint_names : string[]  (required)    joint names in action-vector order
 action_lower, action_upper : double[] joint limits (default +-pi)
-frame_id : string "camera"            frame of observations and predictions
+frame_id : string "camera"            frame of observations (others refused: wrong_frame; "" is it) and predictions
 update_period : double 0.02 s         messages are taken in this often; the learning thread works at least this often
 settle_time : 0.0, max_delay : 2.0, pairing_grace : 0.2 (s)   pairing rule, see body_scheme_core.pairing
 checkpoint_path : string ""           state file; restored on start if it exists; "" disables checkpoints
@@ -47,7 +47,7 @@ unstamped_policy : "receipt_time"     zero-stamped messages: stamped with their 
                                       restamped.unstamped) or, with "reject", refused (unstamped)
 stall_timeout : double 10.0 s         input arriving but no learning step for this long: /diagnostics ERROR
 hardware_id : string ""               diagnostics hardware_id ("" = the node's fully qualified name)
-tf_prefix : string ""                 prefix of the TF frames and URDF links (two robots in one TF tree)
+tf_prefix : string ""                 prefix of the TF frames and URDF links; joints keep the robot's names
 view_period : double 0.1 s            markers, poses and /tf at most this often
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
                                       $ROS_HOME/body_scheme)
@@ -59,6 +59,10 @@ max_inbox : int 2000, max_pending_samples : int 500, max_sample_age : double 5.0
                                       first and counted (shed.*); a sample older than max_sample_age (since DDS
                                       received its message) when its turn comes is shed (shed.stale_samples), so
                                       predictions are at most about max_sample_age plus one learning step late
+max_message_bytes : int 1048576, max_joint_names : int 1000, max_markers : int 1000
+                                      larger input messages are refused whole (rejected.oversized_message)
+service_queue_depth : int 100, max_requests_per_take : int 20
+                                      requests served per service each update_period; the rest answered "busy"
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
@@ -66,8 +70,6 @@ learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...)
 from __future__ import annotations
 
 import math
-import os
-import pathlib
 import threading
 import time
 from collections import Counter, deque
@@ -83,15 +85,16 @@ from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
-from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.errors import BodySchemeError, ModelFileError
 from body_scheme_core.learned_body import learned_tree, learned_urdf
 from body_scheme_core.persistence import encode_state, load_state, write_state_text
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
 from . import conversions, state_files, view
-from .intake import BatchIntake
-from .message_feed import feed_message, learn_sample
+from .checkpoint import Checkpoint
+from .intake import BatchIntake, RequestIntake
+from .message_feed import feed_message, learn_sample, oversize_problem
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
 
@@ -111,9 +114,11 @@ class SchemeNode(Node):
         self.settings = SchemeSettings.from_parameters(values)
         self.joint_names = list(self.settings.joint_names)
         self.frame_id = self.settings.frame_id
-        self.checkpoint_path = self.settings.checkpoint_path
         self.pairer = self.settings.new_pairer()
-
+        # Refuses a directory and a checkpoint another node holds (CheckpointError: one FATAL line, exit 1).
+        self.checkpoint = Checkpoint(self.settings.checkpoint_path) if self.settings.checkpoint_path else None
+        if self.checkpoint is not None and self.checkpoint.removed_orphans:
+            self.get_logger().warn(f"removed temporary files a killed save left: {self.checkpoint.removed_orphans}")
         self.learner = self._restore_or_create()
         self.started = self._now()
         self.rejected = Counter()
@@ -126,14 +131,16 @@ class SchemeNode(Node):
         # under _learner_lock, so no write overlaps the read.
         self.shed = Counter()
         self.received = Counter()  # messages taken in from the subscriptions, by kind
+        self.refused_at_intake = Counter()  # oversized messages, by the executor's thread under _lock
+        self.requests = Counter()  # requests answered and refused busy, by the executor's thread
         self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
         self.restamped = Counter()
         self.last_input_time = self.last_learn_time = None  # node clock, s: the watchdog's inputs
         self._lock = threading.Lock()
 
-        depth = self.settings.queue_depth
-        self._intake = {"command": BatchIntake(self, JointState, "joint_commands", depth),
-                        "observations": BatchIntake(self, MarkerPoses, "observations", depth)}
+        depth, max_bytes = self.settings.queue_depth, self.settings.max_message_bytes
+        self._intake = {"command": BatchIntake(self, JointState, "joint_commands", depth, max_bytes),
+                        "observations": BatchIntake(self, MarkerPoses, "observations", depth, max_bytes)}
         self.pub_predicted = self.create_publisher(MarkerPoses, "predicted_poses", 10)
         self.pub_structure = self.create_publisher(BodySchemeStructure, "body_scheme/structure", LATCHED)
         self.pub_snapshot = self.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
@@ -149,13 +156,15 @@ class SchemeNode(Node):
         self._recent_events = {}  # child part -> (kind, node time) of the latest replacement or reinstatement
         self.n_observation_messages = 0
         self._last_progress = None
-        self.create_service(StatePath, "~/save", self._on_save)
-        self.create_service(StatePath, "~/load", self._on_load)
-        self.create_service(Trigger, "~/reset", self._on_reset)
-        self.create_service(GetRobotDescription, "~/get_urdf", self._on_get_urdf)
+        depth = self.settings.service_queue_depth
+        self._request_intakes = {name: (RequestIntake(self, srv_type, f"~/{name}", depth), handler)
+                          for name, srv_type, handler in (
+                              ("save", StatePath, self._on_save), ("load", StatePath, self._on_load),
+                              ("reset", Trigger, self._on_reset), ("get_urdf", GetRobotDescription, self._on_get_urdf))}
         self.create_timer(self.settings.update_period, self._take_messages)
+        self.create_timer(self.settings.update_period, self._answer_requests)
         self.create_timer(1.0, self._publish_diagnostics)
-        if self.checkpoint_path:
+        if self.checkpoint is not None:
             self.create_timer(self.settings.checkpoint_period, self._checkpoint)
         self._last_structure_key = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -172,28 +181,29 @@ class SchemeNode(Node):
 
     # -- set-up -------------------------------------------------------------------------------------------------
     def _restore_or_create(self):
-        """The checkpoint's learner if it is readable and of this robot; otherwise it is moved aside (never
+        """The checkpoint's learner if it loads and is of this robot; otherwise the file is moved aside (never
         overwritten: a newer version's state survives a rollback) and learning starts afresh."""
-        path = self.checkpoint_path
-        if path and pathlib.Path(path).exists():
-            try:
-                state_files.check_loadable(pathlib.Path(path), self.settings.max_state_bytes)
-                learner = load_state(path)
-                problem = self._foreign(learner)
-            except BodySchemeError as error:
-                problem = str(error)
-            if problem is None:
-                self.get_logger().info(f"restored checkpoint {path} at step {learner.step}")
-                return learner
-            aside = f"{path}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}"
-            try:
-                os.replace(path, aside)
-                self.get_logger().error(f"checkpoint {path} not used ({problem}); moved to {aside}")
-            except OSError as error:
-                self.get_logger().error(f"checkpoint {path} not used ({problem}) and cannot be moved aside "
-                                        f"({error}); checkpoints are off so that it is not overwritten")
-                self.checkpoint_path = ""
+        if self.checkpoint is None:
+            return self.settings.new_learner()
+        learner, problem = self.checkpoint.restore(self._load_own, self.settings.max_state_bytes)
+        if learner is not None:
+            self.get_logger().info(f"restored checkpoint {self.checkpoint.path} at step {learner.step}")
+            return learner
+        if problem is not None:
+            self.get_logger().error(f"checkpoint {self.checkpoint.path} not used: {problem}")
+            if self.checkpoint.exists():  # not moved aside: never overwrite it
+                self.get_logger().error("checkpoints are off so that it is not overwritten")
+                self.checkpoint.close()
+                self.checkpoint = None
         return self.settings.new_learner()
+
+    def _load_own(self, path):
+        """The learner of a state file, if it is of this node's robot (else ModelFileError)."""
+        learner = load_state(path)
+        problem = self._foreign(learner)
+        if problem is not None:
+            raise ModelFileError(problem)
+        return learner
 
     def _foreign(self, learner):
         """Why a loaded learner is not of this node's robot (other parts or joint count), or None."""
@@ -211,17 +221,52 @@ class SchemeNode(Node):
         # node clock: the wait in the queue counts towards a sample's age.
         batch = sorted(((received, kind, msg) for kind, intake in self._intake.items()
                         for msg, received in intake.take()), key=lambda item: item[0])
+        limits = self.settings.message_limits
         with self._lock:
+            for kind, intake in self._intake.items():
+                for size in intake.take_refused():  # larger than max_message_bytes: never deserialized
+                    self.received[kind] += 1
+                    self._refuse_at_intake("oversized_message", f"{size} byte message on {kind} (at most "
+                                                                f"{limits.max_bytes}; max_message_bytes)")
             for received, kind, msg in batch:
                 self.received[kind] += 1
+                problem = oversize_problem(kind, msg, limits)  # before any work on it
+                if problem is not None:
+                    self._refuse_at_intake("oversized_message", problem)
+                    continue
                 self._inbox.append((kind, msg, now - max(0.0, wall - received)))
             while len(self._inbox) > self.settings.max_inbox:
                 self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
         if batch:
             self._wake.set()
 
+    def _refuse_at_intake(self, code, detail):
+        self.refused_at_intake[code] += 1
+        self.get_logger().warn(f"rejected input ({code}): {detail}", throttle_duration_sec=5.0)
+
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
+
+    # -- services: taken in batches, at most max_requests_per_take served per service, the rest answered busy ------
+    def _answer_requests(self):
+        limit = self.settings.max_requests_per_take
+        for name, (intake, handler) in self._request_intakes.items():
+            requests = intake.take()
+            for k, (request, header) in enumerate(requests):
+                response = intake.service.srv_type.Response()
+                if k < limit:
+                    try:
+                        response = handler(request, response)
+                    except Exception as error:  # a request never takes the node down; said in reply
+                        response.success, response.message = False, f"{name} failed: {type(error).__name__}: {error}"
+                        self.get_logger().error(f"~/{name} failed: {type(error).__name__}: {error}")
+                    self.requests[f"{name}.answered"] += 1
+                else:
+                    response.success = False
+                    response.message = (f"busy: {len(requests)} ~/{name} requests at once, {limit} served "
+                                        f"(max_requests_per_take); call again")
+                    self.requests[f"{name}.busy"] += 1
+                intake.answer(header, response)
 
     # -- the learning thread --------------------------------------------------------------------------------------
     def _learn_forever(self):
@@ -245,6 +290,8 @@ class SchemeNode(Node):
         self._stopping.set()
         self._wake.set()
         self._learning_thread.join()
+        if self.checkpoint is not None:
+            self.checkpoint.close()
         super().destroy_node()
 
     def _work(self):
@@ -270,7 +317,8 @@ class SchemeNode(Node):
             if not self._stamp_acceptable(msg, received, now):
                 continue
             # The same function replay_offline uses: a bag replayed offline and through the graph pairs alike.
-            samples, rejections = feed_message(self.pairer, kind, msg, self.joint_names)
+            samples, rejections = feed_message(self.pairer, kind, msg, self.joint_names, self.frame_id,
+                                               self.settings.message_limits)
             self._pending.extend((received, sample) for sample in samples)  # a sample is as old as its message
             for code, detail in rejections:
                 self._reject(code, detail)
@@ -404,7 +452,9 @@ class SchemeNode(Node):
             level, message = DiagnosticStatus.ERROR, (f"input arriving but nothing learnt for {stalled:.0f} s "
                                                       f"(see rejected.*): {message}")
         latency = sorted(self.latency)
-        rejected = Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected)
+        with self._lock:
+            at_intake = Counter(self.refused_at_intake)
+        rejected = Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected) + at_intake
         lateral, depth, rotation = learner.noise.axis_sigmas()
         values = {"phase": learner.phase, "step": learner.step, "edges": len(edges), "invalid_edges": n_invalid,
                   "trusted": learner.trusted, "unexplained_parts": list(learner.unexplained_parts),
@@ -422,6 +472,10 @@ class SchemeNode(Node):
         values.update({f"restamped.{reason}": count for reason, count in sorted(self.restamped.items())})
         values.update({f"shed.{kind}": count for kind, count in sorted(self.shed.items())})
         values.update({f"received.{kind}": count for kind, count in sorted(self.received.items())})
+        for kind, intake in self._intake.items():  # inside DDS, before the node saw them (body_scheme_nodes.intake)
+            values[f"lost.{kind}_messages"] = intake.lost
+            values[f"lost.{kind}_full_queue_takes"] = intake.full_queue_takes
+        values.update({f"services.{key}": count for key, count in sorted(self.requests.items())})
         values["pending_samples"] = len(self._pending)
         name = self.get_fully_qualified_name()
         hardware_id = self.settings.hardware_id or name
@@ -457,8 +511,8 @@ class SchemeNode(Node):
                 path = state_files.resolve(self.settings.state_directory, request.path)
                 state_files.check_overwritable(path)
                 path.parent.mkdir(parents=True, exist_ok=True)
-            elif self.checkpoint_path:
-                path = pathlib.Path(self.checkpoint_path)
+            elif self.checkpoint is not None:
+                path = self.checkpoint.path
             else:
                 raise state_files.StateFileError("no file name given and checkpoint_path is empty")
             with self._learner_lock:  # the learner is read under the lock; the file is written after
@@ -476,18 +530,14 @@ class SchemeNode(Node):
         try:
             if request.path:
                 path = state_files.resolve(self.settings.state_directory, request.path)
-            elif self.checkpoint_path:
-                path = pathlib.Path(self.checkpoint_path)
+            elif self.checkpoint is not None:
+                path = self.checkpoint.path
             else:
                 raise state_files.StateFileError("no file name given and checkpoint_path is empty")
             state_files.check_loadable(path, self.settings.max_state_bytes)
-            learner = load_state(path)
-            problem = self._foreign(learner)
-        except (OSError, BodySchemeError) as error:
+            learner = self._load_own(path)
+        except Exception as error:  # an untrusted file: refused in the reply, never a crash
             response.success, response.message = False, f"load failed: {error}"
-            return response
-        if problem is not None:
-            response.success, response.message = False, f"load refused: {problem}"
             return response
         with self._learner_lock:
             self.learner = learner
@@ -514,14 +564,14 @@ class SchemeNode(Node):
         return response
 
     def _checkpoint(self):
-        if not self.checkpoint_path:
+        if self.checkpoint is None:
             return
         try:
             with self._learner_lock:  # learning waits for the encoding only, not for the disk
-                text = encode_state(self.learner, self.checkpoint_path)
-            write_state_text(text, self.checkpoint_path)
+                text = encode_state(self.learner, self.checkpoint.path)
+            self.checkpoint.write(text)
         except (OSError, BodySchemeError, ValueError) as error:
-            self.get_logger().error(f"checkpoint to {self.checkpoint_path} failed: {error}")
+            self.get_logger().error(f"checkpoint to {self.checkpoint.path} failed: {error}")
 
 
 def main(args=None):

@@ -12,6 +12,7 @@ import dataclasses
 import math
 import os
 import pathlib
+import re
 from dataclasses import dataclass
 
 import yaml
@@ -22,6 +23,8 @@ from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.pairing import CommandObservationPairer
 from body_scheme_core.world import KinematicTree, load_markers_yaml
+
+from .message_feed import MessageLimits
 
 __all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "AUTO_SENTINELS", "SchemeSettings", "engineered_body_scheme",
            "parameter_defaults"]
@@ -46,6 +49,8 @@ def parameter_defaults(n_joints=1):
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
         "queue_depth": 1000, "max_inbox": 2000, "max_pending_samples": 500, "max_sample_age": 5.0,
         "tf_prefix": "", "view_period": 0.1,
+        "max_message_bytes": MessageLimits().max_bytes, "max_joint_names": MessageLimits().max_joint_names,
+        "max_markers": MessageLimits().max_markers, "service_queue_depth": 100, "max_requests_per_take": 20,
     }
     config = BodySchemeConfig()
     for field in dataclasses.fields(BodySchemeConfig):
@@ -56,6 +61,28 @@ def parameter_defaults(n_joints=1):
             value = AUTO_SENTINELS[field.name]
         defaults[LEARNER_PREFIX + field.name] = list(value) if isinstance(value, tuple) else value
     return defaults
+
+
+#: Largest value of each integer setting: a queue depth is memory reserved per message, a byte limit memory per file.
+INTEGER_BOUNDS = {"max_state_bytes": 1 << 31, "queue_depth": 100_000, "max_inbox": 1_000_000,
+                  "max_pending_samples": 1_000_000, "max_message_bytes": 1 << 30, "max_joint_names": 100_000,
+                  "max_markers": 1_000_000, "service_queue_depth": 10_000, "max_requests_per_take": 10_000}
+#: A TF frame prefix: names of letters, digits and underscores, joined by single slashes (no leading slash).
+TF_PREFIX = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*/?")
+#: Directories of the kernel and devices: no state, checkpoint or robot file lives there.
+SPECIAL_DIRECTORIES = ("/proc", "/sys", "/dev")
+
+
+def _special_path_problem(path):
+    """Why ``path`` cannot be one of our files or directories (a special directory, a NUL byte), or None."""
+    if not path:
+        return None
+    if "\0" in path:
+        return "contains a NUL byte"
+    resolved = os.path.realpath(os.path.expanduser(path))
+    if any(resolved == d or resolved.startswith(d + "/") for d in SPECIAL_DIRECTORIES):
+        return f"resolves to {resolved}, inside {', '.join(SPECIAL_DIRECTORIES)}: not a place for our files"
+    return None
 
 
 @dataclass(frozen=True)
@@ -88,6 +115,11 @@ class SchemeSettings:
     max_sample_age: float = 5.0
     tf_prefix: str = ""
     view_period: float = 0.1
+    max_message_bytes: int = MessageLimits().max_bytes
+    max_joint_names: int = MessageLimits().max_joint_names
+    max_markers: int = MessageLimits().max_markers
+    service_queue_depth: int = 100
+    max_requests_per_take: int = 20
 
     #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
     UNSTAMPED_POLICIES = ("receipt_time", "reject")
@@ -110,10 +142,27 @@ class SchemeSettings:
                 and self.checkpoint_period > 0):
             raise InvalidInputError(f"checkpoint_period must be a finite number > 0 s (checkpoint_path \"\" turns "
                                     f"checkpoints off), got {self.checkpoint_period!r}")
-        for name in ("max_state_bytes", "queue_depth", "max_inbox", "max_pending_samples"):
+        for name, largest in INTEGER_BOUNDS.items():
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= largest:
+                raise InvalidInputError(f"{name} must be an integer from 1 to {largest:,}, got {value!r}")
+        if len(self.joint_names) > self.max_joint_names:
+            raise InvalidInputError(f"{len(self.joint_names)} joint_names, but max_joint_names is "
+                                    f"{self.max_joint_names}: a command naming them all would be refused")
+        if len(self.part_ids) > self.max_markers:
+            raise InvalidInputError(f"{len(self.part_ids)} part_ids, but max_markers is {self.max_markers}")
+        if self.tf_prefix and not TF_PREFIX.fullmatch(self.tf_prefix):
+            raise InvalidInputError(f"tf_prefix must be a TF frame prefix: names of letters, digits and _ joined by "
+                                    f"single /, no leading / (e.g. \"robot_a\" or \"lab/robot_a\"), got "
+                                    f"{self.tf_prefix!r}")
+        for name in ("frame_id", "hardware_id"):
+            value = getattr(self, name)
+            if len(value) > 256 or any(not ch.isprintable() for ch in value):
+                raise InvalidInputError(f"{name} must be printable and at most 256 characters, got {value[:80]!r}")
+        for name in ("state_dir", "checkpoint_path", "urdf_path", "markers_path"):
+            problem = _special_path_problem(getattr(self, name))
+            if problem:
+                raise InvalidInputError(f"{name} {getattr(self, name)!r}: {problem}")
         if self.unstamped_policy not in self.UNSTAMPED_POLICIES:
             raise InvalidInputError(f"unstamped_policy must be one of {self.UNSTAMPED_POLICIES}, got "
                                     f"{self.unstamped_policy!r}")
@@ -183,6 +232,11 @@ class SchemeSettings:
             if self.urdf_path else None
         return BodySchemeLearner(list(self.part_ids), len(self.joint_names), self.config, initial_models=initial,
                                  action_lower=list(self.action_lower), action_upper=list(self.action_upper))
+
+    @property
+    def message_limits(self):
+        """The size limits of one input message (:class:`~body_scheme_nodes.message_feed.MessageLimits`)."""
+        return MessageLimits(self.max_message_bytes, self.max_joint_names, self.max_markers)
 
     def new_pairer(self):
         """The command/observation pairer of these settings."""

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import rclpy
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
 
 from body_scheme_core.errors import BodySchemeError
 
@@ -27,11 +28,17 @@ def run_node(node_class, args=None, threads=2):
     Returns
     -------
     code : int
-        0 after a normal shutdown, 1 if the node refused its parameters (a ``BodySchemeError`` at start-up, logged
-        with the reason).
+        0 after a normal shutdown, 1 if the node could not start: arguments rclpy cannot read (a broken parameter
+        file), or parameters the node refused (a ``BodySchemeError`` at start-up). Either is one FATAL line with the
+        reason, no traceback.
     """
-    rclpy.init(args=args)
     node = None
+    try:
+        rclpy.init(args=args)
+    except rclpy_implementation.RCLError as error:  # e.g. a --params-file that is not YAML
+        reason = " ".join(str(error).split())
+        rclpy.logging.get_logger(node_class.__name__).fatal(f"cannot start: {reason}")
+        return 1
     try:
         node = node_class()
         executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
@@ -39,7 +46,7 @@ def run_node(node_class, args=None, threads=2):
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (BodySchemeError, ParameterException) as error:  # a refused parameter: one line, no traceback
+    except (BodySchemeError, ParameterException, NameValidationException) as error:  # one line, no traceback
         rclpy.logging.get_logger(node_class.__name__).fatal(f"{type(error).__name__}: {error}")
         return 1
     finally:

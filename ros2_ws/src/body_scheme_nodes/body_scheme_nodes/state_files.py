@@ -16,12 +16,12 @@ import stat
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.persistence import STATE_FORMAT
 
-__all__ = ["StateFileError", "resolve", "check_loadable", "check_overwritable", "DEFAULT_MAX_BYTES"]
+__all__ = ["StateFileError", "resolve", "check_loadable", "check_overwritable", "DEFAULT_MAX_BYTES", "SIGNATURE"]
 
 #: Largest state file ``~/load`` reads (a 6-DOF arm's state is about 2 MB).
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
 #: A state file starts with this (``save_state`` writes the format tag first).
-_SIGNATURE = f'{{"format":"{STATE_FORMAT}"'.encode()
+SIGNATURE = f'{{"format":"{STATE_FORMAT}"'.encode()
 
 
 class StateFileError(InvalidInputError):
@@ -69,6 +69,6 @@ def check_overwritable(path):
     if not stat.S_ISREG(info.st_mode):
         raise StateFileError(f"{path.name!r} exists and is not a regular file; not overwritten")
     with open(path, "rb") as stream:
-        head = stream.read(len(_SIGNATURE))
-    if head != _SIGNATURE:
+        head = stream.read(len(SIGNATURE))
+    if head != SIGNATURE:
         raise StateFileError(f"{path.name!r} exists and is not a body scheme state file; not overwritten")

@@ -109,7 +109,8 @@ def markers_msg(stamp, frame_id, poses, std, edges, observed=None, recent_events
         if std is not None and part in std:
             sphere = _marker(header, "uncertainty", part, Marker.SPHERE)
             sphere.pose.position = _point(position)
-            diameter = 4.0 * float(std[part][0]) if math.isfinite(float(std[part][0])) else 0.0
+            # 2 sigma per axis, as predicted_poses' covariance says (diag std**2 / 3: std is the 3D RMS)
+            diameter = 4.0 * float(std[part][0]) / math.sqrt(3.0) if math.isfinite(float(std[part][0])) else 0.0
             sphere.scale.x = sphere.scale.y = sphere.scale.z = max(diameter, 1e-4)
             sphere.color = _colour((0.3, 0.6, 1.0), 0.25)
             array.markers.append(sphere)

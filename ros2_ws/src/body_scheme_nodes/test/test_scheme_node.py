@@ -95,10 +95,23 @@ def test_bad_settings_are_refused_with_reasons():
            ({"joint_names": ["a", "a"], "action_lower": [-1.0, -1.0], "action_upper": [1.0, 1.0]}, "unique"),
            ({"part_ids": [1]}, "part_ids"), ({"learner.test_window": 0}, "test_window"),
            ({"checkpoint_period": -5.0}, "checkpoint_period"), ({"stamp_tolerance": 0.0}, "stamp_tolerance"),
-           ({"unstamped_policy": "guess"}, "unstamped_policy"), ({"learner.max_distance": -1.0}, "max_distance")]
+           ({"unstamped_policy": "guess"}, "unstamped_policy"), ({"learner.max_distance": -1.0}, "max_distance"),
+           # issue 20: sizes, infinities, frame prefixes and special directories
+           ({"queue_depth": 10**11}, "queue_depth must be an integer from 1 to"),
+           ({"learner.workspace_margin": math.inf}, "workspace_margin must be a finite number"),
+           ({"tf_prefix": "bad prefix//../x"}, "tf_prefix must be a TF frame prefix"),
+           ({"tf_prefix": "/robot"}, "tf_prefix"), ({"state_dir": "/proc/self"}, "state_dir .* inside /proc"),
+           ({"checkpoint_path": "/dev/zero"}, "checkpoint_path"),
+           ({"part_ids": list(range(200))}, "200 parts: a learner takes at most"),
+           ({"joint_names": [f"j{k}" for k in range(300)], "action_lower": [-1.0] * 300,
+             "action_upper": [1.0] * 300}, "300 actions: a learner takes at most"),
+           ({"part_ids": list(range(40)), "joint_names": [f"j{k}" for k in range(30)], "action_lower": [-1.0] * 30,
+             "action_upper": [1.0] * 30}, "candidate models to bootstrap")]
     for change, match in bad:
         with pytest.raises(InvalidInputError, match=match):
-            SchemeSettings.from_parameters(dict(good, **change))
+            SchemeSettings.from_parameters(dict(good, **change)).new_learner()
+    for prefix in ("robot_a/", "lab/robot_a", "r2_"):
+        assert SchemeSettings.from_parameters(dict(good, tf_prefix=prefix)).tf_prefix == prefix
 
 
 def test_parameter_files_keyed_by_any_node_name_or_wildcard_read_alike(tmp_path):
