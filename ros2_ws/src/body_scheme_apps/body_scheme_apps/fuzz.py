@@ -111,7 +111,7 @@ REFUSED_ANYWHERE = {
 }
 #: Larger than scheme_node's limits (defaults: 1 MiB, 1,000 joint names, 1,000 markers): refused whole, by their size
 #: in bytes before they are deserialized, or by their count before any work. Published :data:`OVERSIZED_ROUNDS` times
-#: each after the session (sending 352 MB delays this process's later messages, which would change their pairing),
+#: each at the very end (sending 352 MB delays this process's later messages, which would change their pairing),
 #: and the node must stay responsive meanwhile (/diagnostics keeps its period, by the node's own stamps).
 OVERSIZED = {
     "command_100000_names": ("command", lambda t, n, a: _command(t, [f"joint_{k}" for k in range(100_000)],
@@ -233,16 +233,10 @@ def make_plan(session, n_messages, seed=0):
             plan.add(mid + 0.005, "observations", lambda t0, t=mid, b=observations: b(t0 + t + 0.005), name)
             plan.expected.update(counts)
             plan.learning_steps += steps
-    for r in range(OVERSIZED_ROUNDS):
-        t = n * PERIOD + 0.5 + 0.5 * r
-        for j, name in enumerate(sorted(OVERSIZED)):
-            kind, build, counts = OVERSIZED[name]
-            plan.add(t + 0.1 * j, kind, lambda t0, t=t, b=build, a=session.actions[-1]: b(t0 + t, names, a), name)
-            plan.expected.update(counts)
     # Zero stamps, after the session: commands take their receipt time (no observation follows them), then
     # observations of an unknown marker take theirs: the first pairs with the last command (a learning step whose only
     # marker is unknown), the others are duplicates of it.
-    end = n * PERIOD + 0.5 + 0.5 * OVERSIZED_ROUNDS + 1.0
+    end = n * PERIOD + 1.0
     for j in range(3):
         plan.add(end + 0.05 * j, "command", lambda t0, a=session.actions[-1]: JointState(
             name=names, position=[float(v) for v in a]), "zero_stamp_command")
@@ -251,6 +245,13 @@ def make_plan(session, n_messages, seed=0):
                  "zero_stamp_observations")
     plan.expected.update({"restamped.unstamped": 7, "rejected.unknown_id": 1, "rejected.duplicate": 3})
     plan.learning_steps += 1
+    # Last: a 352 MB publish holds this process up for seconds, which would shift the receipt times of what follows.
+    for r in range(OVERSIZED_ROUNDS):
+        t = end + 1.0 + 0.5 * r
+        for j, name in enumerate(sorted(OVERSIZED)):
+            kind, build, counts = OVERSIZED[name]
+            plan.add(t + 0.1 * j, kind, lambda t0, t=t, b=build, a=session.actions[-1]: b(t0 + t, names, a), name)
+            plan.expected.update(counts)
     plan.messages.sort(key=lambda item: item[0])
     return plan
 

@@ -14,7 +14,7 @@ from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError, Le
 
 from . import conversions
 
-__all__ = ["MESSAGE_KINDS", "MessageLimits", "DEFAULT_LIMITS", "oversize_problem", "feed_message", "learn_sample"]
+__all__ = ["MESSAGE_KINDS", "MessageLimits", "DEFAULT_LIMITS", "feed_message", "learn_sample"]
 
 #: Kinds of message scheme_node learns from: a ``sensor_msgs/JointState`` command or a ``MarkerPoses`` observation.
 MESSAGE_KINDS = ("command", "observations")
@@ -34,7 +34,7 @@ class MessageLimits(NamedTuple):
 DEFAULT_LIMITS = MessageLimits()
 
 
-def oversize_problem(kind, msg, limits):
+def _oversize_problem(kind, msg, limits):
     """Why a deserialized message is too large for ``limits`` (more joint names or markers), or None; O(1)."""
     if kind == "command":
         count = max(len(msg.name), len(msg.position))
@@ -74,7 +74,7 @@ def feed_message(pairer, kind, msg, joint_names, frame_id="", limits=DEFAULT_LIM
     """
     if kind not in MESSAGE_KINDS:
         raise ValueError(f"kind must be one of {MESSAGE_KINDS}, got {kind!r}")
-    problem = oversize_problem(kind, msg, limits)
+    problem = _oversize_problem(kind, msg, limits)
     if problem is not None:
         return [], [("oversized_message", problem)]
     if kind == "observations" and frame_id and msg.header.frame_id and msg.header.frame_id != frame_id:

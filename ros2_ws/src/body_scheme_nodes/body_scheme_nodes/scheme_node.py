@@ -94,7 +94,7 @@ from body_scheme_msgs.srv import GetRobotDescription, StatePath
 from . import conversions, state_files, view
 from .checkpoint import Checkpoint
 from .intake import BatchIntake, RequestIntake
-from .message_feed import feed_message, learn_sample, oversize_problem
+from .message_feed import feed_message, learn_sample
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
 
@@ -131,7 +131,7 @@ class SchemeNode(Node):
         # under _learner_lock, so no write overlaps the read.
         self.shed = Counter()
         self.received = Counter()  # messages taken in from the subscriptions, by kind
-        self.refused_at_intake = Counter()  # oversized messages, by the executor's thread under _lock
+        self.refused_at_intake = Counter()  # messages over max_message_bytes, by the executor's thread under _lock
         self.requests = Counter()  # requests answered and refused busy, by the executor's thread
         self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
         self.restamped = Counter()
@@ -221,28 +221,23 @@ class SchemeNode(Node):
         # node clock: the wait in the queue counts towards a sample's age.
         batch = sorted(((received, kind, msg) for kind, intake in self._intake.items()
                         for msg, received in intake.take()), key=lambda item: item[0])
-        limits = self.settings.message_limits
         with self._lock:
+            # Larger than max_message_bytes: never deserialized. Counts of joints and markers are checked by
+            # feed_message, on the path the offline replay shares, before any conversion.
             for kind, intake in self._intake.items():
-                for size in intake.take_refused():  # larger than max_message_bytes: never deserialized
+                for size in intake.take_refused():
                     self.received[kind] += 1
-                    self._refuse_at_intake("oversized_message", f"{size} byte message on {kind} (at most "
-                                                                f"{limits.max_bytes}; max_message_bytes)")
+                    self.refused_at_intake["oversized_message"] += 1
+                    self.get_logger().warn(f"rejected input (oversized_message): {size} byte message on {kind} "
+                                           f"(max_message_bytes {self.settings.max_message_bytes})",
+                                           throttle_duration_sec=5.0)
             for received, kind, msg in batch:
                 self.received[kind] += 1
-                problem = oversize_problem(kind, msg, limits)  # before any work on it
-                if problem is not None:
-                    self._refuse_at_intake("oversized_message", problem)
-                    continue
                 self._inbox.append((kind, msg, now - max(0.0, wall - received)))
             while len(self._inbox) > self.settings.max_inbox:
                 self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
         if batch:
             self._wake.set()
-
-    def _refuse_at_intake(self, code, detail):
-        self.refused_at_intake[code] += 1
-        self.get_logger().warn(f"rejected input ({code}): {detail}", throttle_duration_sec=5.0)
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
