@@ -42,7 +42,9 @@ import numpy as np
 
 from .errors import ModelFileError
 from .events import Event, finite_or_none, format_errors
+from .limits import MAX_INTEGER
 from .quality import model_cost, nests, relative_complexity
+from .state_values import integer, listing, mapping, part_id
 from .structure import action_subsets, kinds_for, replacement_candidates
 from .tracked import MEMORY, TREE, TrackedModel, nested_models
 
@@ -89,6 +91,12 @@ class Mismatch:
     resamples: int = 0
     bridged_at: int = -1
     search: int = 0
+
+
+#: The fields of a :class:`Mismatch` in a state file, with their bounds (-1: not yet).
+_MISMATCH_FIELDS = (("tau", 0, MAX_INTEGER), ("detected", 0, MAX_INTEGER), ("sampled_at", -1, MAX_INTEGER),
+                    ("train_from", -1, MAX_INTEGER), ("resamples", 0, MAX_INTEGER), ("bridged_at", -1, MAX_INTEGER),
+                    ("search", 0, 1))
 
 
 class Change(NamedTuple):
@@ -829,33 +837,38 @@ class Adaptation:
 
     @staticmethod
     def failed_from_state(items, part_ids):
-        """Rebuild :attr:`failed` from :meth:`failed_state` output; the parts must be known."""
+        """Rebuild :attr:`failed` from :meth:`failed_state` output; pairs of two distinct known parts, once each."""
         failed = {}
-        for p, q, step, tau in items:
-            if int(p) not in part_ids or int(q) not in part_ids:
-                raise ModelFileError(f"failed pair {p}-{q} refers to an unknown part")
-            failed[frozenset((int(p), int(q)))] = (int(step), int(tau))
+        for item in listing(items, "failed"):
+            p, q, step, tau = listing(item, "failed item", 4)
+            pair = frozenset((part_id(p, part_ids, "failed pair"), part_id(q, part_ids, "failed pair")))
+            if len(pair) != 2 or pair in failed:
+                raise ModelFileError(f"failed pair {p}-{q} is not two distinct parts, or is listed twice")
+            failed[pair] = (integer(step, "failed step"), integer(tau, "failed tau"))
         return failed
 
     @staticmethod
-    def refining_from_state(items, tracked):
-        """Rebuild :attr:`refining` from :meth:`refining_state` output; the installed model must be tracked."""
+    def refining_from_state(items, tracked, next_id):
+        """Rebuild :attr:`refining` from :meth:`refining_state` output; the installed model must be tracked, the
+        failed one an id the pool gave out."""
         refining = {}
-        for new_id, failed_id, tau in items:
-            if int(new_id) not in tracked:
-                raise ModelFileError(f"refining refers to unknown model id {new_id}")
-            refining[int(new_id)] = (int(failed_id), int(tau))
+        for item in listing(items, "refining"):
+            new_id, failed_id, tau = listing(item, "refining item", 3)
+            if integer(new_id, "refining id") not in tracked or new_id in refining:
+                raise ModelFileError(f"refining refers to unknown model id {new_id!r:.40}, or twice")
+            refining[new_id] = (integer(failed_id, "refining failed id", maximum=next_id - 1),
+                                integer(tau, "refining tau"))
         return refining
 
     @staticmethod
     def mismatch_from_state(items, tracked):
         """Rebuild :attr:`mismatch` from :meth:`mismatch_state` output; edges must be ids in ``tracked``."""
         mismatch = {}
-        for item in items:
-            item = dict(item)
-            edge = int(item.pop("edge"))
-            if edge not in tracked:
-                raise ModelFileError(f"mismatch refers to unknown model id {edge}")
-            mismatch[edge] = Mismatch(**{k: int(item[k]) for k in ("tau", "detected", "sampled_at", "train_from",
-                                                                     "resamples", "bridged_at", "search")})
+        for item in listing(items, "mismatch"):
+            item = dict(mapping(item, "mismatch item"))
+            edge = integer(item.pop("edge", None), "mismatch edge")
+            if edge not in tracked or edge in mismatch:
+                raise ModelFileError(f"mismatch refers to unknown model id {edge}, or twice")
+            mismatch[edge] = Mismatch(**{k: integer(item[k], f"mismatch {k}", minimum=low, maximum=high)
+                                         for k, low, high in _MISMATCH_FIELDS})
         return mismatch

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 from .errors import InvalidInputError
+from .limits import MAX_NOISE, MAX_WINDOW
 from .models.gp_kernel import (
     DEFAULT_LENGTH_SCALE,
     DEFAULT_SIGMA_ROT,
@@ -22,6 +23,21 @@ from .models.gp_kernel import (
 from .structure import CANDIDATE_KINDS
 
 __all__ = ["BodySchemeConfig"]
+
+#: Bounds of the integer settings. The upper ones are far beyond any use and keep a setting from allocating the
+#: machine's memory or overflowing a step count.
+_INTEGERS = {"test_window": (1, MAX_WINDOW), "train_window": (1, MAX_WINDOW), "min_test_samples": (1, MAX_WINDOW),
+             "max_complexity": (0, 100), "bootstrap_patience": (1, 10**6), "reinstate_min_samples": (1, MAX_WINDOW),
+             "memory_size": (0, 1000), "history_length": (1, 10**5), "calibration_period": (1, 10**6),
+             "replacement_max_relative": (0, 100), "replacement_patience": (1, 10**6), "bridge_patience": (1, 10**6),
+             "root_window": (1, 10**5)}
+#: Bounds of the number settings (all must be finite; the lower bound is exclusive where it is 0 and the setting
+#: divides or scales).
+_NUMBERS = {"validity_sigmas": (0.0, 100.0), "gp_length_scale": (0.0, 1e3), "gp_signal_std_trans": (0.0, 1e3),
+            "gp_signal_std_rot": (0.0, 1e3), "f_scale": (0.0, 1e3), "stale_fraction": (None, 1.0),
+            "cusum_drift": (0.0, 1e6), "cusum_threshold": (0.0, 1e6), "cusum_clip": (0.0, 1e6),
+            "dominance_margin": (0.0, 1e3), "challenge_margin": (0.0, 1e3), "max_distance": (0.0, 1e4),
+            "workspace_margin": (0.0, 1e4), "action_margin": (None, 1e3), "consistency_alpha": (0.0, 1.0)}
 
 
 @dataclass(frozen=True)
@@ -174,46 +190,22 @@ class BodySchemeConfig:
 
     def __post_init__(self):
         for name in ("sigma_trans", "sigma_rot"):
+            if getattr(self, name) != "auto":
+                _check_number(name, getattr(self, name), 0.0, MAX_NOISE, '"auto" or ')
+        for name in ("theta_trans", "theta_rot"):
+            if getattr(self, name) is not None:
+                _check_number(name, getattr(self, name), 0.0, MAX_NOISE, "null or ")
+        for name, (low, high) in _INTEGERS.items():
             value = getattr(self, name)
-            if value != "auto" and not (isinstance(value, (int, float)) and not isinstance(value, bool)
-                                        and math.isfinite(value) and value > 0):
-                raise InvalidInputError(f"{name} must be \"auto\" or a finite number > 0 (the noise prior), got "
-                                        f"{value!r}")
-        positive = ["validity_sigmas", "gp_length_scale", "gp_signal_std_trans", "gp_signal_std_rot", "f_scale"]
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
-        for name in ["test_window", "train_window", "min_test_samples"]:
-            value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
-        for name in ["bootstrap_patience", "reinstate_min_samples", "history_length", "replacement_patience",
-                     "bridge_patience", "root_window", "calibration_period"]:
-            value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise InvalidInputError(f"{name} must be an integer >= 1, got {value!r}")
-        for name in ["memory_size", "replacement_max_relative"]:
-            value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
-                raise InvalidInputError(f"{name} must be an integer >= 0, got {value!r}")
-        for name in ["dominance_margin", "challenge_margin", "max_distance", "workspace_margin"]:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
-        if not (isinstance(self.action_margin, (int, float)) and math.isfinite(self.action_margin)
-                and self.action_margin >= 0):
-            raise InvalidInputError(f"action_margin must be a finite number >= 0, got {self.action_margin!r}")
-        if not (isinstance(self.consistency_alpha, (int, float)) and 0.0 < self.consistency_alpha < 1.0):
-            raise InvalidInputError(f"consistency_alpha must be in (0, 1), got {self.consistency_alpha!r}")
-        if not (isinstance(self.stale_fraction, (int, float)) and 0.0 <= self.stale_fraction < 1.0):
-            raise InvalidInputError(f"stale_fraction must be in [0, 1), got {self.stale_fraction!r}")
-        cusum = (self.cusum_drift, self.cusum_threshold, self.cusum_clip)
-        if not (all(isinstance(v, (int, float)) and math.isfinite(v) for v in cusum)
-                and self.cusum_clip > self.cusum_drift > 0 and self.cusum_threshold > 0):
-            raise InvalidInputError(
-                f"need finite cusum_clip > cusum_drift > 0 and cusum_threshold > 0, got clip {self.cusum_clip!r}, "
-                f"drift {self.cusum_drift!r}, threshold {self.cusum_threshold!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise InvalidInputError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+        for name, (low, high) in _NUMBERS.items():
+            _check_number(name, getattr(self, name), low, high)
+        for name in ("stale_fraction", "consistency_alpha"):
+            if not getattr(self, name) < 1.0:
+                raise InvalidInputError(f"{name} must be below 1, got {getattr(self, name)!r}")
+        if not self.cusum_clip > self.cusum_drift:
+            raise InvalidInputError(f"cusum_clip ({self.cusum_clip!r}) must exceed cusum_drift ({self.cusum_drift!r})")
         for name in ("fit_joint_scale", "gp_optimize"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidInputError(f"{name} must be true or false, got {getattr(self, name)!r}")
@@ -225,16 +217,11 @@ class BodySchemeConfig:
             raise InvalidInputError(f"candidate_kinds must be distinct classes of {list(CANDIDATE_KINDS)}, got "
                                     f"{list(kinds)}")
         object.__setattr__(self, "candidate_kinds", kinds)
-        if not (isinstance(self.max_complexity, int) and self.max_complexity >= 0):
-            raise InvalidInputError(f"max_complexity must be an integer >= 0, got {self.max_complexity!r}")
         if self.min_test_samples > self.test_window:
             raise InvalidInputError(
                 f"min_test_samples ({self.min_test_samples}) must not exceed test_window ({self.test_window})")
-        for name in ("theta_trans", "theta_rot"):
-            value = getattr(self, name)
-            if value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
-                                          and math.isfinite(value) and value > 0):
-                raise InvalidInputError(f"{name} must be a finite number > 0 or None, got {value!r}")
+        if self.root is not None and (isinstance(self.root, bool) or not isinstance(self.root, int)):
+            raise InvalidInputError(f"root must be a part id or null, got {self.root!r}")
 
     @property
     def prior_sigma_trans(self):
@@ -260,3 +247,11 @@ class BodySchemeConfig:
         if unknown:
             raise InvalidInputError(f"unknown configuration key(s) {unknown}; known: {sorted(known)}")
         return cls(**data)
+
+
+def _check_number(name, value, low, high, alternative=""):
+    """Raise unless ``value`` is a finite number in ``(low, high]`` (``low`` None: ``[0, high]``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not (
+            (value >= 0.0 if low is None else value > low) and value <= high):
+        bound = f"in [0, {high}]" if low is None else f"in ({low}, {high}]"
+        raise InvalidInputError(f"{name} must be {alternative}a finite number {bound}, got {value!r}")

@@ -20,6 +20,7 @@ import numpy as np
 
 from .config import BodySchemeConfig
 from .errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
+from .limits import MAX_ACTION, MAX_ACTIONS, MAX_PARTS
 from .scheme import BodyScheme
 from .structure import n_candidates
 
@@ -46,12 +47,6 @@ __all__ = [
 
 #: Largest deviation of an observed rotation block from orthonormality (and of the last row from [0 0 0 1]).
 OBSERVATION_TOLERANCE = 1e-4
-#: Largest magnitude of an action (rad or m) taken without joint limits: no joint position is this large (a continuous
-#: joint 1,500 turns away from zero), so a larger command is in other units or corrupt, and kernels would overflow.
-MAX_ACTION = 1e4
-#: Most parts (markers) and actions (joints) of one learner: two arms and a torso with hands have about 40 of each.
-MAX_PARTS = 100
-MAX_ACTIONS = 100
 #: Most candidate local models bootstrapping may start with (about 16 kB each: 60,000 is about 1 GB).
 MAX_CANDIDATES = 60_000
 

@@ -19,11 +19,13 @@ import numpy as np
 from .adaptation import Adaptation
 from .config import BodySchemeConfig
 from .consistency import PartConsistency
-from .errors import InvalidInputError, ModelFileError, NotFittedError
+from .errors import BodySchemeError, ModelFileError
 from .inputs import check_n_actions, check_part_ids, rigidity_problem
-from .pool import ModelPool
+from .limits import MAX_ACTION
+from .pool import ModelPool, check_monitor_settings
 from .root_pose import RootPoseEstimator, RootWatch
 from .scheme import BodyScheme
+from .state_values import boolean, finite_array, integer, listing, mapping, number, optional_number, part_id
 from .validity import ValidityMonitor
 
 __all__ = ["STATE_VERSION", "Calibrated", "learner_to_state", "learner_from_state", "snapshot", "restore",
@@ -119,60 +121,57 @@ def learner_from_state(cls, state):
                 "from the robot's specification)" if version in (2, 3) else "")
         raise ModelFileError(f"unsupported learner state version {version!r}; this reads {STATE_VERSION}{hint}")
     try:
-        config = BodySchemeConfig.from_dict(state["config"])
+        config = BodySchemeConfig.from_dict(mapping(state["config"], "config"))
         self = cls.__new__(cls)
         self._set_parts(config, check_part_ids(state["part_ids"]), check_n_actions(state["n_actions"]))
-        root = state["root"]
-        if isinstance(root, bool) or not isinstance(root, int) or root not in self.part_ids:
-            raise ModelFileError(f"root must be one of the parts {list(self.part_ids)}, got {root!r}")
+        parts = set(self.part_ids)
+        root = part_id(state["root"], parts, "root")
         if config.root is not None and root != config.root:
             raise ModelFileError(f"root {root} is not the configuration's root {config.root}")
         self.root = root
         self.action_lower = _bounds_from_json(state["action_lower"], self.n_actions, "action_lower")
         self.action_upper = _bounds_from_json(state["action_upper"], self.n_actions, "action_upper")
-        self.step = _integer(state["step"], "step")
-        self.last_stamp = _stamp(state["last_stamp"])
-        if not isinstance(state["rejected"], dict):
-            raise ModelFileError(f"rejected must be a dict of counts, got {state['rejected']!r}")
-        self.rejected = Counter({str(k): _integer(v, f"rejected[{k!r}]") for k, v in state["rejected"].items()})
-        bootstrapping, found = _boolean(state["bootstrapping"], "bootstrapping"), _boolean(state["found"], "found")
-        tree = None if state["tree"] is None else [_integer(i, "tree id") for i in _list(state["tree"], "tree")]
-        tree_since = _integer(state["tree_since"], "tree_since")
-        pool = ModelPool.from_state(config, self.n_actions, set(self.part_ids), state["entries"],
-                                    state["next_id"], state["monitor"], state["gp_batch"], state["rigid_batch"])
+        self.step = integer(state["step"], "step")
+        self.last_stamp = None if state["last_stamp"] is None else number(state["last_stamp"], "last_stamp")
+        self.rejected = Counter({str(k): integer(v, f"rejected[{k!r}]")
+                                 for k, v in mapping(state["rejected"], "rejected").items()})
+        bootstrapping, found = boolean(state["bootstrapping"], "bootstrapping"), boolean(state["found"], "found")
+        tree = None if state["tree"] is None else [integer(i, "tree id") for i in listing(state["tree"], "tree")]
+        tree_since = integer(state["tree_since"], "tree_since")
+        pool = ModelPool.from_state(config, self.n_actions, parts, state["entries"], state["next_id"],
+                                    state["monitor"], state["gp_batch"], state["rigid_batch"])
         if tree is not None and any(i not in pool.tracked for i in tree):
             raise ModelFileError(f"tree refers to unknown model ids {tree}")
         mismatch = Adaptation.mismatch_from_state(state["mismatch"], pool.tracked)
-        refining = Adaptation.refining_from_state(state["refining"], pool.tracked)
-        failed = Adaptation.failed_from_state(state["failed"], set(self.part_ids))
-        vetoed = {_integer(k, "vetoed id"): _integer(v, "vetoed size") for k, v in _list(state["vetoed"], "vetoed")}
+        refining = Adaptation.refining_from_state(state["refining"], pool.tracked, pool.next_id)
+        failed = Adaptation.failed_from_state(state["failed"], parts)
+        vetoed = {integer(k, "vetoed id"): integer(v, "vetoed size")
+                  for k, v in (listing(item, "vetoed item", 2) for item in listing(state["vetoed"], "vetoed"))}
         self._history = deque(maxlen=config.history_length)
-        for rec in _list(state["history"], "history"):
-            a = _finite_array(rec["actions"], (self.n_actions,), "history actions")
-            self._history.append((_integer(rec["step"], "history step"), a,
-                                  _observations(rec["observations"], self.part_ids, "history")))
+        for rec in listing(state["history"], "history"):
+            a = _actions(rec["actions"], self.n_actions, "history actions")
+            self._history.append((integer(rec["step"], "history step"), a,
+                                  _observations(rec["observations"], parts, "history")))
         self._root_pose = RootPoseEstimator(config.root_window, self.root, (
-            (_finite_array(rec["actions"], (self.n_actions,), "root sample actions"),
-             _observations(rec["observations"], self.part_ids, "root sample"))
-            for rec in _list(state["root_samples"], "root_samples")))
-        calibrated = _calibrated_from_state(state["calibration"])
+            (_actions(rec["actions"], self.n_actions, "root sample actions"),
+             _observations(rec["observations"], parts, "root sample"))
+            for rec in listing(state["root_samples"], "root_samples")))
+        calibrated = _calibrated_from_state(state["calibration"], self, pool)
         self.noise.load_dict(state["noise"])
-        unexplained = {_part(p, self.part_ids, "unexplained"): _integer(s, "unexplained step")
-                       for p, s in _list(state["unexplained"], "unexplained")}
-        lack_of_fit = tuple(_part(p, self.part_ids, "lack_of_fit") for p in _list(state["lack_of_fit"], "lack_of_fit"))
+        unexplained = {part_id(p, parts, "unexplained"): integer(s, "unexplained step")
+                       for p, s in (listing(item, "unexplained item", 2)
+                                    for item in listing(state["unexplained"], "unexplained"))}
+        lack_of_fit = tuple(part_id(p, parts, "lack_of_fit") for p in listing(state["lack_of_fit"], "lack_of_fit"))
         watch = ValidityMonitor.from_dict(state["root_watch"])
-        if watch.capacity != 1 or not watch.in_use[0] or watch.window != config.test_window:
-            raise ModelFileError("root_watch must be one monitor row of the configuration's test window")
-        offset = state["root_offset"]
-        if not isinstance(offset, dict):
-            raise ModelFileError(f"root_offset must be an object, got {type(offset).__name__}")
-        offset_pose = _finite_array(offset["pose"], (4, 4), "root_offset pose")
-        if rigidity_problem(offset_pose) is not None:
-            raise ModelFileError("root_offset pose is not a rigid transform")
-        n_offset = _integer(offset["n"], "root_offset n")
+        if watch.capacity != 1 or not watch.in_use[0]:
+            raise ModelFileError("root_watch must be one monitor row")
+        check_monitor_settings(watch, config, "root_watch")
+        offset = mapping(state["root_offset"], "root_offset")
+        offset_pose = _rigid(offset["pose"], "root_offset pose")
+        n_offset = integer(offset["n"], "root_offset n")
         self._set_models(pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed, refining,
                          unexplained, lack_of_fit, failed, RootWatch(config, watch, offset_pose, n_offset),
-                         _integer(state["root_since"], "root_since"))
+                         integer(state["root_since"], "root_since"))
         if self._tree is not None:
             self.body_scheme  # noqa: B018 - validates that the stored tree is a spanning tree of fitted models
         problems = structural_problems(self)
@@ -180,8 +179,7 @@ def learner_from_state(cls, state):
             raise ModelFileError(f"inconsistent learner state: {'; '.join(problems)}")
     except ModelFileError:
         raise
-    except (KeyError, TypeError, ValueError, OverflowError, AttributeError, IndexError, InvalidInputError,
-            NotFittedError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError, IndexError, BodySchemeError) as exc:
         raise ModelFileError(f"bad learner state: {type(exc).__name__}: {exc}") from exc
     return self
 
@@ -191,71 +189,78 @@ def _json_float(value):
     return float(value) if math.isfinite(value) else None
 
 
-def _calibrated_from_state(data):
+def _calibrated_from_state(data, learner, pool):
+    """The last joint fit, checked against the learner: its scheme spans the learner's parts from its root with
+    actions the learner has; its tree ids are distinct, as many as the scheme's models, and each that is still
+    tracked relates the parts its model relates; every part has its statistics."""
     if data is None:
         return None
+    data = mapping(data, "calibration")
     scheme = BodyScheme.from_dict(data["scheme"])
-    world2root = _finite_array(data["world2root"], (4, 4), "calibration world2root")
-    ratios = {int(p): (int(n), float(t), float(r)) for p, n, t, r in data["part_ratios"]}
-    std = {int(p): _finite_array([t, r], (2,), "calibration part std") for p, t, r in data["part_std"]}
-    consistency = {int(p): PartConsistency(int(n), *(math.nan if v is None else float(v) for v in (F, pv, e, r)))
-                   for p, n, F, pv, e, r in data["consistency"]}
-    return Calibrated(scheme, world2root, int(data["step"]), int(data["n_steps"]), tuple(int(i) for i in data["tree"]),
-                      float(data["rms"]), ratios, std, consistency)
+    parts = set(learner.part_ids)
+    if set(scheme.parts) != parts or scheme.root != learner.root:
+        raise ModelFileError(f"the calibrated scheme has parts {sorted(scheme.parts)} and root {scheme.root}, the "
+                             f"learner {sorted(parts)} and {learner.root}")
+    if any(a >= learner.n_actions for m in scheme.models for a in m.actions):
+        raise ModelFileError(f"the calibrated scheme uses actions the learner does not have ({learner.n_actions})")
+    tree = tuple(integer(i, "calibration tree id", maximum=pool.next_id - 1)
+                 for i in listing(data["tree"], "calibration tree", len(scheme.models)))
+    if len(set(tree)) != len(tree):
+        raise ModelFileError(f"calibration tree ids repeat: {list(tree)}")
+    for i, model in zip(tree, scheme.models, strict=True):
+        entry = pool.tracked.get(i)
+        if entry is not None and {entry.parent, entry.child} != {model.parent, model.child}:
+            raise ModelFileError(f"calibration tree model {i} relates parts {model.parent}-{model.child}, the tracked "
+                                 f"model {entry.describe()}")
+    ratios = _part_rows(data["part_ratios"], parts, "part_ratios", lambda p, n, t, r: (
+        integer(n, "part_ratios n"), number(t, "part_ratios trans", 0.0), number(r, "part_ratios rot", 0.0)))
+    std = _part_rows(data["part_std"], parts, "part_std", lambda p, t, r: np.array(
+        [number(t, "part_std trans", 0.0), number(r, "part_std rot", 0.0)]))
+    if set(std) != parts:
+        raise ModelFileError(f"calibration part_std covers parts {sorted(std)}, not {sorted(parts)}")
+    consistency = _part_rows(data["consistency"], parts, "consistency", lambda p, n, F, pv, e, r: PartConsistency(
+        integer(n, "consistency n"), *(optional_number(v, f"consistency {name}", minimum=0.0)
+                                       for v, name in ((F, "F"), (pv, "p"), (e, "explained"), (r, "rms")))))
+    return Calibrated(scheme, _rigid(data["world2root"], "calibration world2root"), integer(data["step"], "step"),
+                      integer(data["n_steps"], "n_steps"), tree, number(data["rms"], "calibration rms", 0.0), ratios,
+                      std, consistency)
 
 
-def _integer(value, name, minimum=0):
-    """A JSON integer of at least ``minimum`` (bools and floats refused)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ModelFileError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return value
+def _part_rows(rows, parts, name, read):
+    """``{part: read(part, *values)}`` from ``[[part, *values], ...]`` with each part at most once."""
+    out = {}
+    width = read.__code__.co_argcount
+    for row in listing(rows, name):
+        p = part_id(listing(row, f"{name} row", width)[0], parts, name)
+        if p in out:
+            raise ModelFileError(f"{name} lists part {p} twice")
+        out[p] = read(*row)
+    return out
 
 
-def _boolean(value, name):
-    if not isinstance(value, bool):
-        raise ModelFileError(f"{name} must be true or false, got {value!r}")
-    return value
+def _actions(value, n_actions, name):
+    """An action vector as a learner takes it: finite, within :data:`~body_scheme_core.limits.MAX_ACTION`."""
+    a = finite_array(value, (n_actions,), name)
+    if np.any(np.abs(a) > MAX_ACTION):
+        raise ModelFileError(f"{name} beyond {MAX_ACTION:g}")
+    return a
 
 
-def _list(value, name):
-    if not isinstance(value, list):
-        raise ModelFileError(f"{name} must be a list, got {type(value).__name__}")
-    return value
-
-
-def _stamp(value):
-    """The last stamp: None or a finite number."""
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ModelFileError(f"last_stamp must be a finite number or null, got {value!r}")
-    return float(value)
-
-
-def _part(value, part_ids, name):
-    if isinstance(value, bool) or not isinstance(value, int) or value not in part_ids:
-        raise ModelFileError(f"{name} refers to unknown part {value!r}")
-    return value
+def _rigid(value, name):
+    """A finite 4x4 rigid transform."""
+    pose = finite_array(value, (4, 4), name)
+    if rigidity_problem(pose) is not None:
+        raise ModelFileError(f"{name} is not a rigid transform: {rigidity_problem(pose)}")
+    return pose
 
 
 def _observations(pairs, part_ids, name):
     """``{part: world2part}`` from ``[[part, pose], ...]``: known parts, finite rigid poses."""
     out = {}
-    for part, Y in _list(pairs, f"{name} observations"):
-        pose = _finite_array(Y, (4, 4), f"{name} observation")
-        if rigidity_problem(pose) is not None:
-            raise ModelFileError(f"{name} observation of part {part!r} is not a rigid transform")
-        out[_part(part, part_ids, f"{name} observation")] = pose
+    for item in listing(pairs, f"{name} observations"):
+        p, Y = listing(item, f"{name} observation", 2)
+        out[part_id(p, part_ids, f"{name} observation")] = _rigid(Y, f"{name} observation of part {p}")
     return out
-
-
-def _finite_array(value, shape, name):
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != shape:
-        raise ModelFileError(f"{name} must have shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ModelFileError(f"{name} contains NaN or inf")
-    return arr
 
 
 def _bounds_to_json(bounds):

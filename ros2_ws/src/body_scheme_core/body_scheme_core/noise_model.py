@@ -31,6 +31,8 @@ import numpy as np
 from scipy import stats
 
 from .errors import InvalidInputError, ModelFileError
+from .limits import MAX_NOISE
+from .state_values import integer, listing, mapping, number, optional_number, part_id
 
 __all__ = ["NoiseModel", "robust_variance", "ray_components"]
 
@@ -321,31 +323,21 @@ class NoiseModel:
         ModelFileError
             On a missing key, an unknown part, or a variance that is not a finite number >= 0.
         """
-        try:
-            pooled = np.array(data["pooled"], dtype=float)
-            n = data["n_observations"]
-            rows = list(data["parts"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ModelFileError(f"bad noise state: {type(exc).__name__}: {exc}") from exc
-        if pooled.shape != (3,) or not np.all(np.isfinite(pooled)) or np.any(pooled <= 0):
-            raise ModelFileError(f"noise state: pooled variances must be 3 finite numbers > 0, got {data['pooled']!r}")
-        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-            raise ModelFileError(f"noise state: n_observations must be an integer >= 0, got {n!r}")
+        data = mapping(data, "noise state")
+        missing = sorted({"pooled", "n_observations", "parts"} - set(data))
+        if missing:
+            raise ModelFileError(f"noise state is missing {missing}")
+        high = MAX_NOISE**2
+        pooled = np.array([number(v, "noise state pooled variance", maximum=high, above=0.0)
+                           for v in listing(data["pooled"], "noise state pooled", 3)])
+        n = integer(data["n_observations"], "noise state n_observations")
         parts = np.full((len(self.part_ids), 3), np.nan)
         part_n = np.zeros(len(self.part_ids), dtype=np.int64)
-        for row in rows:
-            if not (isinstance(row, list) and len(row) == 5):
-                raise ModelFileError(f"noise state: a part row is [id, lateral, depth, rotation, n], got {row!r}")
-            part, values, count = row[0], row[1:4], row[4]
-            if isinstance(part, bool) or not isinstance(part, int) or part not in self._index:
-                raise ModelFileError(f"noise state refers to unknown part {part!r}")
-            if isinstance(count, bool) or not isinstance(count, int) or count < 0:
-                raise ModelFileError(f"noise state: count of part {part} must be an integer >= 0, got {count!r}")
-            for v in values:
-                if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
-                                      or v < 0):
-                    raise ModelFileError(f"noise state: variance of part {part} must be a number >= 0, got {v!r}")
-            parts[self._index[part]] = [math.nan if v is None else float(v) for v in values]
-            part_n[self._index[part]] = count
+        for row in listing(data["parts"], "noise state parts"):
+            p, *values, count = listing(row, "noise state part row [id, lateral, depth, rotation, n]", 5)
+            k = self._index[part_id(p, self._index, "noise state")]
+            parts[k] = [optional_number(v, f"noise state variance of part {p}", minimum=0.0, maximum=high)
+                        for v in values]
+            part_n[k] = integer(count, f"noise state count of part {p}")
         self.parts, self.part_n, self.pooled, self.n_observations = parts, part_n, pooled, n
         return self

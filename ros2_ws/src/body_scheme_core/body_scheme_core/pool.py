@@ -28,11 +28,12 @@ from .errors import ModelFileError
 from .models import GPBatch, GPModel
 from .models.rigid_batch import RIGID_CLASSES, RigidBatch
 from .quality import prediction_errors
+from .state_values import integer, listing
 from .tracked import CANDIDATE, MEMORY, TrackedModel, nested_models
 from .transforms import invert_transform, transform_from_vector12
 from .validity import ValidityMonitor
 
-__all__ = ["Targets", "LearningSlots", "ModelPool"]
+__all__ = ["Targets", "LearningSlots", "ModelPool", "check_monitor_settings"]
 
 #: Rigid candidates are refitted with every sample only while they are among the ``_PROMISING`` best of their pair
 #: and class (by mean error over the test window) or not yet judged; the others every ``_SLOW_REFIT`` samples. A
@@ -456,30 +457,59 @@ class ModelPool:
         Raises
         ------
         ModelFileError
-            If the monitor or batches do not fit the configuration, or a model refers to an unknown part, a free
-            monitor row or batch slot, or is frozen without a stored model.
+            If the monitor or batches do not have the configuration's settings, or a model refers to an unknown part,
+            a free monitor row or batch slot (or one of another model class or actions), has an id at or above
+            ``next_id`` or twice, or is frozen without a stored model.
         """
         monitor = ValidityMonitor.from_dict(monitor)
-        if monitor.window != config.test_window:
-            raise ModelFileError(f"monitor window {monitor.window} != test_window {config.test_window}")
+        check_monitor_settings(monitor, config, "monitor")
         gp = GPBatch.from_state_dict(gp_batch)
         rigid = RigidBatch.from_state_dict(rigid_batch)
-        for name, batch in (("GP", gp), ("rigid", rigid)):
-            if batch.n_actions != n_actions:
-                raise ModelFileError(f"{name} batch has {batch.n_actions} actions, learner {n_actions}")
-        pool = cls(config, n_actions, gp, rigid, monitor, int(next_id))
-        allocated = {"gp": set(gp.allocated_slots.tolist()), "rigid": set(rigid.allocated_slots.tolist())}
-        for data in tracked:
-            entry = TrackedModel.from_dict(data)
-            for part in (entry.parent, entry.child):
-                if part not in part_ids:
-                    raise ModelFileError(f"model {entry.describe()} refers to unknown part {part}")
-            if not (0 <= entry.row < monitor.capacity and monitor.in_use[entry.row]):
-                raise ModelFileError(f"model {entry.describe()} has no monitor row {entry.row}")
-            if entry.slot >= 0:
-                if entry.slot not in allocated["rigid" if entry.kind in RIGID_CLASSES else "gp"]:
-                    raise ModelFileError(f"model {entry.describe()} refers to free batch slot {entry.slot}")
-            elif entry.model is None:
-                raise ModelFileError(f"frozen model entry {entry.id} has no stored model")
+        expected = GPBatch.from_config(n_actions, config, gp.max_dim)
+        if (gp.n_actions, gp.capacity, gp.hyperparameters) != (n_actions, config.train_window,
+                                                                 expected.hyperparameters):
+            raise ModelFileError(f"the GP batch ({gp.n_actions} actions, capacity {gp.capacity}, "
+                                 f"{gp.hyperparameters}) does not have the configuration's settings "
+                                 f"({n_actions}, {config.train_window}, {expected.hyperparameters})")
+        if not config.max_complexity <= gp.max_dim <= max(config.max_complexity, n_actions):
+            raise ModelFileError(f"the GP batch's max_dim {gp.max_dim} is below max_complexity or above the actions")
+        if (rigid.n_actions, rigid.capacity, rigid.f_scale, rigid.fit_scale) != (
+                n_actions, config.train_window, config.f_scale, config.fit_joint_scale):
+            raise ModelFileError("the rigid batch does not have the configuration's actions, train_window, f_scale "
+                                 "and fit_joint_scale")
+        pool = cls(config, n_actions, gp, rigid, monitor, integer(next_id, "next_id"))
+        for data in listing(tracked, "entries"):
+            entry = TrackedModel.from_dict(data, n_actions, part_ids)
+            problem = pool._entry_problem(entry)
+            if problem:
+                raise ModelFileError(f"model {entry.describe()}: {problem}")
             pool.tracked[entry.id] = entry
         return pool
+
+    def _entry_problem(self, entry):
+        """What is wrong with a loaded entry given the monitor, the batches and the entries before it, or None."""
+        if entry.id >= self.next_id or entry.id in self.tracked:
+            return f"its id is at or above next_id {self.next_id}, or taken"
+        if not (0 <= entry.row < self.monitor.capacity and self.monitor.in_use[entry.row]):
+            return f"has no monitor row {entry.row}"
+        if entry.slot < 0:
+            return None if entry.model is not None else "is frozen without a stored model"
+        if entry.model is not None:
+            return "is learning in a batch slot and has a stored model"
+        rigid = entry.kind in RIGID_CLASSES
+        batch = self.rigid_batch if rigid else self.gp_batch
+        if entry.slot >= len(batch._allocated) or not batch._allocated[entry.slot]:
+            return f"refers to free batch slot {entry.slot}"
+        held = (batch.slot_kind(entry.slot) if rigid else "gp", batch.slot_actions(entry.slot))
+        if held != (entry.kind, entry.actions):
+            return f"its batch slot {entry.slot} holds a {held[0]} model of actions {list(held[1])}"
+        return None
+
+
+def check_monitor_settings(monitor, config, name):
+    """Raise ``ModelFileError`` unless a loaded validity monitor has the configuration's test window and CUSUM."""
+    settings = (monitor.window, monitor.cusum_drift, monitor.cusum_threshold, monitor.cusum_clip, monitor.sigmas)
+    expected = (config.test_window, config.cusum_drift, config.cusum_threshold, config.cusum_clip,
+                config.validity_sigmas)
+    if settings != tuple(float(v) if k else v for k, v in enumerate(expected)):
+        raise ModelFileError(f"{name} has window and CUSUM settings {settings}, the configuration {expected}")

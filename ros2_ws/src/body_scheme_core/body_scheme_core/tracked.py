@@ -11,13 +11,15 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import ModelFileError
-from .models import model_from_dict
+from .models import MODEL_CLASSES, model_from_dict
 from .quality import class_rank, nests
+from .state_values import finite_array, integer, listing, mapping, part_id
 
 __all__ = ["TREE", "MEMORY", "CANDIDATE", "TrackedModel", "nested_models"]
 
 #: Roles of a tracked model.
 TREE, MEMORY, CANDIDATE = "tree", "memory", "candidate"
+ROLES = (TREE, MEMORY, CANDIDATE)
 
 
 class TrackedModel:
@@ -111,21 +113,46 @@ class TrackedModel:
                 "model": self.model.to_dict() if (with_model and self.model is not None) else None}
 
     @classmethod
-    def from_dict(cls, data):
-        """Rebuild from :meth:`to_dict` output; raises ModelFileError on an unknown role or a bad prior."""
-        model = model_from_dict(data["model"]) if data["model"] is not None else None
-        if data["role"] not in (TREE, MEMORY, CANDIDATE):
-            raise ModelFileError(f"unknown entry role {data['role']!r}")
+    def from_dict(cls, data, n_actions, part_ids):
+        """Rebuild from :meth:`to_dict` output for a learner of ``n_actions`` actions and parts ``part_ids``.
+
+        Raises
+        ------
+        ModelFileError
+            On a value that is not what a learner writes: an id, step or count that is not a bounded integer, a model
+            of an unknown part or of a part to itself, actions that are not distinct and in range, an unknown kind
+            or role, a bad prior, or a stored model that is unfitted or is not the model the entry describes.
+        """
+        data = mapping(data, "tracked model")
+        model_id = integer(data["id"], "tracked model id")
+        name = f"tracked model {model_id}"
+        parent, child = (part_id(data[k], part_ids, f"{name} {k}") for k in ("parent", "child"))
+        actions = tuple(integer(a, f"{name} action", maximum=n_actions - 1) for a in listing(data["actions"], name))
+        kind, role = data["kind"], data["role"]
+        if parent == child or len(set(actions)) != len(actions) or kind not in MODEL_CLASSES or role not in ROLES:
+            raise ModelFileError(f"{name}: parts {parent}->{child}, actions {list(actions)}, kind {kind!r} and role "
+                                 f"{role!r} do not describe a model of this learner")
+        model = None if data["model"] is None else model_from_dict(data["model"])
+        if model is not None and not (model.is_fitted and (model.kind, model.parent, model.child, model.actions)
+                                      == (kind, parent, child, actions)):
+            raise ModelFileError(f"{name}: the stored model {model.describe()} is not the fitted {kind} model of "
+                                 f"{parent}->{child} with actions {list(actions)}")
         prior = data["prior"]
         if prior is not None:
-            params, cov = (np.asarray(v, dtype=float) for v in prior)
-            if cov.ndim != 2 or cov.shape[0] != cov.shape[1] or not (np.all(np.isfinite(params))
-                                                                      and np.all(np.isfinite(cov))):
-                raise ModelFileError(f"bad prior of model {data['id']!r}")
-            prior = (params, cov)
-        return cls(data["id"], data["parent"], data["child"], data["actions"], data["kind"], data["role"],
-                   data["row"], data["slot"], model, data["n_train"], data["created"], data["origin"],
-                   data["last_used"], data["target"], data["since"], prior)
+            params, cov = listing(prior, f"{name} prior", 2)
+            k = len(listing(params, f"{name} prior parameters"))
+            prior = (finite_array(params, (k,), f"{name} prior parameters"),
+                     finite_array(cov, (k, k), f"{name} prior covariance"))
+        counts = {k: integer(data[k], f"{name} {k}", minimum=-1 if k in ("slot", "last_used", "target") else 0)
+                  for k in ("row", "slot", "n_train", "created", "last_used", "target", "since")}
+        return cls(model_id, parent, child, actions, kind, role, model=model, origin=_origin(data["origin"], name),
+                   prior=prior, **counts)
+
+
+def _origin(value, name):
+    if not isinstance(value, str) or len(value) > 40:
+        raise ModelFileError(f"{name}: origin must be a short string, got {value!r:.60}")
+    return value
 
 
 def nested_models(models):

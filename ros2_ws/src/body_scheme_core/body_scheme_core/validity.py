@@ -31,6 +31,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .errors import InvalidInputError, ModelFileError
+from .limits import MAX_WINDOW
+from .state_values import boolean, finite_array, integer, integer_array, listing, number
 
 __all__ = ["RATIO_CLIP", "translation_threshold", "WindowStats", "ValidityMonitor"]
 
@@ -477,27 +479,40 @@ class ValidityMonitor:
 
     @classmethod
     def from_dict(cls, data):
-        """Rebuild from :meth:`to_dict` output; raises ModelFileError on missing keys, bad shapes or NaN."""
+        """Rebuild from :meth:`to_dict` output.
+
+        Raises
+        ------
+        ModelFileError
+            On a missing key, a bad shape, NaN, a value out of its range (negative errors or counts, heads outside
+            the window), or a CUSUM that is above zero without the step it left zero at (or the reverse).
+        """
         try:
-            monitor = cls(int(data["window"]), 0, float(data["theta"][0]), float(data["theta"][1]),
-                          float(data["cusum_drift"]), float(data["cusum_threshold"]), float(data["cusum_clip"]),
-                          float(data["sigmas"]))
-            n = len(data["in_use"])
+            theta = listing(data["theta"], "validity-monitor theta", 2)
+            monitor = cls(integer(data["window"], "validity-monitor window", 1, MAX_WINDOW), 0,
+                          *(number(v, "validity-monitor theta", above=0.0) for v in theta),
+                          *(number(data[k], f"validity-monitor {k}", above=0.0)
+                            for k in ("cusum_drift", "cusum_threshold", "cusum_clip", "sigmas")))
+            n = len(listing(data["in_use"], "validity-monitor in_use"))
             template = monitor._empty(n)
-            arrays = {name: np.asarray(data[name], dtype=template[name].dtype) for name in cls._ARRAYS}
-        except (KeyError, TypeError, ValueError, IndexError, InvalidInputError) as exc:
+            for name in cls._ARRAYS:
+                shape, dtype = template[name].shape, template[name].dtype
+                if dtype.kind == "b":
+                    value = np.array([boolean(v, "validity-monitor in_use") for v in data[name]], dtype=bool)
+                elif dtype.kind == "f":
+                    value = finite_array(data[name], shape, f"validity-monitor {name}") if n else template[name]
+                else:
+                    value = integer_array(data[name], shape, f"validity-monitor {name}", -1) if n else template[name]
+                setattr(monitor, name, value)
+        except (KeyError, TypeError, InvalidInputError) as exc:
             raise ModelFileError(f"bad validity-monitor state: {type(exc).__name__}: {exc}") from exc
-        for name, value in arrays.items():
-            shape = template[name].shape
-            if value.size == 0 and n == 0:
-                value = value.reshape(shape)
-            if value.shape != shape:
-                raise ModelFileError(f"validity-monitor array {name!r} must have shape {shape}, got {value.shape}")
-            if value.dtype == float and not np.all(np.isfinite(value)):
-                raise ModelFileError(f"validity-monitor array {name!r} contains NaN or inf")
-            setattr(monitor, name, value)
-        if np.any((monitor.head < 0) | (monitor.head >= monitor.window)):
-            raise ModelFileError("validity-monitor ring-buffer heads out of range")
-        if np.any(monitor.thresholds <= 0):
-            raise ModelFileError("validity-monitor thresholds must be > 0")
+        problems = [what for what, bad in (
+            ("errors must be >= 0", np.any(monitor.errors < 0)),
+            ("thresholds must be > 0", np.any(monitor.thresholds <= 0)),
+            ("n_train and count must be >= 0", np.any(monitor.n_train < 0) or np.any(monitor.count < 0)),
+            ("ring-buffer heads must be in the window", np.any((monitor.head < 0) | (monitor.head >= monitor.window))),
+            ("a CUSUM is above zero exactly when it has a start step",
+             np.any((monitor.cusum < 0) | ((monitor.cusum > 0) != (monitor.cusum_start >= 0))))) if bad]
+        if problems:
+            raise ModelFileError(f"bad validity-monitor state: {'; '.join(problems)}")
         return monitor

@@ -89,9 +89,15 @@ def test_adaptation_state_round_trip():
     with pytest.raises(ModelFileError, match="unknown model id 4"):
         Adaptation.mismatch_from_state(state, {})
     adaptation.refining[7] = (4, 10)
-    assert Adaptation.refining_from_state(adaptation.refining_state(), {7: None}) == {7: (4, 10)}
+    assert Adaptation.refining_from_state(adaptation.refining_state(), {7: None}, 8) == {7: (4, 10)}
     with pytest.raises(ModelFileError, match="unknown model id 7"):
-        Adaptation.refining_from_state(adaptation.refining_state(), {})
+        Adaptation.refining_from_state(adaptation.refining_state(), {}, 8)
+    with pytest.raises(ModelFileError, match="refining failed id"):  # an id the pool has not given out
+        Adaptation.refining_from_state(adaptation.refining_state(), {7: None}, 4)
+    with pytest.raises(ModelFileError, match="two distinct parts"):
+        Adaptation.failed_from_state([[1, 1, 5, 3]], {1, 2})
+    with pytest.raises(ModelFileError, match="failed step"):
+        Adaptation.failed_from_state([[1, 2, 1e308, 3]], {1, 2})
 
 
 def test_a_failing_model_is_detected_replaced_and_remembered():

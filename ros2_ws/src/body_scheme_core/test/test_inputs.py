@@ -200,3 +200,22 @@ def test_bodies_beyond_what_fits_in_memory_are_refused_with_the_reason():
         check_body_size(40, 30, BodySchemeConfig())
     check_body_size(20, 14, BodySchemeConfig())  # 20 markers on a 14-joint dual arm: fine
     check_body_size(40, 30, BodySchemeConfig(max_complexity=1, candidate_kinds=("static", "gp")))  # fewer: fine
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("train_window", True, r"train_window must be an integer in \[1, 10000\]"),
+    ("train_window", 10**9, r"train_window must be an integer in \[1, 10000\]"),  # would allocate the memory
+    ("memory_size", -1, "memory_size must be an integer"),
+    ("f_scale", True, "f_scale must be a finite number"),
+    ("cusum_threshold", 1e308, "cusum_threshold must be a finite number"),
+    ("sigma_trans", "inf", '"auto" or a finite number'),
+    ("theta_rot", 0.0, "null or a finite number"),
+    ("consistency_alpha", 1.0, "consistency_alpha must be below 1"),
+    ("cusum_clip", 1.0, "must exceed cusum_drift"),
+    ("root", 1.5, "root must be a part id or null"),
+])
+def test_every_setting_is_bounded_and_typed(field, value, message):
+    """Settings come from YAML and state files: booleans are not numbers, and no setting may be large enough to
+    allocate the machine's memory or overflow a count."""
+    with pytest.raises(InvalidInputError, match=message):
+        BodySchemeConfig(**{field: value})

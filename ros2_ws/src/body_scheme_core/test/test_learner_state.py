@@ -112,15 +112,20 @@ def state():
 
 @pytest.mark.parametrize("field, value, message", [
     ("last_stamp", "abc", "last_stamp must be a finite number"),
-    ("step", -5, "step must be an integer >= 0"),
+    ("step", -5, r"step must be an integer in \[0, "),
     ("step", 3.5, "step must be an integer"),
+    ("step", 2**60, r"step must be an integer in \[0, "),  # beyond any learner: later sums would overflow int64
+    ("next_id", True, "next_id must be an integer"),
+    ("last_stamp", "inf", "last_stamp must be a finite number"),
+    ("failed", [[1, 1, 5, 3]], "two distinct parts"),
+    ("noise", {"pooled": [1e6, 1.0, 1.0], "n_observations": 0, "parts": []}, "pooled variance"),
     ("bootstrapping", 1, "bootstrapping must be true or false"),
-    ("rejected", {"flipped": -1}, "must be an integer >= 0"),
-    ("root", 99, "root must be one of the parts"),
+    ("rejected", {"flipped": -1}, r"must be an integer in \[0, "),
+    ("root", 99, "root refers to unknown part 99"),
     ("lack_of_fit", [7], "unknown part"),
     ("tree", [0, 0], "tree refers to unknown model ids"),
     ("root_offset", {"pose": (2 * np.eye(4)).tolist(), "n": 3}, "root_offset pose is not a rigid transform"),
-    ("root_offset", {"pose": np.eye(4).tolist(), "n": -1}, "root_offset n must be an integer >= 0"),
+    ("root_offset", {"pose": np.eye(4).tolist(), "n": -1}, r"root_offset n must be an integer in \[0, "),
     ("root_offset", [], "root_offset must be an object"),
 ])
 def test_every_field_of_a_state_is_checked(state, field, value, message):

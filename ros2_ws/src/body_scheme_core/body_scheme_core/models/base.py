@@ -22,6 +22,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import InvalidInputError, ModelFileError, NotFittedError
+from ..limits import MAX_ACTIONS
 from ..transforms import check_transform
 
 __all__ = ["LocalModel", "check_action_batch", "check_observations"]
@@ -83,6 +84,10 @@ class LocalModel(ABC):
     def __init__(self, parent, child, actions=()):
         self.parent = int(parent)
         self.child = int(child)
+        actions = tuple(actions)
+        if any(isinstance(a, bool) or not isinstance(a, (int, np.integer)) or not 0 <= a < MAX_ACTIONS
+               for a in actions):
+            raise InvalidInputError(f"actions must be indices in [0, {MAX_ACTIONS}), got {actions!r:.80}")
         self.actions = tuple(int(a) for a in actions)
 
     @property

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 
 from ..errors import BodySchemeError, InvalidInputError, ModelFileError
+from ..limits import MAX_ACTION, MAX_COORDINATE
 from ..transforms import polar_derivative, transform_from_vector12, vector12_from_transform
 from .base import LocalModel, check_action_batch, check_observations
 from .gp_kernel import (
@@ -32,7 +33,8 @@ __all__ = ["GPModel"]
 
 
 def _training_arrays(X, Y, d):
-    """Saved training inputs and targets as float arrays (n, d) and (n, 12); empty lists give n = 0."""
+    """Saved training inputs and targets as float arrays (n, d) and (n, 12) within :data:`MAX_ACTION` and
+    :data:`MAX_COORDINATE`; empty lists give n = 0."""
     X = np.asarray(X, dtype=float)
     Y = np.asarray(Y, dtype=float)
     if Y.size == 0:
@@ -41,6 +43,9 @@ def _training_arrays(X, Y, d):
         X = X.reshape(Y.shape[0] if X.ndim == 2 else 0, d)
     if X.ndim != 2 or X.shape[1] != d:
         raise ModelFileError(f"training inputs must have shape (n, {d}), got {X.shape}")
+    if not (np.all(np.abs(X) <= MAX_ACTION) and np.all(np.abs(Y) <= MAX_COORDINATE)):
+        raise ModelFileError(f"GP training data contains NaN, inf, actions beyond {MAX_ACTION:g} or outputs beyond "
+                             f"{MAX_COORDINATE:g}")
     return X, Y
 
 
@@ -219,12 +224,10 @@ class GPModel(LocalModel):
                 if Y.ndim != 2 or Y.shape[1] != 12 or Y.shape[0] != X.shape[0] or X.shape[0] == 0:
                     raise ModelFileError(f"GP training data must be X (n, {d}) and Y (n, 12), n >= 1, got "
                                          f"X {X.shape} and Y {Y.shape}")
-                if not (np.all(np.isfinite(X)) and np.all(np.isfinite(Y))):
-                    raise ModelFileError("GP training data contains NaN or inf")
                 model._fit_components(X, Y)
         except ModelFileError:
             raise
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, BodySchemeError, np.linalg.LinAlgError) as exc:
             keys = sorted(data) if isinstance(data, dict) else data
             raise ModelFileError(f"cannot read GP model from {keys!r}: {exc}") from exc
         return model

@@ -12,10 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import BodySchemeError, InvalidInputError, ModelFileError
+from ..limits import MAX_ACTIONS
+from ..state_values import integer, mapping, number
 from ..transforms import check_transform, project_to_rotation_batch, vector12_from_transform
 from .gp import GPModel, _training_arrays
 from .gp_kernel import ROT_OUTPUTS, TRANS_OUTPUTS, GPHyperparameters, _clamp_variance, summarise_std
-from .slots import SlotArrays
+from .slots import SlotArrays, read_batch_header
 
 __all__ = ["GPBatch"]
 
@@ -309,11 +311,10 @@ class GPBatch(SlotArrays):
     def from_state_dict(cls, data):
         """Rebuild a batch from :meth:`state_dict` output, replaying the samples in order; same slot indices."""
         try:
-            if data.get("format") != "GPBatch" or data.get("version") != 1:
-                raise ModelFileError(f"not a GPBatch state (format {data.get('format')!r}, "
-                                     f"version {data.get('version')!r})")
-            batch = cls(data["n_actions"], data["capacity"], data["max_dim"], **data["hyperparameters"])
-            entries = data["slots"]
+            n_actions, capacity, entries = read_batch_header(data, "GPBatch")
+            batch = cls(n_actions, capacity, integer(data["max_dim"], "GPBatch max_dim", 0, MAX_ACTIONS),
+                        **{k: number(v, f"GPBatch {k}", above=0.0)
+                           for k, v in mapping(data["hyperparameters"], "GPBatch hyperparameters").items()})
             batch._grow(len(entries))
             X = np.zeros((len(entries), batch.capacity, batch.max_dim))
             Y = np.zeros((len(entries), batch.capacity, 12))
@@ -321,7 +322,7 @@ class GPBatch(SlotArrays):
             for slot, entry in enumerate(entries):
                 if entry is None:
                     continue
-                actions = tuple(entry["actions"])
+                actions = tuple(integer(a, "GPBatch slot action", 0, n_actions - 1) for a in entry["actions"])
                 d = len(actions)
                 if d > batch.max_dim:
                     raise ModelFileError(f"slot {slot}: {d} actions exceed max_dim {batch.max_dim}")
@@ -330,8 +331,6 @@ class GPBatch(SlotArrays):
                 if Ys.shape != (n, 12) or n > batch.capacity:
                     raise ModelFileError(f"slot {slot}: X {Xs.shape} and Y {Ys.shape} do not match or exceed "
                                          f"capacity {batch.capacity}")
-                if not (np.all(np.isfinite(Xs)) and np.all(np.isfinite(Ys))):
-                    raise ModelFileError(f"slot {slot}: data contain NaN or inf")
                 batch._assign(slot, batch._check_slot_actions(actions))
                 batch._allocated[slot] = True
                 X[slot, :n, :d] = Xs
@@ -343,6 +342,6 @@ class GPBatch(SlotArrays):
                 batch._append(slots, slots, X[slots, k], Y[slots, k])
         except ModelFileError:
             raise
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, BodySchemeError) as exc:
             raise ModelFileError(f"cannot read GPBatch state: {exc}") from exc
         return batch

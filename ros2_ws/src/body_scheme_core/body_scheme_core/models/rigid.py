@@ -27,6 +27,8 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import InvalidInputError, ModelFileError
+from ..limits import MAX_COORDINATE
+from ..state_values import finite_array, integer, number
 from ..transforms import check_transform
 from .base import LocalModel, check_action_batch, check_observations
 from .rigid_fit import DEFAULT_F_SCALE, fit_rms, least_squares_fit
@@ -217,19 +219,13 @@ class RigidJointModel(LocalModel):
         try:
             model = cls._unfitted_from_dict(data)
             if "params" in data:
-                params = np.asarray(data["params"], dtype=float)
-                cov = np.asarray(data["param_cov"], dtype=float)
-                form = model.form
-                p = form.N_PARAMS
-                if params.shape != (form.N_STORED,) or cov.shape != (p, p):
-                    raise ModelFileError(f"{cls.kind} model needs params ({form.N_STORED},) and param_cov "
-                                         f"({p}, {p}), got {params.shape} and {cov.shape}")
-                if not (np.all(np.isfinite(params)) and np.all(np.isfinite(cov))):
-                    raise ModelFileError(f"{cls.kind} model parameters contain NaN or inf")
+                form, p = model.form, model.form.N_PARAMS
+                params = finite_array(data["params"], (form.N_STORED,), f"{cls.kind} model params")
+                cov = finite_array(data["param_cov"], (p, p), f"{cls.kind} model param_cov")
+                if np.abs(params).max(initial=0.0) > MAX_COORDINATE:
+                    raise ModelFileError(f"{cls.kind} model parameters beyond {MAX_COORDINATE:g} (m, rad or scale)")
                 params = form.validate(params)
-                n, rms = int(data["n_samples"]), float(data["rms"])
-                if n < 0 or not (math.isfinite(rms) and rms >= 0):
-                    raise ModelFileError(f"bad {cls.kind} fit statistics n_samples {n!r}, rms {rms!r}")
+                n, rms = integer(data["n_samples"], "n_samples"), number(data["rms"], "rms", 0.0)
                 model._set_fit(params, cov, n, rms)
         except ModelFileError:
             raise

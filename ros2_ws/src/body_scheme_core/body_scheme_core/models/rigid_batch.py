@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InvalidInputError, ModelFileError
+from ..errors import BodySchemeError, InvalidInputError, ModelFileError
+from ..limits import MAX_ACTION
+from ..state_values import boolean, finite_array, integer, listing, number
 from ..transforms import check_transform, vector12_from_transform
 from .prismatic import PrismaticModel
 from .revolute import RevoluteModel
 from .rigid_fit import DEFAULT_F_SCALE, covariance, fit_rms, fit_stack, gauss_newton
-from .slots import SlotArrays
+from .slots import SlotArrays, read_batch_header
 from .static import StaticModel
 
 __all__ = ["RigidBatch", "RIGID_CLASSES", "RESTART_SIZES"]
@@ -288,26 +290,23 @@ class RigidBatch(SlotArrays):
     def from_state_dict(cls, data):
         """Rebuild from :meth:`state_dict` output with the same slot indices and fits (no refitting)."""
         try:
-            if data.get("format") != "RigidBatch" or data.get("version") != 1:
-                raise ModelFileError(f"not a RigidBatch state (format {data.get('format')!r}, "
-                                     f"version {data.get('version')!r})")
-            batch = cls(data["n_actions"], data["capacity"], data["f_scale"], data["fit_scale"])
-            entries = data["slots"]
+            n_actions, capacity, entries = read_batch_header(data, "RigidBatch")
+            batch = cls(n_actions, capacity, number(data["f_scale"], "RigidBatch f_scale", above=0.0),
+                        boolean(data["fit_scale"], "RigidBatch fit_scale"))
             batch._grow(len(entries))
             for slot, entry in enumerate(entries):
                 if entry is None:
                     continue
                 code, action = batch._check_spec((entry["kind"], entry["actions"]))
-                x = np.asarray(entry["x"], dtype=float).reshape(-1)
-                n = x.size
-                Z = np.asarray(entry["Z"], dtype=float).reshape(n, 12)
-                S = np.asarray(entry["sigma"], dtype=float).reshape(n, 2)
-                params = np.asarray(entry["params"], dtype=float)
-                if n > batch.capacity or params.shape != (_STORED,):
-                    raise ModelFileError(f"slot {slot}: {n} samples (capacity {batch.capacity}) or params "
-                                         f"{params.shape}")
-                if not all(np.all(np.isfinite(v)) for v in (x, Z, S, params)) or np.any(S <= 0):
-                    raise ModelFileError(f"slot {slot}: data contain NaN, inf or sigmas <= 0")
+                n = len(listing(entry["x"], f"RigidBatch slot {slot} x"))
+                if n > batch.capacity:
+                    raise ModelFileError(f"slot {slot}: {n} samples exceed the capacity {batch.capacity}")
+                x = finite_array(entry["x"], (n,), f"RigidBatch slot {slot} x")
+                Z = finite_array(entry["Z"], (n, 12), f"RigidBatch slot {slot} Z")
+                S = finite_array(entry["sigma"], (n, 2), f"RigidBatch slot {slot} sigma")
+                params = finite_array(entry["params"], (_STORED,), f"RigidBatch slot {slot} params")
+                if np.any(S <= 0) or np.any(np.abs(x) > MAX_ACTION):
+                    raise ModelFileError(f"slot {slot}: sigmas <= 0 or actions beyond {MAX_ACTION:g}")
                 batch._allocated[slot] = True
                 batch._kind[slot], batch._action[slot], batch._n[slot] = code, action, n
                 batch._x[slot, :n] = x
@@ -317,10 +316,10 @@ class RigidBatch(SlotArrays):
                 batch._Z[slot, :n] = check_transform(T, name="Z", tolerance=1e-4)
                 batch._S[slot, :n] = S
                 batch._params[slot] = params
-                batch._cost[slot] = float(entry["cost"])
-                batch._fit_n[slot] = min(int(entry["fit_n"]), n)
+                batch._cost[slot] = number(entry["cost"], f"RigidBatch slot {slot} cost", 0.0)
+                batch._fit_n[slot] = integer(entry["fit_n"], f"RigidBatch slot {slot} fit_n", 0, n)
         except ModelFileError:
             raise
-        except (KeyError, TypeError, ValueError, AttributeError, InvalidInputError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, BodySchemeError) as exc:
             raise ModelFileError(f"cannot read RigidBatch state: {exc}") from exc
         return batch

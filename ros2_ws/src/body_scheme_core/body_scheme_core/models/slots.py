@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InvalidInputError
+from ..errors import InvalidInputError, ModelFileError
+from ..limits import MAX_ACTIONS, MAX_WINDOW
+from ..state_values import integer, listing, mapping
 
-__all__ = ["SlotArrays"]
+__all__ = ["SlotArrays", "read_batch_header"]
 
 
 class SlotArrays:
@@ -89,3 +91,14 @@ class SlotArrays:
         if unique and np.unique(slots).size != slots.size:
             raise InvalidInputError("slots must not repeat in one update")
         return slots
+
+
+def read_batch_header(data, fmt):
+    """``(n_actions, capacity, slots)`` of a batch's state dict of format ``fmt``, within the sizes a learner uses
+    (checked before anything is allocated)."""
+    data = mapping(data, f"{fmt} state")
+    if data.get("format") != fmt or data.get("version") != 1:
+        raise ModelFileError(f"not a {fmt} state (format {data.get('format')!r:.40}, version "
+                             f"{data.get('version')!r:.40})")
+    return (integer(data["n_actions"], f"{fmt} n_actions", 0, MAX_ACTIONS),
+            integer(data["capacity"], f"{fmt} capacity", 1, MAX_WINDOW), listing(data["slots"], f"{fmt} slots"))
