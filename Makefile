@@ -80,7 +80,7 @@ demo-core: build
 	$(RUN) python -m body_scheme_apps.core_demo
 
 bench: build
-	$(RUN) python -m body_scheme_apps.learning_bench --out out/bench/core.json
+	$(RUN) python -m body_scheme_apps.learning_bench --out out/bench/core.json --copy docs/results/bench.json
 	$(RUN) python -m body_scheme_apps.perception_bench --out out/bench/sim.json
 	$(RUN) python -m body_scheme_apps.load_bench --out out/bench/load.json
 

@@ -511,6 +511,10 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
                           ("duplicate", "stale", "settling", "no_command", "out_of_order_observation"))
     learnt_or_shed = count("step") + count("shed.stale_samples") + count("shed.samples")
     assert learnt_or_shed + pairer_refusals == n, _values(collector)
+    # How far learning is behind its input: each learnt sample was at most max_sample_age old when it was taken.
+    values = _values(collector)
+    assert 0.0 <= float(values["learning_lag_max_ms"]) <= 50.0 + 1e-6
+    assert int(values["candidates_raced"]) >= 0 and "candidates" in values
     assert process.process.poll() is None
 
 

@@ -51,6 +51,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from body_scheme_apps import bootstrap_bench  # noqa: E402
 from body_scheme_apps.bench_output import report  # noqa: E402
 from body_scheme_core import __version__  # noqa: E402
 from body_scheme_core.config import BodySchemeConfig  # noqa: E402
@@ -248,6 +249,7 @@ def run_benchmarks(quick=False, seed=0, repeats=3):
         sk_rate = 1.0 / float(np.mean(sk_seconds))
         ik_ms, ik_ok = _ik(learner, session, 30 if quick else 100, seed)
     parametrisation = _parametrisation_comparison(seed, 20 if quick else 100)
+    bodies = bootstrap_bench.run(("paper6", "arm7") if quick else tuple(bootstrap_bench.BODIES), seed)
     bootstrap = float(np.median(rates))
     import scipy
     import sklearn
@@ -286,6 +288,7 @@ def run_benchmarks(quick=False, seed=0, repeats=3):
         "cpu_count": os.cpu_count(),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "quick": bool(quick),
+        **bodies,
     }
 
 
@@ -314,6 +317,8 @@ def _table(result):
                      f"{p[f'tangent6_{label}_trans_mm']:6.1f} mm {p[f'tangent6_{label}_rot_deg']:5.2f} deg")
     lines.append(f"(python {result['python']}, numpy {result['numpy']}, BLAS threads pinned to 1 via "
                  f"{result['blas_pinning']}; structure recovered exactly: {result['scheme_exact']})")
+    bodies = [name for name in bootstrap_bench.BODIES if f"bootstrap_{name}_updates_per_s" in result]
+    lines.append(bootstrap_bench.table(result, bodies))
     return "\n".join(lines)
 
 
@@ -324,8 +329,11 @@ def main(argv=None):
                         help="JSON file to write (directories are created; default: %(default)s)")
     parser.add_argument("--quick", action="store_true", help="fewer repetitions and targets (a smoke run)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic session (default: 0)")
+    parser.add_argument("--copy", default=None, help="also write the JSON here (make bench: docs/results/bench.json)")
     args = parser.parse_args(argv)
     result = run_benchmarks(quick=args.quick, seed=args.seed)
+    if args.copy:
+        report(result, "", args.copy)
     return report(result, _table(result), args.out)
 
 

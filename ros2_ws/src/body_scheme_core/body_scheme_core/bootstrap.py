@@ -1,12 +1,16 @@
 """Bootstrapping: learning a body scheme from scratch (paper Sec. III-C).
 
-A candidate local model is instantiated for every pair of parts, every action subset of at most ``max_complexity``
-actions and every model class of ``candidate_kinds`` that fits it (the fully connected network of Fig. 4): static
-models for no action; prismatic, revolute and GP models for one; GP models for more
-(:func:`~body_scheme_core.structure.enumerate_candidates`). Each is a *temporal* local model: it learns from the first
-``train_window`` relative observations of its pair and is then frozen. After every step the minimum spanning tree
-over the valid candidates that no nesting candidate clearly beats (dominance rule) is searched layer by layer, with
-the classes of a layer ordered by their rank (:func:`~body_scheme_core.quality.model_cost`).
+A candidate local model is instantiated for every pair of parts, every action subset of at most one action and
+every model class of ``candidate_kinds`` that fits it (static models for no action; prismatic, revolute and GP
+models for one: :func:`~body_scheme_core.structure.enumerate_candidates`). The next complexity layer (GP models on
+more actions) is instantiated lazily, only for the pairs across the parts the layers so far cannot connect
+(:meth:`Bootstrap.expand`, paper Sec. III-D), and learns the recorded history at once; with ``lazy_layers`` off
+every layer up to ``max_complexity`` starts at once (the fully connected network of Fig. 4). Each candidate is a
+*temporal* local model: it learns from the first ``train_window`` relative observations of its pair and is then
+frozen. After every step the candidates that are invalid with high confidence are dropped (racing,
+:meth:`Bootstrap.race`), and the minimum spanning tree over the valid candidates that no nesting candidate clearly
+beats (dominance rule) is searched layer by layer, with the classes of a layer ordered by their rank
+(:func:`~body_scheme_core.quality.model_cost`).
 
 Bootstrapping ends when a valid tree exists, its models are frozen and every candidate is frozen (or the tree has
 been stable for ``bootstrap_patience`` steps): all other candidates are dropped and the tree's models become fitted
@@ -16,14 +20,20 @@ gives the rules and defaults.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from .events import Event, format_errors
 from .quality import model_cost
-from .structure import enumerate_candidates, select_spanning_tree
+from .structure import enumerate_candidates, kinds_for, select_spanning_tree
 from .tracked import TREE
 
-__all__ = ["Bootstrap"]
+__all__ = ["Bootstrap", "SUSPECT_RATIO"]
+
+#: A tree model whose window mean error ratio exceeds this in either channel when bootstrapping would end has its
+#: pair's next layer instantiated first (:meth:`Bootstrap.expand_suspects`); right models stay below about half.
+SUSPECT_RATIO = 0.6
 
 
 class Bootstrap:
@@ -51,20 +61,24 @@ class Bootstrap:
     vetoed : dict of int to int
     """
 
-    def __init__(self, config, pool, pairs, found=False, tree_since=0, vetoed=None):
+    def __init__(self, config, pool, pairs, found=False, tree_since=0, vetoed=None, history=()):
         self.config = config
         self.pool = pool
         self.pairs = pairs
         self.found = bool(found)
         self.tree_since = int(tree_since)
         self.vetoed = {} if vetoed is None else dict(vetoed)
+        self.history = history
+        self.raced = 0
         self._pair_index = None
+        self._layers = None  # {(parent, child): highest complexity instantiated}, see _instantiated_layers
 
     @staticmethod
     def add_candidates(pool, part_ids, n_actions, config):
-        """Start every candidate of the fully connected network learning in ``pool``."""
-        pool.add_learning(enumerate_candidates(part_ids, n_actions, config.max_complexity, config.candidate_kinds),
-                          origin="bootstrap")
+        """Start the candidates of the fully connected network learning in ``pool``: those of complexity <= 1 with
+        ``config.lazy_layers`` (the others follow where needed, :meth:`expand`), else all."""
+        top = min(config.max_complexity, 1) if config.lazy_layers else config.max_complexity
+        pool.add_learning(enumerate_candidates(part_ids, n_actions, top, config.candidate_kinds), origin="bootstrap")
 
     def _pairs_of_learning(self):
         ls = self.pool.learning()
@@ -102,7 +116,126 @@ class Bootstrap:
             return tree, False
         # Candidates are enumerated in the canonical direction of their pair, so the targets need no flip.
         pool.train(ls.ids[sel], a, relative.targets(pair[sel]), step)
-        return self.search(tree, step, events), True
+        self.race(tree)
+        tree = self.search(tree, step, events)
+        if tree is None and self.expand(step, events):
+            tree = self.search(tree, step, events)
+        return tree, True
+
+    def race(self, tree):
+        """Drop the candidates that are invalid with high confidence
+        (:meth:`~body_scheme_core.validity.ValidityMonitor.hopeless`), except those of the current tree (the search
+        drops them first); counted in :attr:`raced`."""
+        c = self.config
+        if c.race_samples < 1:
+            return
+        pool = self.pool
+        ls = pool.learning()
+        hopeless = pool.monitor.hopeless(ls.rows, c.race_samples, c.race_ratio, c.race_min_train)
+        keep = set(tree or ())
+        drop = [pool.tracked[int(i)] for i in ls.ids[hopeless] if int(i) not in keep]
+        if drop:
+            for entry in drop:
+                self.vetoed.pop(entry.id, None)
+            pool.remove(*drop)
+            self.raced += len(drop)
+
+    def expand(self, step, events):
+        """Lazy layers (paper Sec. III-D): where the eligible candidates of the layers instantiated so far (valid, not
+        dominated, not vetoed: those the search takes) cannot connect the parts, start the next layer's candidates of
+        every pair across the parts they leave apart, once each of that pair's candidates has been tested on a full
+        test window; they learn the recorded history at once. Returns whether candidates were added."""
+        c = self.config
+        if not c.lazy_layers:
+            return False
+        pool = self.pool
+        ls = pool.learning()
+        _, valid, _, _ = self._eligible(ls)
+        entries = [pool.tracked[int(i)] for i in ls.ids]
+        component = {p: p for p in self.pairs.part_ids}
+
+        def find(p):
+            while component[p] != p:
+                component[p] = component[component[p]]
+                p = component[p]
+            return p
+
+        for k in np.flatnonzero(valid):
+            component[find(entries[k].parent)] = find(entries[k].child)
+        if len({find(p) for p in component}) == 1:
+            return False
+        tested = {}
+        for entry, count in zip(entries, pool.monitor.count[ls.rows], strict=True):
+            key = (entry.parent, entry.child)
+            tested[key] = min(tested.get(key, count), count)
+        layers = self._instantiated_layers()
+        pairs = [pair for pair, top in layers.items() if top < c.max_complexity and find(pair[0]) != find(pair[1])
+                 and tested.get(pair, c.test_window) >= c.test_window]
+        return self._next_layer(pairs, step, events, "do not connect the parts")
+
+    def expand_suspects(self, tree, step, events):
+        """Before bootstrapping ends, the next layer for the pairs of tree models that fit poorly (a window mean
+        error ratio over :data:`SUSPECT_RATIO` in either channel; right models stay below about half): a higher
+        layer may nest them and clearly beat them (dominance), as the eager search would have seen. Returns whether
+        candidates were added (then bootstrapping goes on)."""
+        c = self.config
+        if not c.lazy_layers or not tree:
+            return False
+        pool = self.pool
+        entries = [pool.tracked[i] for i in tree]
+        n_now = np.array([pool.n_now(e) for e in entries])
+        st, _ = pool.window_stats([e.row for e in entries], n_now)
+        layers = self._instantiated_layers()
+        pairs = [(e.parent, e.child) for k, e in enumerate(entries)
+                 if max(st.trans_ratio[k], st.rot_ratio[k]) > SUSPECT_RATIO
+                 and layers.get((e.parent, e.child), c.max_complexity) < c.max_complexity]
+        return self._next_layer(pairs, step, events, "leave tree models that fit poorly")
+
+    def _next_layer(self, pairs, step, events, why):
+        """Start the next layer's candidates of ``pairs`` and train them on the history; whether any were added."""
+        c = self.config
+        layers = self._instantiated_layers()
+        specs = []
+        for pair in pairs:
+            top = layers[pair]
+            layers[pair] = top + 1
+            specs += [(*pair, acts, kind) for acts in itertools.combinations(range(self.pool.n_actions), top + 1)
+                      for kind in kinds_for(acts, c.candidate_kinds)]
+        if not specs:
+            return False
+        added = self.pool.add_learning(specs, origin="bootstrap")
+        used = self._replay(added)
+        events.append(Event(step, "model_sampled",
+                            f"the eligible candidates of the layers instantiated so far {why}: sampled {len(added)} "
+                            f"candidates of the next layer for {len(pairs)} pair(s), trained on the {used} recorded "
+                            f"steps that observed their pairs"))
+        return True
+
+    def _instantiated_layers(self):
+        """``{(parent, child): highest complexity instantiated}`` of every pair, in the direction candidates are
+        enumerated (:func:`enumerate_candidates`); from the pool at first use, so after a restart a layer whose
+        candidates were all raced out is instantiated again."""
+        if self._layers is None:
+            start = min(self.config.max_complexity, 1) if self.config.lazy_layers else self.config.max_complexity
+            self._layers = {pair: start for pair in itertools.combinations(self.pairs.part_ids, 2)}
+            for entry in self.pool.tracked.values():
+                key = (entry.parent, entry.child)
+                if key in self._layers:
+                    self._layers[key] = max(self._layers[key], entry.complexity)
+        return self._layers
+
+    def _replay(self, entries):
+        """Train new candidates on the recorded history, test-then-train; returns the steps that observed a pair."""
+        ids = np.array([e.id for e in entries], dtype=np.int64)
+        pair = np.array([self.pairs.index(e.parent, e.child) for e in entries], dtype=np.intp)
+        used = 0
+        for rec_step, a, obs in self.history:
+            relative = self.pairs.observe(obs)
+            sel = np.flatnonzero(relative.row[pair] >= 0)
+            if sel.size:
+                self.pool.train(ids[sel], a, relative.targets(pair[sel]), rec_step)
+                used += 1
+        return used
 
     def veto(self, entry_id):
         """Exclude a candidate from the search until its training set has grown by half (a tree edge whose calibrated
@@ -131,18 +264,10 @@ class Bootstrap:
         pool = self.pool
         parts = self.pairs.part_ids
         ls = pool.learning()
-        n_now = pool.sizes(ls)
-        st, valid = pool.window_stats(ls.rows, n_now)
-        dominated = valid & pool.dominated(ls.rows, n_now, *ls.nested, valid)
-        valid &= ~dominated
-        if self.vetoed:
-            at = np.array([self.vetoed.get(int(i), -1) for i in ls.ids])
-            vetoed = at >= 0
-            expired = vetoed & ((n_now >= 1.5 * at + 1) | (n_now >= self.config.train_window))
-            valid &= ~(vetoed & ~expired)
-            if events is not None:
-                for i in ls.ids[expired]:
-                    del self.vetoed[int(i)]
+        st, valid, dominated, expired = self._eligible(ls)
+        if events is not None:
+            for i in expired:
+                del self.vetoed[int(i)]
         if exclude:
             valid &= ~np.isin(ls.ids, list(exclude))
         cost = model_cost(ls.layer, st.trans_ratio, st.rot_ratio, ls.rank)
@@ -179,6 +304,24 @@ class Bootstrap:
             self.tree_since = step
         return tree
 
+    def _eligible(self, ls):
+        """``(stats, eligible, dominated, expired vetoes)`` of the learning candidates ``ls``: valid, not dominated
+        by a nesting candidate, and not vetoed (a veto expires once its candidate's training set grew by half or is
+        full)."""
+        pool = self.pool
+        n_now = pool.sizes(ls)
+        st, valid = pool.window_stats(ls.rows, n_now)
+        dominated = valid & pool.dominated(ls.rows, n_now, *ls.nested, valid)
+        valid &= ~dominated
+        expired = ls.ids[:0]
+        if self.vetoed:
+            at = np.array([self.vetoed.get(int(i), -1) for i in ls.ids])
+            vetoed = at >= 0
+            done = vetoed & ((n_now >= 1.5 * at + 1) | (n_now >= self.config.train_window))
+            valid &= ~(vetoed & ~done)
+            expired = ls.ids[done]
+        return st, valid, dominated, expired
+
     def finish_if_ready(self, tree, step, events):
         """End bootstrapping if the tree's models are frozen and all candidates are, or the tree is stable.
 
@@ -200,6 +343,8 @@ class Bootstrap:
         all_frozen = bool(np.all(n_now >= c.train_window))
         stable = step - self.tree_since >= c.bootstrap_patience
         if not (tree_frozen and (all_frozen or stable)):
+            return False
+        if self.expand_suspects(tree, step, events):
             return False
         kept = [pool.tracked[i] for i in tree]
         n_dropped = len(pool.tracked) - len(kept)

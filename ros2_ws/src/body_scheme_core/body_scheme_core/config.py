@@ -30,14 +30,15 @@ _INTEGERS = {"test_window": (1, MAX_WINDOW), "train_window": (1, MAX_WINDOW), "m
              "max_complexity": (0, 100), "bootstrap_patience": (1, 10**6), "reinstate_min_samples": (1, MAX_WINDOW),
              "memory_size": (0, 1000), "history_length": (1, 10**5), "calibration_period": (1, 10**6),
              "replacement_max_relative": (0, 100), "replacement_patience": (1, 10**6), "bridge_patience": (1, 10**6),
-             "root_window": (1, 10**5)}
+             "root_window": (1, 10**5), "race_samples": (0, MAX_WINDOW), "race_min_train": (1, MAX_WINDOW)}
 #: Bounds of the number settings (all must be finite; the lower bound is exclusive where it is 0 and the setting
 #: divides or scales).
 _NUMBERS = {"validity_sigmas": (0.0, 100.0), "gp_length_scale": (0.0, 1e3), "gp_signal_std_trans": (0.0, 1e3),
             "gp_signal_std_rot": (0.0, 1e3), "f_scale": (0.0, 1e3), "stale_fraction": (None, 1.0),
             "cusum_drift": (0.0, 1e6), "cusum_threshold": (0.0, 1e6), "cusum_clip": (0.0, 1e6),
             "dominance_margin": (0.0, 1e3), "challenge_margin": (0.0, 1e3), "max_distance": (0.0, 1e4),
-            "workspace_margin": (0.0, 1e4), "action_margin": (None, 1e3), "consistency_alpha": (0.0, 1.0)}
+            "workspace_margin": (0.0, 1e4), "action_margin": (None, 1e3), "consistency_alpha": (0.0, 1.0),
+            "race_ratio": (0.0, 1e3)}
 
 
 @dataclass(frozen=True)
@@ -149,6 +150,14 @@ class BodySchemeConfig:
         Significance of the lack-of-fit test after every joint fit (:mod:`~body_scheme_core.consistency`), for all
         parts together (Bonferroni): a part whose residuals depend on the commands at this level is not explained by
         the body scheme, which is then not trusted and searched again.
+    lazy_layers : bool
+        Bootstrapping starts with the candidates of complexity <= 1 and instantiates layer ``k + 1`` only for the
+        pairs across the parts that layers <= k cannot connect (paper Sec. III-D), trained at once from the history;
+        the tree is the one of the eager search (False: every layer up to ``max_complexity`` from the start).
+    race_samples, race_ratio, race_min_train : int, float, int
+        Racing while bootstrapping: a candidate whose last ``race_samples`` errors all exceed ``race_ratio`` times
+        the validity threshold, each predicted after at least ``race_min_train`` training samples, is dropped
+        (:meth:`~body_scheme_core.validity.ValidityMonitor.hopeless`; counted in ``raced``). 0 samples: no racing.
     """
 
     sigma_trans: float | str = "auto"
@@ -187,6 +196,10 @@ class BodySchemeConfig:
     workspace_margin: float = 0.5
     action_margin: float = 0.05
     consistency_alpha: float = 1e-3
+    lazy_layers: bool = True
+    race_samples: int = 3
+    race_ratio: float = 2.0
+    race_min_train: int = 5
 
     def __post_init__(self):
         for name in ("sigma_trans", "sigma_rot"):
@@ -206,7 +219,7 @@ class BodySchemeConfig:
                 raise InvalidInputError(f"{name} must be below 1, got {getattr(self, name)!r}")
         if not self.cusum_clip > self.cusum_drift:
             raise InvalidInputError(f"cusum_clip ({self.cusum_clip!r}) must exceed cusum_drift ({self.cusum_drift!r})")
-        for name in ("fit_joint_scale", "gp_optimize"):
+        for name in ("fit_joint_scale", "gp_optimize", "lazy_layers"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidInputError(f"{name} must be true or false, got {getattr(self, name)!r}")
         kinds = self.candidate_kinds

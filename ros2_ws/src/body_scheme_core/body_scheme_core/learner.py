@@ -73,7 +73,7 @@ from .pool import ModelPool
 from .relative import PartPairs
 from .root_pose import RootPoseEstimator, RootWatch
 from .scheme import BodyScheme
-from .tracked import MEMORY, TREE
+from .tracked import MEMORY, TREE, Journal
 from .transforms import invert_transform, mirror_about_ray, project_to_rotation, rotational_error
 from .validity import RATIO_CLIP
 
@@ -204,7 +204,7 @@ class BodySchemeLearner:
         self._pool = pool
         self._tree = tree
         self._bootstrapping = bootstrapping
-        self._bootstrap = Bootstrap(self.config, pool, self._pairs, found, tree_since, vetoed)
+        self._bootstrap = Bootstrap(self.config, pool, self._pairs, found, tree_since, vetoed, self._history)
         self._adaptation = Adaptation(self.config, pool, self._history, self.part_ids, self.root, mismatch, refining,
                                       failed)
         self._calibrated = calibrated
@@ -228,6 +228,11 @@ class BodySchemeLearner:
     def n_candidates(self):
         """Number of models currently learning in the batches (bootstrap candidates or replacements)."""
         return self._pool.n_learning
+
+    @property
+    def n_raced(self):
+        """Bootstrap candidates dropped by racing since this learner was built or loaded (``config.race_samples``)."""
+        return self._bootstrap.raced
 
     @property
     def memory(self):
@@ -391,15 +396,16 @@ class BodySchemeLearner:
         self._check_action_range(a)
         check_observation_mapping(observations)
         stamp = check_stamp(stamp, self.last_stamp)
-        saved = snapshot(self)
-        try:
-            return self._step(a, observations, stamp)
-        except BaseException as error:
-            restore(self, saved)
-            if not isinstance(error, Exception):
-                raise  # KeyboardInterrupt, SystemExit: undone, and passed on as they are
-            raise LearnerStepError(f"step {self.step} failed and was undone: {type(error).__name__}: "
-                                   f"{error}") from error
+        with Journal() as journal:
+            saved = snapshot(self, journal)
+            try:
+                return self._step(a, observations, stamp)
+            except BaseException as error:
+                restore(self, saved)
+                if not isinstance(error, Exception):
+                    raise  # KeyboardInterrupt, SystemExit: undone, and passed on as they are
+                raise LearnerStepError(f"step {self.step} failed and was undone: {type(error).__name__}: "
+                                       f"{error}") from error
 
     def _step(self, a, observations, stamp):
         """The time step proper, on checked inputs (:meth:`update`)."""

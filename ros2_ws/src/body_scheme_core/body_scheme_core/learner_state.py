@@ -297,12 +297,14 @@ def _with_copied_arrays(obj):
     return clone
 
 
-def snapshot(learner):
+def snapshot(learner, journal):
     """Everything one :meth:`~body_scheme_core.learner.BodySchemeLearner.update` may change, copied.
 
     Local models, the calibrated scheme and the recorded observations are never changed in place (a step replaces
-    them), so they are shared, not copied; what is copied is the book-keeping around them: the tracked models'
-    entries, the batches' and the monitor's arrays, the phase objects' dicts, the history and the counters.
+    them), so they are shared, not copied; what is copied is the book-keeping around them: the set of tracked
+    models, the batches' and the monitor's arrays, the phase objects' dicts, the history and the counters. Changes
+    to the tracked models' entries go into ``journal`` (an open :class:`~body_scheme_core.tracked.Journal`), which is
+    far cheaper than copying thousands of entries every step.
     """
     pool, boot, adapt = learner._pool, learner._bootstrap, learner._adaptation
     return {
@@ -318,10 +320,11 @@ def snapshot(learner):
         "noise": learner.noise.copy(),
         "root_watch": (_with_copied_arrays(learner._root_watch.monitor), learner._root_watch.offset.copy(),
                        learner._root_watch.n_offset),
-        "pool": (pool.next_id, {i: e.copy() for i, e in pool.tracked.items()},
-                 _with_copied_arrays(pool.gp_batch), _with_copied_arrays(pool.rigid_batch),
-                 _with_copied_arrays(pool.monitor)),
-        "bootstrap": (boot.found, boot.tree_since, dict(boot.vetoed)),
+        "journal": journal,
+        "pool": (pool.next_id, dict(pool.tracked), (pool.gp_batch, pool.gp_batch.snapshot()),
+                 (pool.rigid_batch, pool.rigid_batch.snapshot()), _with_copied_arrays(pool.monitor)),
+        "bootstrap": (boot.found, boot.tree_since, dict(boot.vetoed), boot.raced,
+                      None if boot._layers is None else dict(boot._layers)),
         "adaptation": ({k: dataclasses.replace(v) for k, v in adapt.mismatch.items()}, dict(adapt.refining),
                        dict(adapt.failed)),
     }
@@ -344,10 +347,13 @@ def restore(learner, saved):
     watch = learner._root_watch
     watch.monitor, watch.offset, watch.n_offset = saved["root_watch"]
     pool = learner._pool
-    pool.next_id, pool.tracked, pool.gp_batch, pool.rigid_batch, pool.monitor = saved["pool"]
+    pool.next_id, pool.tracked, (pool.gp_batch, gp_saved), (pool.rigid_batch, rigid_saved), pool.monitor = saved["pool"]
+    pool.gp_batch.restore(gp_saved)
+    pool.rigid_batch.restore(rigid_saved)
+    saved["journal"].undo()
     pool._changed()
     boot = learner._bootstrap
-    boot.found, boot.tree_since, boot.vetoed = saved["bootstrap"]
+    boot.found, boot.tree_since, boot.vetoed, boot.raced, boot._layers = saved["bootstrap"]
     boot._pair_index = None
     learner._adaptation.mismatch, learner._adaptation.refining, learner._adaptation.failed = saved["adaptation"]
 

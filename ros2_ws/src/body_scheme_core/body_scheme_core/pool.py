@@ -179,12 +179,15 @@ class ModelPool:
     def _batch(self, entry):
         return self.rigid_batch if entry.kind in RIGID_CLASSES else self.gp_batch
 
-    def remove(self, entry):
-        """Stop tracking ``entry``: free its slot and row."""
-        if entry.slot >= 0:
-            self._batch(entry).release([entry.slot])
-        self.monitor.release([entry.row])
-        del self.tracked[entry.id]
+    def remove(self, *entries):
+        """Stop tracking ``entries``: free their slots and rows."""
+        for batch in (self.gp_batch, self.rigid_batch):
+            slots = [e.slot for e in entries if e.slot >= 0 and self._batch(e) is batch]
+            if slots:
+                batch.release(slots)
+        self.monitor.release([e.row for e in entries])
+        for e in entries:
+            del self.tracked[e.id]
         self._changed()
 
     def assign(self, entry, role, step):

@@ -77,6 +77,23 @@ def nests(kind_a, actions_a, kind_b, actions_b):
     return _FLEXIBILITY[kind_a] > _FLEXIBILITY[kind_b]
 
 
+def nesting_matrix(kinds, action_sets, n_actions):
+    """``M[k, q] = nests(kinds[q], action_sets[q], kinds[k], action_sets[k])`` for all pairs at once, shape (g, g).
+
+    :func:`nests` for a group of models, with numpy instead of ``g**2`` calls (a bootstrap pair has about a hundred
+    candidates)."""
+    flex = np.array([_FLEXIBILITY.get(k, -1) for k in kinds])
+    A = np.zeros((len(kinds), n_actions + 1), dtype=np.int64)
+    for k, acts in enumerate(action_sets):
+        A[k, list(acts)] = 1
+    subset = (A @ (1 - A).T) == 0  # subset[k, q]: the actions of k are among those of q
+    same = subset & subset.T
+    kind_q, kind_k = np.asarray(kinds, dtype=object)[None, :], np.asarray(kinds, dtype=object)[:, None]
+    more_flexible = flex[None, :] > flex[:, None]
+    known = (flex[None, :] >= 0) & (flex[:, None] >= 0)
+    return known & subset & np.where(kind_q == kind_k, ~same, more_flexible)
+
+
 def prediction_errors(Z_pred, Z_obs):
     """Per-sample translational and rotational error between predicted and observed relative transforms.
 

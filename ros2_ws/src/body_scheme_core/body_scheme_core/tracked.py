@@ -8,18 +8,47 @@ failed tree model). The :class:`~body_scheme_core.pool.ModelPool` holds all of t
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from .errors import ModelFileError
 from .models import MODEL_CLASSES, model_from_dict
-from .quality import class_rank, nests
+from .quality import class_rank, nesting_matrix
 from .state_values import finite_array, integer, listing, mapping, part_id
 
-__all__ = ["TREE", "MEMORY", "CANDIDATE", "TrackedModel", "nested_models"]
+__all__ = ["TREE", "MEMORY", "CANDIDATE", "TrackedModel", "nested_models", "Journal"]
 
 #: Roles of a tracked model.
 TREE, MEMORY, CANDIDATE = "tree", "memory", "candidate"
 ROLES = (TREE, MEMORY, CANDIDATE)
+
+
+#: The open journal of this thread, if any (:class:`Journal`).
+_journal = threading.local()
+
+
+class Journal:
+    """Every change to any :class:`TrackedModel`'s attributes in this thread while it is open, so that it can be
+    undone: what makes a learner's step all or nothing without copying thousands of entries every step.
+
+    Use as a context manager; :meth:`undo` puts back every old value, newest first. Journals do not nest.
+    """
+
+    def __enter__(self):
+        if getattr(_journal, "log", None) is not None:
+            raise RuntimeError("a journal of tracked models is already open in this thread")
+        self.log = _journal.log = []
+        return self
+
+    def __exit__(self, *exc):
+        _journal.log = None
+        return False
+
+    def undo(self):
+        for entry, name, value in reversed(self.log):
+            object.__setattr__(entry, name, value)
+        self.log.clear()
 
 
 class TrackedModel:
@@ -61,6 +90,12 @@ class TrackedModel:
 
     __slots__ = ("id", "parent", "child", "actions", "kind", "role", "model", "slot", "row", "n_train", "created",
                  "origin", "last_used", "target", "since", "prior")
+
+    def __setattr__(self, name, value):
+        log = getattr(_journal, "log", None)
+        if log is not None and hasattr(self, name):
+            log.append((self, name, getattr(self, name)))
+        object.__setattr__(self, name, value)
 
     def __init__(self, id, parent, child, actions, kind, role, row, slot=-1, model=None, n_train=0, created=0,
                  origin="", last_used=-1, target=-1, since=0, prior=None):
@@ -172,11 +207,12 @@ def nested_models(models):
     groups = {}
     for k, e in enumerate(models):
         groups.setdefault((e.parent, e.child, e.target), []).append(k)
-    sub, sup = [], []
+    n_actions = max((max(e.actions, default=0) for e in models), default=0) + 1
+    sub, sup = [np.zeros(0, dtype=np.intp)], [np.zeros(0, dtype=np.intp)]
     for members in groups.values():
-        for k in members:
-            for q in members:
-                if k != q and nests(models[q].kind, models[q].actions, models[k].kind, models[k].actions):
-                    sub.append(k)
-                    sup.append(q)
-    return np.array(sub, dtype=np.intp), np.array(sup, dtype=np.intp)
+        nest = nesting_matrix([models[k].kind for k in members], [models[k].actions for k in members], n_actions)
+        k, q = np.nonzero(nest)
+        members = np.asarray(members, dtype=np.intp)
+        sub.append(members[k])
+        sup.append(members[q])
+    return np.concatenate(sub), np.concatenate(sup)

@@ -361,6 +361,21 @@ class ValidityMonitor:
         mean = np.where(n[:, None] > 0, total / np.maximum(n, 1)[:, None], np.inf)
         return WindowStats(n, mean[:, 0], mean[:, 1], mean[:, 2], mean[:, 3], mean[:, 4], mean[:, 5])
 
+    def hopeless(self, rows, n_samples, ratio, min_train):
+        """Rows whose last ``n_samples`` errors all exceed ``ratio`` times the threshold (in either channel), each
+        predicted by a model trained on at least ``min_train`` samples: invalid with high confidence (racing).
+
+        For a right model every such error is beyond ``3 ratio`` noise sigmas (``ratio`` 2: a chance below 1e-6 per
+        sample), so ``n_samples`` in a row do not happen; a model trained on that many samples is past its first
+        guesses. Returns a bool array, shape (k,)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if n_samples < 1 or n_samples > self.window or rows.size == 0:
+            return np.zeros(rows.size, dtype=bool)
+        last = (self.head[rows][:, None] - 1 - np.arange(n_samples)[None, :]) % self.window
+        pick = (rows[:, None], last)
+        far = np.any(self.errors[pick] > ratio * self.theta * self.thresholds[pick], axis=-1)
+        return np.all(far & (self.steps[pick] >= 0) & (self.n_train[pick] >= min_train), axis=1)
+
     def valid(self, stats, min_samples):
         """Validity (paper Eq. 5-6): at least ``min_samples`` samples and both mean error ratios below 1.
 

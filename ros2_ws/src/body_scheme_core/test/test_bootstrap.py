@@ -1,16 +1,28 @@
 """Tests of bootstrapping: candidates, the structure search per step, and the end of bootstrapping."""
 
 import numpy as np
+import pytest
 
 from body_scheme_core.bootstrap import Bootstrap
 from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.noise_model import NoiseModel
 from body_scheme_core.pool import ModelPool
 from body_scheme_core.relative import PartPairs
 from body_scheme_core.structure import n_candidates
 from body_scheme_core.tracked import CANDIDATE, TREE
 from body_scheme_core.transforms import transform_from_rotvec
-from body_scheme_core.world import Fault, make_session, planar_2dof
+from body_scheme_core.validity import ValidityMonitor
+from body_scheme_core.world import (
+    Fault,
+    KinematicTree,
+    arm_4dof,
+    branching_tree,
+    is_true_tree,
+    make_session,
+    planar_2dof,
+    powercube_6dof,
+)
 
 
 def _bootstrap(robot, config):
@@ -35,9 +47,11 @@ def _run(boot, session, observations=None, stop_when_finished=True):
 
 
 def test_every_pair_and_action_subset_is_a_candidate():
-    """The fully connected network: C(3, 2) pairs times (1 static, 2 x (prismatic, revolute, GP), 1 two-action GP)."""
+    """The fully connected network: C(3, 2) pairs times (1 static, 2 x (prismatic, revolute, GP), 1 two-action GP);
+    with lazy layers (the default) the two-action GPs wait until they are needed."""
     robot = planar_2dof()
-    boot = _bootstrap(robot, BodySchemeConfig())
+    assert len(_bootstrap(robot, BodySchemeConfig()).pool.tracked) == n_candidates(3, 2, 1) == 21
+    boot = _bootstrap(robot, BodySchemeConfig(lazy_layers=False))
     assert len(boot.pool.tracked) == n_candidates(3, 2, 2) == 24
     assert all(e.role == CANDIDATE and e.slot >= 0 and e.origin == "bootstrap" for e in boot.pool.tracked.values())
 
@@ -51,7 +65,8 @@ def test_the_true_tree_is_found_and_kept_after_bootstrapping():
     trees, events, finished = _run(boot, session)
     assert finished is not None and events[0].kind == "structure_found"
     assert [e.kind for e in events].count("bootstrap_finished") == 1 and events[-1].kind == "bootstrap_finished"
-    assert "all candidates are frozen" in events[-1].reason and "dropped 22 other candidates" in events[-1].reason
+    assert "all candidates are frozen" in events[-1].reason and "dropped 14 other candidates" in events[-1].reason
+    assert boot.raced == 21 - 2 - 14  # the others were raced out on the way
     tree = trees[-1]
     edges = {frozenset((boot.pool.tracked[i].parent, boot.pool.tracked[i].child)) for i in tree}
     assert edges == {frozenset(e) for e in robot.marker_tree_edges()}
@@ -114,3 +129,81 @@ def test_a_vetoed_candidate_is_left_out_until_it_has_learned_more():
         tree, _ = boot.step(tree, session.actions[t], boot.pairs.observe(session.observations[t]), t, events)
     tree, _ = boot.step(tree, session.actions[t + 1], boot.pairs.observe(session.observations[t + 1]), t + 1, events)
     assert vetoed not in boot.vetoed
+
+
+# ---------------------------------------------------------------------- lazy layers and racing (issue 21)
+def _learn(robot, config, n_steps=120, seed=0, watch=None):
+    """Bootstrap a learner on a paper-noise session; ``watch(learner)`` after every step. Returns the learner."""
+    session = make_session(robot, n_steps, seed=seed, visibility=0.9)
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, config, action_lower=robot.action_lower,
+                                action_upper=robot.action_upper)
+    for t in range(n_steps):
+        learner.update(session.actions[t], session.observations[t])
+        if watch is not None:
+            watch(learner)
+        if learner.phase != "bootstrapping":
+            break
+    assert learner.phase != "bootstrapping"
+    return learner
+
+
+def _edges(learner):
+    return sorted((m.parent, m.child, m.kind, m.actions) for m in learner.body_scheme.models)
+
+
+def _head_arm():
+    """arm_4dof without the marker of link 2: the pair of markers 2 and 4 needs actions 1 and 2 (layer 2)."""
+    robot = arm_4dof()
+    return KinematicTree(robot.joints, [m for m in robot.markers if m.id != 3])
+
+
+EAGER = BodySchemeConfig(lazy_layers=False, race_samples=0)
+
+
+@pytest.mark.parametrize("make", [powercube_6dof, branching_tree, _head_arm], ids=["serial", "branching", "layer2"])
+def test_lazy_layers_and_racing_learn_the_tree_of_the_eager_search(make):
+    robot = make()
+    lazy, eager = _learn(robot, BodySchemeConfig()), _learn(robot, EAGER)
+    assert _edges(lazy) == _edges(eager)
+    assert is_true_tree(robot, lazy.body_scheme)
+    assert lazy.n_raced > 0 and eager.n_raced == 0
+    if make is _head_arm:
+        assert max(len(m.actions) for m in lazy.body_scheme.models) == 2  # the next layer was instantiated
+
+
+def test_a_serial_chain_with_one_joint_per_link_never_instantiates_layer_two():
+    seen = []
+    _learn(powercube_6dof(), BodySchemeConfig(), watch=lambda learner: seen.append(
+        max(e.complexity for e in learner._pool.tracked.values())))
+    assert seen and max(seen) == 1
+
+
+def test_a_raced_out_candidate_never_comes_back_as_a_tree_model():
+    """Every candidate that leaves the pool while bootstrapping is raced out; none of their (pair, actions, class)
+    is instantiated again or in the final tree."""
+    robot = _head_arm()
+    raced, alive = set(), {}
+
+    def watch(learner):
+        now = {i: (e.parent, e.child, e.actions, e.kind) for i, e in learner._pool.tracked.items()}
+        if learner.phase == "bootstrapping":
+            raced.update(spec for i, spec in alive.items() if i not in now)
+            assert not raced & {spec for i, spec in now.items() if i not in alive}  # never instantiated again
+        alive.clear()
+        alive.update(now)
+
+    learner = _learn(robot, BodySchemeConfig(), watch=watch)
+    assert 0 < len(raced) <= learner.n_raced  # those raced in the last step are dropped with the rest
+    assert not raced & {(m.parent, m.child, m.actions, m.kind) for m in learner.body_scheme.models}
+
+
+def test_hopeless_needs_every_recent_error_far_beyond_the_threshold_after_enough_training():
+    monitor = ValidityMonitor(window=5, capacity=3, theta_trans=0.1, theta_rot=0.5)
+    monitor.in_use[:] = True
+    for step in range(3):
+        monitor.record([0, 1, 2], [0.25, 0.25, 0.15], [0.0, 0.0, 0.0], step, n_train=[6, 2, 6])
+    # row 0: three errors 2.5 x the threshold after 6 samples; row 1 trained on too few; row 2 only 1.5 x
+    assert monitor.hopeless([0, 1, 2], 3, 2.0, 5).tolist() == [True, False, False]
+    assert not monitor.hopeless([0], 4, 2.0, 5)[0]  # only three recorded
+    monitor.record([0], [0.05], [0.0], 3, n_train=[7])
+    assert not monitor.hopeless([0], 3, 2.0, 5)[0]  # the last one is fine

@@ -124,6 +124,7 @@ class SchemeNode(Node):
         self.rejected = Counter()
         self.event_counts = Counter()
         self.latency = deque(maxlen=200)
+        self.lag = deque(maxlen=200)  # age of each sample when the learning thread took it (s)
         self._inbox = deque()  # (kind, message, receipt time) from the intake; taken by the learning thread
         self._pending = deque()  # (receipt time, paired sample) not learnt yet
         # Messages and samples dropped under overload, by kind (oldest first): messages by the executor's thread under
@@ -298,7 +299,9 @@ class SchemeNode(Node):
             self._take_in(inbox, self._now())
             while self._pending:
                 received, sample = self._pending.popleft()
-                if self._now() - received <= self.settings.max_sample_age:
+                age = self._now() - received
+                if age <= self.settings.max_sample_age:
+                    self.lag.append(age)  # how far learning is behind its input (camera rate: it must not grow)
                     self._learn(*sample)
                     break
                 self.shed["stale_samples"] += 1
@@ -459,6 +462,9 @@ class SchemeNode(Node):
                   "noise.rotation_deg": math.degrees(rotation), "noise.residuals": learner.noise.n_observations,
                   "update_latency_median_ms": 1e3 * latency[len(latency) // 2] if latency else float("nan"),
                   "update_latency_max_ms": 1e3 * latency[-1] if latency else float("nan"),
+                  "learning_lag_ms": 1e3 * self.lag[-1] if self.lag else float("nan"),
+                  "learning_lag_max_ms": 1e3 * max(self.lag) if self.lag else float("nan"),
+                  "candidates": learner.n_candidates, "candidates_raced": learner.n_raced,
                   "rejected_total": sum(rejected.values())}
         values.update({f"rejected.{reason}": count for reason, count in sorted(rejected.items())})
         # Cumulative, so a mismatch that was repaired between two diagnostics messages still shows.

@@ -78,6 +78,22 @@ class SlotArrays:
         self._allocated[slots] = False
         return slots
 
+    def snapshot(self):
+        """What :meth:`restore` needs to undo any change from now on: the attributes and a copy of the allocated
+        slots' rows (free slots are reset when they are taken, so their contents do not matter; after racing most of
+        the storage is free, and copying it whole was a large part of a bootstrapping step)."""
+        rows = self.allocated_slots
+        return (dict(vars(self)), rows, {name: getattr(self, name)[rows].copy() for name in self._slot_fills()},
+                self._allocated.copy())
+
+    def restore(self, saved):
+        """Undo every change since :meth:`snapshot` returned ``saved``."""
+        attributes, rows, kept, allocated = saved
+        vars(self).update(attributes)  # the arrays of then (a step that grew the storage made new ones)
+        for name, values in kept.items():
+            getattr(self, name)[rows] = values
+        self._allocated = allocated
+
     def _check_slots(self, slots, unique=False):
         """Slot indices as an intp array; raise unless each is allocated (and, with ``unique``, none repeats)."""
         slots = np.atleast_1d(np.asarray(slots))

@@ -38,11 +38,13 @@ from .noise import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
 from .robot_files import load_markers_yaml, markers_to_yaml, tree_from_urdf, tree_to_urdf
 from .robots import (
     arm_4dof,
+    arm_7dof,
     branching_tree,
     default_world2root,
     planar_2dof,
     powercube_6dof,
     random_tree,
+    upper_body,
     zoo_robot,
 )
 from .sessions import (
@@ -61,7 +63,8 @@ from .truth import is_correct_model, is_true_tree, least_actions, wrong_models
 __all__ = [
     "JOINT_TYPES", "MOVABLE_JOINT_TYPES", "Joint", "Marker", "KinematicTree",
     "tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml",
-    "planar_2dof", "arm_4dof", "powercube_6dof", "branching_tree", "random_tree", "zoo_robot", "default_world2root",
+    "planar_2dof", "arm_4dof", "powercube_6dof", "arm_7dof", "upper_body", "branching_tree", "random_tree",
+    "zoo_robot", "default_world2root",
     "Body", "block_joint", "deform_limb", "displace_marker",
     "Fault", "REPAIR", "FAULT_KINDS", "parse_fault", "parse_fault_schedule", "delta_from_vector", "PROTOCOL_FAULTS",
     "protocol_schedule", "RANDOM_FAULTS", "random_fault",

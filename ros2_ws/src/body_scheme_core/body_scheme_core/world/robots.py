@@ -14,7 +14,8 @@ from ..errors import InvalidInputError
 from ..transforms import transform_from_xyz_rpy
 from .tree import Joint, KinematicTree, Marker
 
-__all__ = ["planar_2dof", "arm_4dof", "powercube_6dof", "branching_tree", "random_tree", "zoo_robot",
+__all__ = ["planar_2dof", "arm_4dof", "powercube_6dof", "arm_7dof", "upper_body", "branching_tree", "random_tree",
+           "zoo_robot",
            "default_world2root"]
 
 
@@ -168,6 +169,61 @@ def branching_tree(seed=None, second_torso_marker=False, dummy_action=False):
         markers.append(_marker(7, "torso", (-0.08, 0.0, 0.15), rpy=(0.0, -math.pi / 2.0, 0.0)))
     if dummy_action:
         joints.append(_revolute("antenna_joint", "torso", "antenna", (0.0, 0.0, 0.35), (0.0, 0.0, 1.0), 1.5, 5))
+    return KinematicTree(joints, markers)
+
+
+def arm_7dof():
+    """A 7-joint arm like today's collaborative arms: yaw and pitch joints alternating from the base, 0.1-0.3 m
+    links, one marker on the base and one on each of the seven links (8 markers, ids 1-8)."""
+    return upper_body(arms=1, torso_joints=0, head_joints=0)
+
+
+def upper_body(arms=2, arm_joints=7, torso_joints=0, head_joints=0):
+    """A humanoid upper body: a base, a torso on ``torso_joints`` joints, a head on ``head_joints``, and ``arms``
+    arms of ``arm_joints`` joints each (alternating yaw and pitch, 0.1-0.3 m links).
+
+    Markers (ids from 1, facing the camera): one on the base and one on each arm link; with torso joints also a
+    second on the base, one on each torso link and a second on the last; one on the head (on its last link only, so
+    with two head joints its model needs both actions: complexity 2). Actions:
+    torso, head, then each arm from the shoulder. ``upper_body()`` is a torso and two 7-joint arms with 15 markers
+    (``dualarm``); ``upper_body(torso_joints=2, head_joints=2)`` has 18 joints and 20 markers (``upper18``).
+
+    Returns
+    -------
+    tree : KinematicTree
+    """
+    z, y = (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)
+    joints, markers, action = [], [_marker(1, "base", (0.08, 0.0, 0.1))], 0
+    if torso_joints:
+        markers.append(_marker(2, "base", (0.08, 0.12, 0.05)))
+
+    def chain(prefix, parent, n, xyz, rpy, lengths, marked):
+        nonlocal action
+        for k in range(n):
+            link = f"{prefix}_link{k + 1}"
+            origin = xyz if k == 0 else (0.0, 0.0, lengths[k - 1])
+            joints.append(_revolute(f"{prefix}_joint{k + 1}", parent, link, origin, z if k % 2 == 0 else y,
+                                    1.5 if k % 2 == 0 else 1.2, action, rpy=rpy if k == 0 else (0.0, 0.0, 0.0)))
+            action += 1
+            if marked(k):
+                markers.append(_marker(len(markers) + 1, link, (0.07, 0.0, 0.5 * lengths[k])))
+            parent = link
+        return parent
+
+    torso = chain("torso", "base", torso_joints, (0.0, 0.0, 0.3), (0.0, 0.0, 0.0), [0.15] * torso_joints,
+                  lambda k: True) if torso_joints else "base"
+    if torso_joints:
+        markers.append(_marker(len(markers) + 1, torso, (0.08, -0.1, 0.1)))
+    if head_joints:
+        chain("head", torso, head_joints, (0.0, 0.0, 0.35), (0.0, 0.0, 0.0), [0.08] * head_joints,
+              lambda k: k == head_joints - 1)
+    lengths = [0.1, 0.3, 0.1, 0.25, 0.1, 0.2, 0.1, 0.15, 0.1][:arm_joints] + [0.1] * max(0, arm_joints - 9)
+    for arm in range(arms):
+        sign = 1.0 if arm == 0 else -1.0
+        xyz = (0.0, 0.0, 0.2) if arms == 1 else (0.0, sign * 0.25, 0.3)
+        rpy = (0.0, 0.0, 0.0) if arms == 1 else (-sign * math.pi / 2, 0.0, 0.0)
+        chain(("left", "right")[arm] + "_arm" if arms > 1 else "arm", torso, arm_joints, xyz, rpy, lengths,
+              lambda k: True)
     return KinematicTree(joints, markers)
 
 

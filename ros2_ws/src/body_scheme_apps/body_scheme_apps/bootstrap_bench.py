@@ -1,0 +1,106 @@
+"""Bootstrapping throughput and memory on bodies from one arm to a humanoid upper body, lazy and eager side by side.
+
+Each body bootstraps from scratch at the paper's noise (44 mm / 15 deg, every marker visible) in a fresh process
+(``spawn``, one BLAS thread), once with the defaults (lazy layers and racing, ``config.lazy_layers``,
+``config.race_samples``) and once eagerly (every candidate up to ``max_complexity`` from the start, no racing):
+
+``bootstrap_<body>_updates_per_s`` / ``bootstrap_<body>_eager_updates_per_s``
+    Update calls per second over the whole bootstrapping phase (first step to ``bootstrap_finished``).
+``bootstrap_<body>_max_update_ms`` (and ``_eager_``)
+    The slowest update of the phase.
+``bootstrap_<body>_peak_mb`` (and ``_eager_``)
+    Growth of the process's peak RSS from after the imports to the end of the phase: the learner's memory.
+``bootstrap_<body>_candidates_max`` (and ``_eager_``)
+    The most candidates learning at once; ``_raced`` the candidates racing dropped; ``_steps`` the phase's length;
+    ``_true_tree`` whether the tree is a true body scheme of the body (:func:`~body_scheme_core.world.is_true_tree`).
+
+Bodies: ``paper6`` the paper's 6-DOF arm (7 markers), ``arm7`` a 7-joint arm (8 markers), ``dualarm`` a torso and
+two 7-joint arms (15 markers), ``upper18`` a humanoid upper body with torso 2, head 2 and two 7-joint arms (18
+joints, 20 markers; the head's marker needs both head joints: complexity 2).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import resource
+import time
+
+__all__ = ["BODIES", "TARGETS", "bootstrap_body", "run"]
+
+#: Body name -> (constructor name in body_scheme_core.world, keyword arguments).
+BODIES = {
+    "paper6": ("powercube_6dof", {}),
+    "arm7": ("arm_7dof", {}),
+    "dualarm": ("upper_body", {}),
+    "upper18": ("upper_body", {"torso_joints": 2, "head_joints": 2}),
+}
+#: Targets of issue 21 (one core), printed next to the figures.
+TARGETS = {"bootstrap_paper6_updates_per_s": (">=", 200.0), "bootstrap_arm7_updates_per_s": (">=", 200.0),
+           "bootstrap_dualarm_updates_per_s": (">=", 30.0), "bootstrap_dualarm_max_update_ms": ("<=", 200.0),
+           "bootstrap_upper18_updates_per_s": (">=", 15.0), "bootstrap_dualarm_peak_mb": ("<=", 150.0),
+           "bootstrap_upper18_peak_mb": ("<=", 250.0)}
+
+
+def _peak_mb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+
+
+def bootstrap_body(name, eager, seed=0, max_steps=600):
+    """Bootstrap body ``name`` once in this process; returns its figures (keys without the ``bootstrap_<body>_``
+    prefix). Meant to run in a fresh process, so that the peak RSS is this learner's."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    from body_scheme_core import world
+    from body_scheme_core.config import BodySchemeConfig
+    from body_scheme_core.learner import BodySchemeLearner
+
+    constructor, kwargs = BODIES[name]
+    body = getattr(world, constructor)(**kwargs)
+    session = world.make_session(body, max_steps, seed=seed, visibility=1.0)
+    config = BodySchemeConfig(lazy_layers=False, race_samples=0) if eager else BodySchemeConfig()
+    base = _peak_mb()
+    learner = BodySchemeLearner(body.marker_ids, body.n_actions, config, action_lower=body.action_lower,
+                                action_upper=body.action_upper)
+    worst, most, step = 0.0, learner.n_candidates, 0
+    start = time.perf_counter()
+    while learner.phase == "bootstrapping" and step < max_steps:
+        t = time.perf_counter()
+        learner.update(session.actions[step], session.observations[step])
+        worst = max(worst, time.perf_counter() - t)
+        most = max(most, learner.n_candidates)
+        step += 1
+    seconds = time.perf_counter() - start
+    return {"updates_per_s": step / seconds, "max_update_ms": 1000.0 * worst, "peak_mb": _peak_mb() - base,
+            "candidates_max": int(most), "raced": int(learner.n_raced), "steps": step,
+            "finished": learner.phase != "bootstrapping",
+            "true_tree": bool(world.is_true_tree(body, learner.body_scheme))}
+
+
+def run(bodies=tuple(BODIES), seed=0):
+    """Every body lazy and eager, each in a fresh process; the flat result dict."""
+    result = {}
+    context = multiprocessing.get_context("spawn")
+    for name in bodies:
+        for eager in (False, True):
+            with context.Pool(1) as pool:
+                figures = pool.apply(bootstrap_body, (name, eager, seed))
+            infix = "eager_" if eager else ""
+            result.update({f"bootstrap_{name}_{infix}{key}": value for key, value in figures.items()})
+    return result
+
+
+def table(result, bodies=tuple(BODIES)):
+    """The figures as a text table, lazy next to eager, with the targets."""
+    lines = [f"{'bootstrapping (paper noise)':28s} {'lazy':>10s} {'eager':>10s}  target", "-" * 62]
+    for name in bodies:
+        for key in ("updates_per_s", "max_update_ms", "peak_mb", "candidates_max", "raced", "steps", "true_tree"):
+            lazy, eager = result[f"bootstrap_{name}_{key}"], result[f"bootstrap_{name}_eager_{key}"]
+            target = TARGETS.get(f"bootstrap_{name}_{key}")
+            lines.append(f"{name + ' ' + key:28s} {_cell(lazy):>10s} {_cell(eager):>10s}  "
+                         f"{'' if target is None else ' '.join(map(str, target))}")
+    return "\n".join(lines)
+
+
+def _cell(value):
+    return f"{value:.1f}" if isinstance(value, float) else str(value)
