@@ -22,12 +22,13 @@ joints, 20 markers; the head's marker needs both head joints: complexity 2).
 
 from __future__ import annotations
 
+import argparse
 import multiprocessing
 import os
 import resource
 import time
 
-__all__ = ["BODIES", "TARGETS", "bootstrap_body", "run"]
+__all__ = ["BODIES", "TARGETS", "bootstrap_body", "run", "compare_trees", "main"]
 
 #: Body name -> (constructor name in body_scheme_core.world, keyword arguments).
 BODIES = {
@@ -108,3 +109,58 @@ def table(result, bodies=tuple(BODIES)):
 
 def _cell(value):
     return f"{value:.1f}" if isinstance(value, float) else str(value)
+
+
+def compare_trees(n_zoo=20, n_random=6, n_branching=4, flip_rate=0.02, n_steps=300):
+    """Lazy (the defaults) against eager bootstrapping on bodies nobody tuned them on: robot-zoo bodies, random
+    branching trees of 6 joints, branching bodies with a second torso marker and a dummy action, with camera-like
+    flips. Returns ``{"bodies", "same_tree", "lazy_true", "eager_true", "differences"}``."""
+    from body_scheme_core import world
+    from body_scheme_core.config import BodySchemeConfig
+    from body_scheme_core.learner import BodySchemeLearner
+
+    def learn(body, config, seed):
+        session = world.make_session(body, n_steps, seed=seed, flip_rate=flip_rate)
+        learner = BodySchemeLearner(body.marker_ids, body.n_actions, config, action_lower=body.action_lower,
+                                    action_upper=body.action_upper)
+        for t in range(n_steps):
+            learner.update(session.actions[t], session.observations[t])
+            if learner.phase != "bootstrapping":
+                break
+        scheme = learner.body_scheme
+        edges = None if scheme is None else sorted((m.parent, m.child, m.kind, m.actions) for m in scheme.models)
+        return edges, bool(world.is_true_tree(body, scheme))
+
+    cases = ([(f"zoo{s}", world.zoo_robot(s), s) for s in range(n_zoo)]
+             + [(f"random{s}", world.random_tree(6, s, branching=True), s) for s in range(n_random)]
+             + [(f"branching{s}", world.branching_tree(s, second_torso_marker=True, dummy_action=True), s)
+                for s in range(n_branching)])
+    out = {"bodies": len(cases), "same_tree": 0, "lazy_true": 0, "eager_true": 0, "differences": []}
+    for name, body, seed in cases:
+        lazy = learn(body, BodySchemeConfig(), seed)
+        eager = learn(body, BodySchemeConfig(lazy_layers=False, race_samples=0), seed)
+        out["same_tree"] += lazy[0] == eager[0]
+        out["lazy_true"] += lazy[1]
+        out["eager_true"] += eager[1]
+        if lazy[0] != eager[0]:
+            out["differences"].append({"body": name, "lazy_true": lazy[1], "eager_true": eager[1]})
+    return out
+
+
+def main(argv=None):
+    """``python -m body_scheme_apps.bootstrap_bench [--bodies paper6,dualarm] [--compare]``: print the figures."""
+    parser = argparse.ArgumentParser(prog="bootstrap_bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--bodies", default=",".join(BODIES), help="comma-separated (default: all)")
+    parser.add_argument("--compare", action="store_true",
+                        help="instead: lazy against eager trees on 30 bodies nobody tuned them on")
+    args = parser.parse_args(argv)
+    if args.compare:
+        print(compare_trees())
+        return 0
+    bodies = tuple(args.bodies.split(","))
+    print(table(run(bodies), bodies))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

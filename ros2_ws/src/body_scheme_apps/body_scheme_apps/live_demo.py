@@ -387,7 +387,10 @@ def main(argv=None):
     parser = argparse.ArgumentParser(prog="live_demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--robot", default="powercube_6dof")
     parser.add_argument("--steps", type=int, default=300)
-    parser.add_argument("--period", type=float, default=0.05, help="s between babbled commands")
+    timing = parser.add_mutually_exclusive_group()
+    timing.add_argument("--period", type=float, default=0.05, help="s between babbled commands (default 0.05)")
+    timing.add_argument("--rate", type=float, default=None, help="babbled commands per second (instead of --period; "
+                        "30: a camera's rate)")
     parser.add_argument("--fault", action="append", dest="faults", help="sim fault schedule entry (repeatable); "
                         "default: 120:block_joint:5:0.8 and 220:repair")
     parser.add_argument("--perception", choices=["noise", "rendered"], default="rendered",
@@ -397,8 +400,11 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="out/demo")
     args = parser.parse_args(argv)
+    if args.rate is not None and not (args.rate > 0 and args.rate <= 1000):
+        parser.error(f"--rate must be in (0, 1000] commands per second, got {args.rate}")
+    period = 1.0 / args.rate if args.rate is not None else args.period
     faults = args.faults if args.faults is not None else ["120:block_joint:5:0.8", "220:repair"]
-    result = run_live_demo(args.out, robot=args.robot, steps=args.steps, period=args.period, faults=faults,
+    result = run_live_demo(args.out, robot=args.robot, steps=args.steps, period=period, faults=faults,
                            perception=args.perception, n_targets=args.targets, seed=args.seed)
     print(format_summary(result))
     print(f"wrote {pathlib.Path(args.out) / 'summary.json'} and {pathlib.Path(args.out) / 'live_demo.png'}")
