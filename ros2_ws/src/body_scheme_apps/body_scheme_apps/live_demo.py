@@ -303,7 +303,12 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     babble_time = steps * period
     result.rates = {"commands_per_s": len(monitor.truth[:steps]) / babble_time,
                     "observations_per_s": monitor.n_observations / babble_time,
-                    "learned_fraction": len(result.prediction_error) / max(1, steps)}
+                    # samples scheme_node learnt (its learner's step) per command it received (IK moves included),
+                    # from its last /diagnostics
+                    "learned_fraction": float(result.scheme_status.get("step", 0))
+                    / max(1.0, float(result.scheme_status.get("received.command", 0))),
+                    # commands with a prediction to compare with the truth (none before the first body scheme)
+                    "predicted_fraction": len(result.prediction_error) / max(1, steps)}
     (out_dir / "summary.json").write_text(json.dumps(asdict(result), indent=1))
     _plot(result, out_dir / "live_demo.png")
     return result
@@ -373,7 +378,8 @@ def format_summary(result):
     lines.append(f"IK: {sum(r['success'] for r in result.ik)}/{len(result.ik)} solved; true end effector from "
                  f"target: {spread}")
     lines.append(f"rates: {result.rates['commands_per_s']:.1f} commands/s, {result.rates['observations_per_s']:.1f} "
-                 f"observations/s, {100 * result.rates['learned_fraction']:.0f} % of commands learned as samples; "
+                 f"observations/s, {100 * result.rates['learned_fraction']:.0f} % of commands learned as samples "
+                 f"({100 * result.rates['predicted_fraction']:.0f} % predicted); "
                  f"wall time {result.wall_time_s:.1f} s")
     if result.recorded:
         topics = sum(map(bool, result.recorded.values()))
