@@ -1,8 +1,9 @@
 """Bootstrapping throughput and memory on bodies from one arm to a humanoid upper body, lazy and eager side by side.
 
 Each body bootstraps from scratch at the paper's noise (44 mm / 15 deg, every marker visible) in a fresh process
-(``spawn``, one BLAS thread), once with the defaults (lazy layers and racing, ``config.lazy_layers``,
-``config.race_samples``) and once eagerly (every candidate up to ``max_complexity`` from the start, no racing):
+(``spawn``, one BLAS thread), once lazily (:data:`LAZY`: lazy layers and racing, ``config.lazy_layers``,
+``config.race_samples``) and once eagerly (the defaults: every candidate up to ``max_complexity`` from the start, no
+racing):
 
 ``bootstrap_<body>_updates_per_s`` / ``bootstrap_<body>_eager_updates_per_s``
     Update calls per second over the whole bootstrapping phase (first step to ``bootstrap_finished``).
@@ -28,7 +29,7 @@ import os
 import resource
 import time
 
-__all__ = ["BODIES", "TARGETS", "bootstrap_body", "run", "compare_trees", "main"]
+__all__ = ["BODIES", "LAZY", "TARGETS", "bootstrap_body", "run", "compare_trees", "main"]
 
 #: Body name -> (constructor name in body_scheme_core.world, keyword arguments).
 BODIES = {
@@ -37,6 +38,8 @@ BODIES = {
     "dualarm": ("upper_body", {}),
     "upper18": ("upper_body", {"torso_joints": 2, "head_joints": 2}),
 }
+#: The lazy configuration measured against the eager defaults (``lazy_layers`` and racing are off by default).
+LAZY = {"lazy_layers": True, "race_samples": 3}
 #: Targets of issue 21 (one core), printed next to the figures.
 TARGETS = {"bootstrap_paper6_updates_per_s": (">=", 200.0), "bootstrap_arm7_updates_per_s": (">=", 200.0),
            "bootstrap_dualarm_updates_per_s": (">=", 30.0), "bootstrap_dualarm_max_update_ms": ("<=", 200.0),
@@ -62,7 +65,7 @@ def bootstrap_body(name, eager, seed=0, max_steps=600):
     constructor, kwargs = BODIES[name]
     body = getattr(world, constructor)(**kwargs)
     session = world.make_session(body, max_steps, seed=seed, visibility=1.0)
-    config = BodySchemeConfig(lazy_layers=False, race_samples=0) if eager else BodySchemeConfig()
+    config = BodySchemeConfig() if eager else BodySchemeConfig(**LAZY)
     base = _rss_mb()
     learner = BodySchemeLearner(body.marker_ids, body.n_actions, config, action_lower=body.action_lower,
                                 action_upper=body.action_upper)
@@ -112,9 +115,9 @@ def _cell(value):
 
 
 def compare_trees(n_zoo=20, n_random=6, n_branching=4, flip_rate=0.02, n_steps=300):
-    """Lazy (the defaults) against eager bootstrapping on bodies nobody tuned them on: robot-zoo bodies, random
-    branching trees of 6 joints, branching bodies with a second torso marker and a dummy action, with camera-like
-    flips. Returns ``{"bodies", "same_tree", "lazy_true", "eager_true", "differences"}``."""
+    """Lazy (:data:`LAZY`) against eager bootstrapping (the defaults) on bodies nobody tuned them on: robot-zoo
+    bodies, random branching trees of 6 joints, branching bodies with a second torso marker and a dummy action, with
+    camera-like flips. Returns ``{"bodies", "same_tree", "lazy_true", "eager_true", "differences"}``."""
     from body_scheme_core import world
     from body_scheme_core.config import BodySchemeConfig
     from body_scheme_core.learner import BodySchemeLearner
@@ -137,8 +140,8 @@ def compare_trees(n_zoo=20, n_random=6, n_branching=4, flip_rate=0.02, n_steps=3
                 for s in range(n_branching)])
     out = {"bodies": len(cases), "same_tree": 0, "lazy_true": 0, "eager_true": 0, "differences": []}
     for name, body, seed in cases:
-        lazy = learn(body, BodySchemeConfig(), seed)
-        eager = learn(body, BodySchemeConfig(lazy_layers=False, race_samples=0), seed)
+        lazy = learn(body, BodySchemeConfig(**LAZY), seed)
+        eager = learn(body, BodySchemeConfig(), seed)
         out["same_tree"] += lazy[0] == eager[0]
         out["lazy_true"] += lazy[1]
         out["eager_true"] += eager[1]

@@ -89,7 +89,8 @@ class Bootstrap:
         return self._pair_index[1]
 
     def step(self, tree, a, relative, step, events):
-        """One step: every candidate whose pair is observed is tested, then trained; the tree is searched again.
+        """One step: every candidate whose pair is observed is tested, then trained; hopeless ones are raced out; the
+        tree is searched again, and without one the next layer is instantiated where needed (:meth:`expand`).
 
         Parameters
         ----------
@@ -99,7 +100,7 @@ class Bootstrap:
         relative : RelativeObservations
         step : int
         events : list of Event
-            Appended to: ``structure_found`` or ``structure_changed``.
+            Appended to: ``structure_found``, ``structure_changed`` or ``model_sampled`` (a new layer).
 
         Returns
         -------

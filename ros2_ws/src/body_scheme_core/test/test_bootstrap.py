@@ -24,6 +24,9 @@ from body_scheme_core.world import (
     powercube_6dof,
 )
 
+#: Lazy layers and racing (off by default).
+LAZY = BodySchemeConfig(lazy_layers=True, race_samples=3)
+
 
 def _bootstrap(robot, config):
     pairs = PartPairs(robot.marker_ids, NoiseModel.from_config(robot.marker_ids, config))
@@ -48,10 +51,10 @@ def _run(boot, session, observations=None, stop_when_finished=True):
 
 def test_every_pair_and_action_subset_is_a_candidate():
     """The fully connected network: C(3, 2) pairs times (1 static, 2 x (prismatic, revolute, GP), 1 two-action GP);
-    with lazy layers (the default) the two-action GPs wait until they are needed."""
+    with lazy layers the two-action GPs wait until they are needed."""
     robot = planar_2dof()
-    assert len(_bootstrap(robot, BodySchemeConfig()).pool.tracked) == n_candidates(3, 2, 1) == 21
-    boot = _bootstrap(robot, BodySchemeConfig(lazy_layers=False))
+    assert len(_bootstrap(robot, LAZY).pool.tracked) == n_candidates(3, 2, 1) == 21
+    boot = _bootstrap(robot, BodySchemeConfig())
     assert len(boot.pool.tracked) == n_candidates(3, 2, 2) == 24
     assert all(e.role == CANDIDATE and e.slot >= 0 and e.origin == "bootstrap" for e in boot.pool.tracked.values())
 
@@ -65,8 +68,7 @@ def test_the_true_tree_is_found_and_kept_after_bootstrapping():
     trees, events, finished = _run(boot, session)
     assert finished is not None and events[0].kind == "structure_found"
     assert [e.kind for e in events].count("bootstrap_finished") == 1 and events[-1].kind == "bootstrap_finished"
-    assert "all candidates are frozen" in events[-1].reason and "dropped 14 other candidates" in events[-1].reason
-    assert boot.raced == 21 - 2 - 14  # the others were raced out on the way
+    assert "all candidates are frozen" in events[-1].reason and "dropped 22 other candidates" in events[-1].reason
     tree = trees[-1]
     edges = {frozenset((boot.pool.tracked[i].parent, boot.pool.tracked[i].child)) for i in tree}
     assert edges == {frozenset(e) for e in robot.marker_tree_edges()}
@@ -157,13 +159,13 @@ def _head_arm():
     return KinematicTree(robot.joints, [m for m in robot.markers if m.id != 3])
 
 
-EAGER = BodySchemeConfig(lazy_layers=False, race_samples=0)
+EAGER = BodySchemeConfig()  # the defaults
 
 
 @pytest.mark.parametrize("make", [powercube_6dof, branching_tree, _head_arm], ids=["serial", "branching", "layer2"])
 def test_lazy_layers_and_racing_learn_the_tree_of_the_eager_search(make):
     robot = make()
-    lazy, eager = _learn(robot, BodySchemeConfig()), _learn(robot, EAGER)
+    lazy, eager = _learn(robot, LAZY), _learn(robot, EAGER)
     assert _edges(lazy) == _edges(eager)
     assert is_true_tree(robot, lazy.body_scheme)
     assert lazy.n_raced > 0 and eager.n_raced == 0
@@ -173,7 +175,7 @@ def test_lazy_layers_and_racing_learn_the_tree_of_the_eager_search(make):
 
 def test_a_serial_chain_with_one_joint_per_link_never_instantiates_layer_two():
     seen = []
-    _learn(powercube_6dof(), BodySchemeConfig(), watch=lambda learner: seen.append(
+    _learn(powercube_6dof(), LAZY, watch=lambda learner: seen.append(
         max(e.complexity for e in learner._pool.tracked.values())))
     assert seen and max(seen) == 1
 
@@ -192,7 +194,7 @@ def test_a_raced_out_candidate_never_comes_back_as_a_tree_model():
         alive.clear()
         alive.update(now)
 
-    learner = _learn(robot, BodySchemeConfig(), watch=watch)
+    learner = _learn(robot, LAZY, watch=watch)
     assert 0 < len(raced) <= learner.n_raced  # those raced in the last step are dropped with the rest
     assert not raced & {(m.parent, m.child, m.actions, m.kind) for m in learner.body_scheme.models}
 
