@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 
+import networkx as nx
 import numpy as np
 
 from .events import Event, format_errors
@@ -153,25 +154,19 @@ class Bootstrap:
         ls = pool.learning()
         _, valid, _, _ = self._eligible(ls)
         entries = [pool.tracked[int(i)] for i in ls.ids]
-        component = {p: p for p in self.pairs.part_ids}
-
-        def find(p):
-            while component[p] != p:
-                component[p] = component[component[p]]
-                p = component[p]
-            return p
-
-        for k in np.flatnonzero(valid):
-            component[find(entries[k].parent)] = find(entries[k].child)
-        if len({find(p) for p in component}) == 1:
+        graph = nx.Graph()
+        graph.add_nodes_from(self.pairs.part_ids)
+        graph.add_edges_from((entries[k].parent, entries[k].child) for k in np.flatnonzero(valid))
+        component = {p: k for k, members in enumerate(nx.connected_components(graph)) for p in members}
+        if max(component.values(), default=0) == 0:
             return False
         tested = {}
         for entry, count in zip(entries, pool.monitor.count[ls.rows], strict=True):
             key = (entry.parent, entry.child)
             tested[key] = min(tested.get(key, count), count)
         layers = self._instantiated_layers()
-        pairs = [pair for pair, top in layers.items() if top < c.max_complexity and find(pair[0]) != find(pair[1])
-                 and tested.get(pair, c.test_window) >= c.test_window]
+        pairs = [pair for pair, top in layers.items() if top < c.max_complexity
+                 and component[pair[0]] != component[pair[1]] and tested.get(pair, c.test_window) >= c.test_window]
         return self._next_layer(pairs, step, events, "do not connect the parts")
 
     def expand_suspects(self, tree, step, events):

@@ -19,9 +19,8 @@ import numpy as np
 from .adaptation import Adaptation
 from .config import BodySchemeConfig
 from .consistency import PartConsistency
-from .errors import BodySchemeError, ModelFileError
-from .inputs import check_n_actions, check_part_ids, rigidity_problem
-from .limits import MAX_ACTION
+from .errors import BodySchemeError, InvalidInputError, ModelFileError
+from .inputs import check_action_vector, check_n_actions, check_part_ids, rigidity_problem
 from .pool import ModelPool, check_monitor_settings
 from .root_pose import RootPoseEstimator, RootWatch
 from .scheme import BodyScheme
@@ -239,11 +238,12 @@ def _part_rows(rows, parts, name, read):
 
 
 def _actions(value, n_actions, name):
-    """An action vector as a learner takes it: finite, within :data:`~body_scheme_core.limits.MAX_ACTION`."""
-    a = finite_array(value, (n_actions,), name)
-    if np.any(np.abs(a) > MAX_ACTION):
-        raise ModelFileError(f"{name} beyond {MAX_ACTION:g}")
-    return a
+    """An action vector as a learner takes it (:func:`~body_scheme_core.inputs.check_action_vector`), of JSON
+    numbers only."""
+    try:
+        return check_action_vector(finite_array(value, (n_actions,), name), n_actions)
+    except InvalidInputError as exc:
+        raise ModelFileError(f"{name}: {exc}") from exc
 
 
 def _rigid(value, name):
