@@ -3,6 +3,7 @@
 #   make test    set up (if needed), build, run every test and ruff   <- the README's test command, run by CI
 #   make test-fast  the inner loop: every test but the DDS system tests and the slow ones (under 90 s)
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
+#   make your-robot URDF=robot.urdf   plan markers on any URDF, learn it in the simulator, write learned URDF + report
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
 #   make stress  the learner's property-based stress test on random bodies, >= 100,000 steps (out/stress/stress.json)
 #   make fuzz    scheme_node under 10,000+ hostile and valid messages over DDS (writes out/fuzz/fuzz.json)
@@ -25,7 +26,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test test-fast unit lint demo bench stress fuzz bags replay experiments experiments-quick clean distclean
+.PHONY: all setup build test test-fast unit lint demo your-robot bench stress fuzz bags replay experiments experiments-quick clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -74,6 +75,14 @@ lint: $(STAMPS)/deps
 # The live ROS graph (sim_node -> scheme_node -> control_node as processes over DDS); see README "Demo".
 demo: build
 	$(RUN) python -m body_scheme_apps.live_demo --out out/demo
+
+# Your robot (docs/your-robot.md): markers planned on any URDF, learned from rendered images, calibrated.
+# make your-robot URDF=path/to/robot.urdf [PACKAGE_PATH=dir] (default: pybullet's Franka Panda).
+URDF ?=
+PACKAGE_PATH ?=
+your-robot: build
+	$(RUN) urdf="$(URDF)"; [ -n "$$urdf" ] || urdf=$$(python -c "import pybullet_data; print(pybullet_data.getDataPath())")/franka_panda/panda.urdf; \
+	  python -m body_scheme_apps.calibrate --simulate "$$urdf" --camera auto $(if $(PACKAGE_PATH),--package-path $(PACKAGE_PATH)) --out out/your-robot
 
 # The same story without ROS: body_scheme_core alone on a synthetic session.
 demo-core: build

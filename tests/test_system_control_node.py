@@ -69,3 +69,49 @@ def test_control_node_solves_reports_and_refuses(start_node, ros_node, spin_unti
     assert spin_until(lambda: len(results) == 4, timeout=20), process.output()
     assert not results[3].success and "not in body scheme" in results[3].reason
     assert np.isnan(results[3].residual) and list(results[3].actions) == [] and len(commands) == n_commands
+
+
+def test_control_node_executes_an_ik_answer_through_the_controller(start_node, ros_node, spin_until):
+    """execute: true: the solution goes to sim_node as a JointTrajectoryController goal; once the arm settled,
+    control_node reports where the camera saw the end effector, and the true end effector is within 10 mm of the
+    target."""
+    from trajectory_msgs.msg import JointTrajectory
+
+    from body_scheme_msgs.msg import MarkerPoses
+    from body_scheme_sim.camera import Camera
+    from body_scheme_sim.robots import load_robot
+
+    tree = load_robot("powercube_6dof")
+    end_effector = max(tree.marker_ids)
+    camera2root = np.linalg.inv(Camera().world2camera)  # sim_node: the root at the world origin
+    start_node("body_scheme_nodes", "sim_node", {"robot": "powercube_6dof", "perception_mode": "noise",
+                                                 "sigma_trans": 0.002, "sigma_rot": 0.01, "camera_period": 0.1})
+    process = start_node("body_scheme_nodes", "control_node", {
+        "part_id": end_effector, "tolerance": 0.002, "execute": True, "robot": "powercube_6dof",
+        "max_velocity": 5.0, "max_acceleration": 20.0})
+    results, trajectories, truth = [], [], []
+    ros_node.create_subscription(IKResult, "ik_result", results.append, 10)
+    ros_node.create_subscription(JointTrajectory, "joint_trajectory_controller/joint_trajectory",
+                                 trajectories.append, 10)
+    ros_node.create_subscription(MarkerPoses, "ground_truth/marker_poses", truth.append, 100)
+    targets = ros_node.create_publisher(IKTarget, "ik_target", 10)
+    snapshots = ros_node.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
+    scheme = BodyScheme(tree.marker_ids, tree.root_marker, engineered_models(tree))
+    camera2root_marker = camera2root @ tree.marker_poses(np.zeros(tree.n_actions))[tree.root_marker]
+    snapshots.publish(conversions.snapshot_msg(0.0, "camera", 1, scheme, tree.action_joint_names,
+                                               tree.action_lower, tree.action_upper, camera2root_marker))
+    a_true = np.array([0.17, 0.68, 0.45, -0.27, -0.1, -0.26])  # a posture in which the camera sees marker 7
+    target = (camera2root @ tree.marker_poses(a_true)[end_effector])[:3, 3]
+    assert spin_until(lambda: targets.get_subscription_count() > 0, timeout=30), process.output()
+    spin_until(lambda: False, timeout=1.0)  # the latched snapshot reaches control_node
+    msg = IKTarget(part_id=-1)
+    msg.header.frame_id = "camera"
+    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in target)
+    targets.publish(msg)
+    assert spin_until(lambda: results, timeout=30), process.output()
+    result = results[0]
+    assert result.success and result.executed, result.reason
+    assert result.reached_source == "observed" and result.reached_error < 0.02, result
+    assert len(trajectories) == 1 and trajectories[0].points
+    _, last = conversions.observations_from_msg(truth[-1])[:2]
+    assert np.linalg.norm(last[end_effector][:3, 3] - target) < 0.010

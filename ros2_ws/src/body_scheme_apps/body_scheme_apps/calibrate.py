@@ -2,11 +2,16 @@
 
     python -m body_scheme_apps.calibrate --state STATE.json --joint-names j1,j2,... [--urdf NOMINAL.urdf
         --markers NOMINAL.markers.yaml] [--prefix robot1/] --out DIR
-    python -m body_scheme_apps.calibrate --simulate powercube_6dof [--steps 300] --out DIR
+    python -m body_scheme_apps.calibrate --simulate ROBOT [--markers FILE] [--camera auto | "x y z r p y"]
+        [--package-path DIR] [--perception rendered | noise] [--steps 600] --out DIR
 
 ``--state`` reads a state saved by scheme_node (``~/save``, checkpoints) or the core (``save_state``); ``--simulate``
-learns one first from a babbling session of a shipped robot in the simulator (rendered-tracker noise: 10 mm, 3 deg)
-and compares it with that robot's shipped URDF and marker file. Writes to ``DIR``:
+learns one first from a babbling session in the simulator and compares it with the robot's specification. ``ROBOT``
+is a shipped robot's name or any URDF path: its markers come from ``--markers``, else ``<stem>.markers.yaml`` beside
+the URDF, else they are planned (:func:`body_scheme_sim.planning.plan_markers`, written to ``DIR/markers.yaml``).
+The camera is ``--camera`` (default: the simulator's camera for a shipped robot, ``auto`` for a URDF: framing every
+marker). ``rendered`` perception (the default) runs our ArUco tracker on the simulator's images; ``noise`` draws
+observations at the rendered tracker's accuracy (10 mm, 5 deg). Writes to ``DIR``:
 
 - ``learned.urdf``: :func:`body_scheme_core.learned_body.learned_urdf` (limits: the trained range);
 - with a nominal robot: ``report.txt``, ``report.json`` (per joint ``axis_deg``, ``origin_mm``, ``marker_mm``,
@@ -22,11 +27,14 @@ import pathlib
 import sys
 
 import numpy as np
+from tqdm import tqdm
 
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.learned_body import calibration_report, format_report, learned_tree, learned_urdf
 from body_scheme_core.persistence import load_state
 from body_scheme_core.world.robot_files import load_markers_yaml, tree_from_urdf
+
+from .robot_option import resolve_robot
 
 __all__ = ["calibrate", "plot_report", "main"]
 
@@ -100,16 +108,23 @@ def plot_report(body, nominal, report, path):
     plt.close(fig)
 
 
-def _simulated(robot, steps, seed):
-    """A learner taught by a babbling session of a shipped robot in the simulator, and that robot's nominal tree."""
+def _simulated(choice, steps, seed, perception="rendered"):
+    """A learner taught by a babbling session in the simulator (:class:`~body_scheme_apps.robot_option.RobotChoice`),
+    and the robot's nominal tree."""
+    from body_scheme_core.config import BodySchemeConfig
     from body_scheme_core.learner import BodySchemeLearner
-    from body_scheme_sim.robots import load_robot
     from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
 
-    nominal = load_robot(robot)
-    session = record_session(robot, n_steps=steps, seed=seed, sigma_trans=RENDERED_SIGMA_TRANS,
-                             sigma_rot=RENDERED_SIGMA_ROT)
-    learner = BodySchemeLearner(nominal.marker_ids, nominal.n_actions, action_lower=nominal.action_lower,
+    nominal = choice.tree
+    with tqdm(total=steps, desc="babbling in the simulator", unit="step", disable=not sys.stderr.isatty()) as bar:
+        session = record_session(choice.robot, n_steps=steps, seed=seed, sigma_trans=RENDERED_SIGMA_TRANS,
+                                 sigma_rot=RENDERED_SIGMA_ROT, perception=perception, camera=choice.camera,
+                                 markers_path=choice.markers_path, package_path=choice.package_path,
+                                 progress=lambda done: bar.update(done - bar.n))
+    # The noise priors of the tracker on rendered images (as live_demo): its errors are heavy-tailed, and the
+    # default "auto" prior, replaced by the first robust estimate, makes the thresholds too tight for them.
+    config = BodySchemeConfig(sigma_trans=RENDERED_SIGMA_TRANS, sigma_rot=RENDERED_SIGMA_ROT)
+    learner = BodySchemeLearner(nominal.marker_ids, nominal.n_actions, config, action_lower=nominal.action_lower,
                                 action_upper=nominal.action_upper)
     for actions, observations in zip(session.actions, session.observations, strict=True):
         learner.update(actions, observations)
@@ -121,19 +136,32 @@ def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.calibrate", description=__doc__.split("\n\n")[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--state", help="learner state file (scheme_node ~/save or checkpoint)")
-    source.add_argument("--simulate", metavar="ROBOT", help="learn from the simulator first (a shipped robot)")
+    source.add_argument("--simulate", metavar="ROBOT", help="learn from the simulator first: a shipped robot's name "
+                                                             "or a URDF path")
     parser.add_argument("--joint-names", help="comma-separated joint names in action order (default: the nominal "
                                               "URDF's, else joint_0, joint_1, ...)")
     parser.add_argument("--urdf", help="nominal URDF of the robot (with --markers): write the calibration report")
-    parser.add_argument("--markers", help="nominal marker placement YAML")
+    parser.add_argument("--markers", help="nominal marker placement YAML (with --simulate: the markers to simulate; "
+                                          "default: beside the URDF, else planned into --out)")
     parser.add_argument("--prefix", default="", help="prefix of link names (joints keep the robot's)")
-    parser.add_argument("--steps", type=int, default=300, help="--simulate: babbling steps (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=600, help="--simulate: babbling steps (default: %(default)s)")
+    parser.add_argument("--camera", default="default",
+                        help='--simulate: "x y z roll pitch yaw" of the camera\'s optical frame in the world (m, rad) '
+                             "or auto (default: the simulator's camera for a shipped robot, auto for a URDF)")
+    parser.add_argument("--package-path", action="append", default=[], metavar="DIR",
+                        help="--simulate: a directory searched first for package:// meshes (repeatable; then "
+                             "ROS_PACKAGE_PATH, the ament index and the URDF's directory)")
+    parser.add_argument("--perception", choices=("rendered", "noise"), default="rendered",
+                        help="--simulate: our tracker on rendered images, or noise at its accuracy "
+                             "(default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output directory")
     args = parser.parse_args(argv)
     try:
         if args.simulate:
-            learner, nominal = _simulated(args.simulate, args.steps, args.seed)
+            choice = resolve_robot(args.simulate, args.markers, args.camera, args.package_path,
+                                   pathlib.Path(args.out) / "markers.yaml", args.seed)
+            learner, nominal = _simulated(choice, args.steps, args.seed, args.perception)
         else:
             learner = load_state(args.state)
             nominal = None

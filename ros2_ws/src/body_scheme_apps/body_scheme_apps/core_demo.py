@@ -17,16 +17,24 @@ import time
 import numpy as np
 
 from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.world import REPAIR, Fault, make_session, powercube_6dof
+
+from .robot_option import add_robot_arguments, resolve_robot
 
 __all__ = ["main", "run_demo"]
 
 
-def run_demo(seed=0, fault_step=150, repair_step=250, again_step=350, n_steps=450, blocked_angle=0.8):
-    """Run the scenario; returns a dict with the learner, session, events and per-step errors."""
-    robot = powercube_6dof()
-    fault = Fault("block_joint", action_index=5, angle=blocked_angle)
+def run_demo(seed=0, fault_step=150, repair_step=250, again_step=350, n_steps=450, blocked_angle=0.8, robot=None):
+    """Run the scenario; returns a dict with the learner, session, events and per-step errors.
+
+    ``robot``: a :class:`~body_scheme_core.world.KinematicTree` with markers (default: the 6-DOF arm); its last
+    action's joint is the one blocked (at ``blocked_angle`` clipped into its limits)."""
+    robot = powercube_6dof() if robot is None else robot
+    last = robot.n_actions - 1
+    angle = float(np.clip(blocked_angle, robot.action_lower[last], robot.action_upper[last]))
+    fault = Fault("block_joint", action_index=last, angle=angle)
     session = make_session(robot, n_steps, seed=seed, visibility=0.92, above_ground=True,
                            faults=[(fault_step, fault), (repair_step, REPAIR), (again_step, fault)])
     learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, BodySchemeConfig(),
@@ -146,14 +154,25 @@ def main(argv=None):
     parser = argparse.ArgumentParser(prog="body-scheme-demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic session (default: 0)")
     parser.add_argument("--steps", type=int, default=450, help="session length; faults at 1/3, 5/9, 7/9 of 450")
+    add_robot_arguments(parser, camera=False)
     args = parser.parse_args(argv)
     n = args.steps
-    result = run_demo(seed=args.seed, n_steps=n, fault_step=n // 3, repair_step=5 * n // 9, again_step=7 * n // 9)
+    robot = None
+    if args.robot != "powercube_6dof" or args.markers:
+        try:
+            robot = resolve_robot(args.robot, args.markers, None, args.package_path, "out/core_demo/markers.yaml",
+                                  args.seed).tree
+        except BodySchemeError as error:
+            print(f"core_demo: {error}", file=sys.stderr)
+            return 1
+    result = run_demo(seed=args.seed, n_steps=n, fault_step=n // 3, repair_step=5 * n // 9, again_step=7 * n // 9,
+                      robot=robot)
+    tree = result["session"].tree
     print(textwrap.fill(
-        f"A simulated 6-DOF arm (7 markers, paper noise 44 mm / 15 deg, 92 % visibility) babbles for {n} steps. The "
-        f"learner bootstraps its body scheme from scratch; the end-effector joint (action 5) is blocked at step "
-        f"{n // 3}, repaired at {5 * n // 9} and blocked again in the same position at {7 * n // 9} (paper Sec. "
-        "IV-B).", 116) + "\n")
+        f"A simulated {args.robot} arm ({len(tree.marker_ids)} markers, paper noise 44 mm / 15 deg, 92 % visibility) "
+        f"babbles for {n} steps. The learner bootstraps its body scheme from scratch; the end-effector joint (action "
+        f"{tree.n_actions - 1}) is blocked at step {n // 3}, repaired at {5 * n // 9} and blocked again in the same "
+        f"position at {7 * n // 9} (paper Sec. IV-B).", 116) + "\n")
     _print_structure(result)
     _print_errors(result)
     _print_timeline(result["events"])

@@ -32,14 +32,17 @@ from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
-from body_scheme_core.transforms import translational_error
+from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.transforms import translational_error, xyz_rpy_from_transform
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
 from body_scheme_nodes.recorder import GraphRecorder
-from body_scheme_sim.robots import load_robot, robot_files
+from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
+
+from .robot_option import add_robot_arguments, resolve_robot
 
 __all__ = ["DemoResult", "RECORDED_TOPICS", "run_live_demo", "main"]
 
@@ -87,9 +90,14 @@ class DemoResult:
 class _Monitor:
     """The demo's own rclpy node: subscribes to everything a user would watch and sends IK targets."""
 
-    def __init__(self, node, end_effector):
+    def __init__(self, node, end_effector, controller=False):
         self.node = node
         self.end_effector = end_effector
+        # Through a controller sim_node takes a picture every camera_period at rest: the command's ground truth is
+        # the first one after its action signal (babble_node's or control_node's joint_commands).
+        self.controller = controller
+        self.actions = []          # stamps of the action signals not yet shown
+        node.create_subscription(JointState, "joint_commands", self._action, 100)
         self.truth = []            # (stamp, {id: camera2marker}) in arrival order = command order
         self.step_of_stamp = {}
         self.predicted = {}        # stamp -> camera2marker of the end effector
@@ -107,8 +115,17 @@ class _Monitor:
         node.create_subscription(IKResult, "ik_result", self.ik_results.append, 10)
         self.targets = node.create_publisher(IKTarget, "ik_target", 10)
 
+    def _action(self, msg):
+        if self.controller:
+            self.actions.append(conversions.seconds_from_stamp(msg.header.stamp))
+
     def _truth(self, msg):
         stamp, poses, _ = conversions.observations_from_msg(msg)
+        if self.controller:
+            shown = [a for a in self.actions if a <= stamp]
+            if not shown:
+                return  # a picture of a command already shown, or of none yet
+            self.actions = [a for a in self.actions if a > stamp]
         self.step_of_stamp[stamp] = len(self.truth)
         self.truth.append((stamp, poses))
 
@@ -168,7 +185,7 @@ def _spin(executor, predicate, timeout, during=None):
 
 def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=("120:block_joint:5:0.8",
                   "220:repair"), perception="noise", n_targets=5, seed=0, sigma_trans=None, sigma_rot=None,
-                  env=None, log=print):
+                  env=None, log=print, markers_path=None, camera=None, package_path=(), babble="sim"):
     """Start the graph, babble ``steps`` commands with the scheduled ``faults``, then test IK; returns a DemoResult.
 
     Parameters
@@ -195,16 +212,27 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
         IK targets: end-effector positions the healthy arm reached while babbling (reachable by construction).
     env : dict, optional
         Environment of the node processes (e.g. ROS_DOMAIN_ID); also applied to this process's rclpy context.
+    babble : {"sim", "controller"}
+        ``sim``: sim_node babbles by itself every ``period``. ``controller``: the graph a real robot uses,
+        babble_node -> sim_node as a JointTrajectoryController (moves at 12 rad/s, 100 rad/s^2, each settled before
+        the next) -> camera; control_node executes the IK answers through the same interface (``period`` unused).
+    markers_path, camera, package_path
+        Your robot (:mod:`~body_scheme_apps.robot_option`): its marker file (default: the shipped one or beside the
+        URDF), the simulated camera (default: the simulator's), directories for its ``package://`` meshes.
     """
     if perception not in ("noise", "rendered"):
         raise ValueError(f"perception must be 'noise' or 'rendered', got {perception!r}")
+    if babble not in ("sim", "controller"):
+        raise ValueError(f"babble must be 'sim' or 'controller', got {babble!r}")
+    controller = babble == "controller"
     rendered = perception == "rendered"
     sigma_trans = (RENDERED_SIGMA_TRANS if rendered else PAPER_SIGMA_TRANS) if sigma_trans is None else sigma_trans
     sigma_rot = (RENDERED_SIGMA_ROT if rendered else PAPER_SIGMA_ROT) if sigma_rot is None else sigma_rot
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    tree = load_robot(robot)
-    urdf_path, markers_path = robot_files(robot)
+    markers_path = robot_files(robot, markers_path)[1]
+    tree = load_robot(robot, markers_path)
+    shipped = str(robot) in ROBOT_BUILDERS
     ids = [int(i) for i in tree.marker_ids]
     end_effector = max(ids)
     names = list(tree.action_joint_names)
@@ -213,7 +241,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                         true_edges=[list(e) for e in tree.marker_tree_edges()])
 
     with monitor_node("live_demo_monitor", domain_id(env)) as (node, executor):
-        monitor = _Monitor(node, end_effector)
+        monitor = _Monitor(node, end_effector, controller)
         shutil.rmtree(out_dir / "session", ignore_errors=True)
         recorder = GraphRecorder(node, out_dir / "session", RECORDED_TOPICS)
         processes = []
@@ -227,7 +255,10 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             learner_noise = {"learner.sigma_trans": float(sigma_trans), "learner.sigma_rot": float(sigma_rot)}
             start_node("body_scheme_nodes", "scheme_node", {
                 "part_ids": ids, "joint_names": names, "action_lower": lower, "action_upper": upper, **learner_noise})
-            start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.005})
+            arm = {"robot": str(robot), "package_path": list(package_path), "max_velocity": 12.0,
+                   "max_acceleration": 100.0, "settle_window": 0.05}
+            start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.005,
+                                                             **({"execute": True, **arm} if controller else {})})
             if perception == "rendered":
                 start_node("body_scheme_nodes", "tracker_node", {"markers_path": str(markers_path),
                                                                  "image_reliability": "reliable"})
@@ -235,21 +266,32 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                 raise RuntimeError("scheme_node did not come up within 60 s; see " + str(out_dir / "logs"))
             # The sim babbles only once scheme_node and control_node subscribe to its commands (messages sent before
             # discovery matched are lost), and the tracker (or scheme_node) and this monitor to its outputs.
-            start_node("body_scheme_nodes", "sim_node", {"wait_for_subscribers": 2,
-                "robot": robot, "perception_mode": perception, "babbling": True, "babbling_period": period,
+            if controller:  # babble_node drives sim_node as a real arm's controller; faults are expected here
+                start_node("body_scheme_nodes", "babble_node", {**arm, "steps": steps, "seed": seed, "dwell": 0.05,
+                                                                "error_hold": 600.0})
+            start_node("body_scheme_nodes", "sim_node", {"wait_for_subscribers": 0 if controller else 2,
+                **_camera_parameters(camera), "camera_period": 0.05,
+                "markers_path": str(markers_path), "package_path": list(package_path),
+                "robot": str(robot), "perception_mode": perception, "babbling": not controller,
+                "babbling_period": period,
                 "babbling_steps": steps, "seed": seed, "fault_schedule": list(faults),
                 "sigma_trans": float(sigma_trans), "sigma_rot": float(sigma_rot),
-                "markers_of_interest": [end_effector - 1, end_effector] if len(ids) > 2 else []})
+                # The shipped arms keep their last two markers in view (the IK targets'); a robot of yours babbles
+                # over its whole range (its planned markers are seen together too rarely for such a screen).
+                "markers_of_interest": [end_effector - 1, end_effector] if len(ids) > 2 and shipped else []})
 
             def alive():
                 for process in processes:
                     if not process.running():
                         raise RuntimeError(f"{process.name} exited; its log:\n{process.output()[-3000:]}")
 
-            log(f"babbling {steps} commands ({period:.2f} s apart) with faults {list(faults)} ...")
-            if not _spin(executor, lambda: len(monitor.truth) >= steps, timeout=steps * period * 4 + 60,
-                         during=alive):
+            how = "through the controller interface" if controller else f"{period:.2f} s apart"
+            log(f"babbling {steps} commands ({how}) with faults {list(faults)} ...")
+            babble_start = time.monotonic()
+            if not _spin(executor, lambda: len(monitor.truth) >= steps,
+                         timeout=steps * (2.0 if controller else period * 4) + 60, during=alive):
                 raise RuntimeError(f"only {len(monitor.truth)} of {steps} commands executed")
+            babble_time = time.monotonic() - babble_start
             _spin(executor, lambda: False, timeout=1.0)  # let scheme_node drain its queue
 
             # IK: end-effector positions the arm reached after the last repair, so reachable by the healthy arm.
@@ -300,7 +342,6 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             result.prediction_error.append((monitor.step(stamp), error))
     result.n_observations = monitor.n_observations
     result.recorded = dict(recorder.counts)
-    babble_time = steps * period
     result.rates = {"commands_per_s": len(monitor.truth[:steps]) / babble_time,
                     "observations_per_s": monitor.n_observations / babble_time,
                     # samples scheme_node learnt (its learner's step) per command it received (IK moves included),
@@ -388,10 +429,20 @@ def format_summary(result):
     return "\n".join(lines)
 
 
+def _camera_parameters(camera):
+    """sim_node's camera parameters for a :class:`~body_scheme_sim.camera.Camera` (none: its default camera)."""
+    if camera is None:
+        return {}
+    xyz, rpy = xyz_rpy_from_transform(camera.world2camera)
+    return {"camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
+                       "cx": camera.cx, "cy": camera.cy, "xyz": [float(v) for v in xyz],
+                       "rpy": [float(v) for v in rpy]}}
+
+
 def main(argv=None):
     """Console entry point."""
     parser = argparse.ArgumentParser(prog="live_demo", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--robot", default="powercube_6dof")
+    add_robot_arguments(parser)
     parser.add_argument("--steps", type=int, default=300)
     timing = parser.add_mutually_exclusive_group()
     timing.add_argument("--period", type=float, default=0.05, help="s between babbled commands (default 0.05)")
@@ -402,6 +453,10 @@ def main(argv=None):
     parser.add_argument("--perception", choices=["noise", "rendered"], default="rendered",
                         help="rendered: camera images through tracker_node (default); noise: the paper's noise model "
                         "straight to scheme_node")
+    parser.add_argument("--babble", choices=["sim", "controller"], default="sim",
+                        help="sim: sim_node babbles by itself every --period, keeping the last two markers in view "
+                             "(default); controller: babble_node drives sim_node through the JointTrajectoryController "
+                             "interface, as a real arm (random commands over the whole range: slower to learn)")
     parser.add_argument("--targets", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="out/demo")
@@ -410,8 +465,16 @@ def main(argv=None):
         parser.error(f"--rate must be in (0, 1000] commands per second, got {args.rate}")
     period = 1.0 / args.rate if args.rate is not None else args.period
     faults = args.faults if args.faults is not None else ["120:block_joint:5:0.8", "220:repair"]
-    result = run_live_demo(args.out, robot=args.robot, steps=args.steps, period=period, faults=faults,
-                           perception=args.perception, n_targets=args.targets, seed=args.seed)
+    try:
+        choice = resolve_robot(args.robot, args.markers, args.camera, args.package_path,
+                               pathlib.Path(args.out) / "markers.yaml", args.seed)
+    except BodySchemeError as error:
+        print(f"live_demo: {error}", file=sys.stderr)
+        return 1
+    result = run_live_demo(args.out, robot=choice.robot, steps=args.steps, period=period, faults=faults,
+                           perception=args.perception, n_targets=args.targets, seed=args.seed,
+                           markers_path=choice.markers_path, camera=choice.camera, package_path=choice.package_path,
+                           babble=args.babble)
     print(format_summary(result))
     print(f"wrote {pathlib.Path(args.out) / 'summary.json'} and {pathlib.Path(args.out) / 'live_demo.png'}")
     return 0 if result.structure_learned() else 1

@@ -5,6 +5,7 @@ Examples::
     record_session --protocol joint_blocked --seed 0 --out bags/joint_blocked_seed0
     record_session --robot planar_2dof --steps 200 --fault 100:block_joint:1:0.3 --out /tmp/planar
     record_session --steps 30 --perception rendered --images 10 --out /tmp/rendered
+    record_session --robot path/to/robot.urdf --steps 300 --out /tmp/mine   # markers planned: /tmp/mine.markers.yaml
 
 The bag layout is documented in :mod:`body_scheme_nodes.bag_io`.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import pathlib
 import sys
 
 from tqdm import tqdm
@@ -28,6 +30,8 @@ from body_scheme_sim.sessions import (
     record_session,
 )
 
+from .robot_option import add_robot_arguments, resolve_robot
+
 __all__ = ["main", "parser"]
 
 
@@ -35,7 +39,7 @@ def parser():
     """The command-line interface."""
     p = argparse.ArgumentParser(prog="record_session", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--robot", default="powercube_6dof", help="shipped robot name or URDF path")
+    add_robot_arguments(p)
     p.add_argument("--steps", type=int, default=None,
                    help="number of commands (default: 4 blocks of --block-size with a protocol, else 400)")
     p.add_argument("--seed", type=int, default=0)
@@ -74,10 +78,17 @@ def main(argv=None):
         markers_of_interest = PROTOCOL_MARKERS_OF_INTEREST if markers_of_interest is None else markers_of_interest
         n_steps = 4 * args.block_size if n_steps is None else n_steps
     n_steps = 400 if n_steps is None else n_steps
+    try:
+        choice = resolve_robot(args.robot, args.markers, args.camera, args.package_path,
+                               pathlib.Path(f"{args.out}.markers.yaml"), args.seed)
+    except BodySchemeError as error:
+        print(f"record_session: {error}", file=sys.stderr)
+        return 1
     with tqdm(total=n_steps, desc=f"recording {args.out}", unit="step", disable=args.quiet) as bar:
         try:
             session = record_session(
-                args.robot, n_steps, args.seed, faults=faults, perception=args.perception,
+                choice.robot, n_steps, args.seed, faults=faults, perception=args.perception,
+                camera=choice.camera, markers_path=choice.markers_path, package_path=choice.package_path,
                 sigma_trans=args.sigma_trans, sigma_rot=math.radians(args.sigma_rot), visibility=args.visibility,
                 image_every=args.images, markers_of_interest=markers_of_interest, period=args.period,
                 protocol=args.protocol, progress=lambda done: bar.update(done - bar.n))

@@ -39,3 +39,49 @@ def test_unreadable_input_is_one_line_and_exit_code_1(tmp_path, capsys):
     assert main(["--state", str(tmp_path / "state.json"), "--out", str(tmp_path / "out")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("calibrate: ") for line in err), err
+
+
+def test_a_robots_urdf_alone_is_enough_to_simulate_and_calibrate(tmp_path, capsys):
+    """--simulate <a real arm's URDF> needs no other file: markers are planned (markers.yaml), the camera frames them,
+    a body scheme is learned and calibrated (here the noise model at the tracker's accuracy, for speed; make
+    experiments runs the rendered images: yourrobot)."""
+    import pybullet_data
+
+    urdf = f"{pybullet_data.getDataPath()}/kuka_iiwa/model.urdf"
+    out = tmp_path / "iiwa"
+    assert main(["--simulate", urdf, "--perception", "noise", "--steps", "400", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "planned 8 markers" in printed and "camera at" in printed
+    assert {"markers.yaml", "learned.urdf", "report.json", "report.png"} <= {p.name for p in out.iterdir()}
+    report = json.loads((out / "report.json").read_text())
+    assert len(report["joints"]) == 7 and report["max_axis_deg"] < 3.0
+
+
+def _write(path, text):
+    path.write_text(text)
+    return str(path)
+
+
+def test_every_failure_to_load_a_robot_is_one_line(tmp_path, capsys):
+    """A missing URDF, a joint type a tree cannot hold, XML that is not URDF, a mimic of nothing and meshes that
+    cannot be found (so nothing to put a marker on) each give one line and exit code 1, no traceback."""
+    link = '<link name="{}"><collision><geometry><mesh filename="package://nope/m.stl"/></geometry></collision></link>'
+    robots = {
+        "missing": str(tmp_path / "missing.urdf"),
+        "floating": _write(tmp_path / "floating.urdf", '<robot name="r"><link name="a"/><link name="b"/><joint '
+                                                       'name="j" type="floating"><parent link="a"/><child link="b"/>'
+                                                       '</joint></robot>'),
+        "not_xml": _write(tmp_path / "broken.urdf", "<robot name='r'><link name='a'>"),
+        "mimic": _write(tmp_path / "mimic.urdf", '<robot name="r"><link name="a"/><link name="b"/><joint name="j" '
+                                                 'type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 0 '
+                                                 '1"/><mimic joint="x"/></joint></robot>'),
+        "meshes": _write(tmp_path / "meshes.urdf", f'<robot name="r">{link.format("a")}{link.format("b")}<joint '
+                                                   f'name="j" type="revolute"><parent link="a"/><child link="b"/>'
+                                                   f'<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" '
+                                                   f'velocity="1"/></joint></robot>'),
+    }
+    for name, urdf in robots.items():
+        assert main(["--simulate", urdf, "--steps", "5", "--out", str(tmp_path / name)]) == 1, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("calibrate: "), (name, err)
+    assert "--package-path" in err[0]

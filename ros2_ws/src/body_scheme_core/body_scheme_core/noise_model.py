@@ -17,7 +17,9 @@ the estimate is divided by ``1 - p / N`` (``p`` fitted parameters, ``N`` residua
 
 A wrong local model makes its markers' residuals larger, and a noise estimate that followed them would hide the very
 error the validity thresholds must reveal. So the *pooled* estimate, which sets every threshold and detector, is the
-median over the markers (a minority of wrong markers cannot move it), and a marker's own estimate is only used to
+median over the markers (a minority of wrong markers cannot move it), leaving out markers seen from one viewpoint only
+(:data:`STILL_SPREAD`: the root's errors repeat from image to image and would make every other marker look wrong),
+and a marker's own estimate is only used to
 weigh its observations in the joint fit, shrunk towards the pooled one and kept within a factor 2 of it. Whether the
 body scheme explains each marker is a separate test that does not depend on the noise level
 (:mod:`~body_scheme_core.consistency`).
@@ -50,6 +52,10 @@ PART_FACTOR = 2.0
 #: residual components (the estimate's relative standard error is ``1 / sqrt(2 N)``), so that a CUSUM sensitive to a
 #: shift of one sigma does not alarm because the first few hundred residuals happened to be small.
 THRESHOLD_MARGIN = 3.0
+#: A marker whose observed positions over a fit's window spread less than this (RMS distance from their mean, m) was
+#: seen from one viewpoint: its residuals say little about the noise of the markers that move (a still marker's
+#: errors repeat; a rendered one's not at all), so it is left out of the pooled estimate unless no marker moved.
+STILL_SPREAD = 0.02
 #: Smallest standard deviations (per axis) the thresholds may use: below this a simulator is noise-free, not a camera.
 MIN_SIGMA_TRANS = 2e-4
 MIN_SIGMA_ROT = 2e-4
@@ -270,7 +276,8 @@ class NoiseModel:
         lateral, depth = ray_components(np.asarray(residual_t, dtype=float), np.asarray(positions, dtype=float))
         q = np.stack([lateral, depth, np.einsum("ni,ni->n", residual_r, residual_r)], axis=1)
         fraction = min(max(float(dof_fraction), 0.5), 1.0)
-        estimates, counts = [], []
+        positions = np.asarray(positions, dtype=float)
+        estimates, still_estimates, moving = [], [], np.zeros(parts.size, dtype=bool)
         self.parts[:] = np.nan
         self.part_n[:] = 0
         for part in np.unique(parts):
@@ -280,16 +287,19 @@ class NoiseModel:
             sel = parts == part
             self.parts[k] = [robust_variance(q[sel, c], _DOF[c]) / fraction for c in range(3)]
             self.part_n[k] = int(sel.sum())
+            spread = math.sqrt(np.mean(np.sum((positions[sel] - positions[sel].mean(axis=0)) ** 2, axis=1)))
+            moving[sel] = spread >= STILL_SPREAD
             if self.part_n[k] >= MIN_PART_OBSERVATIONS:
-                estimates.append(self.parts[k])
-                counts.append(self.part_n[k])
+                (estimates if spread >= STILL_SPREAD else still_estimates).append(self.parts[k])
+        if not moving.any():  # nothing moved: the still markers are all there is
+            estimates, moving[:] = still_estimates, True
         before = np.sqrt(self.pooled)
         pooled = self.pooled.copy()
-        n = int(parts.size)
+        n = int(moving.sum())
         if estimates:
             data = np.median(np.asarray(estimates), axis=0)
         else:  # every marker seen only a few times: pool the residuals themselves
-            data = np.array([robust_variance(q[:, c], _DOF[c]) / fraction for c in range(3)])
+            data = np.array([robust_variance(q[moving, c], _DOF[c]) / fraction for c in range(3)])
         for c, auto in ((0, self.auto[0]), (1, self.auto[0]), (2, self.auto[1])):
             if auto:
                 pooled[c] = data[c] if n >= MIN_OBSERVATIONS else self.prior[c]

@@ -10,13 +10,22 @@ ik_target/point : geometry_msgs/PointStamped
     Target position of the ``part_id`` parameter's part.
 joint_commands : sensor_msgs/JointState
     The latest command (from anyone) is the IK start point.
+observations : body_scheme_msgs/MarkerPoses  (execute)
+    Where the part is seen after an executed move.
+/joint_states : sensor_msgs/JointState  (execute; ``joint_states_topic``)
 
 Publishers
 ----------
 joint_commands : sensor_msgs/JointState
-    The solution, or ``trajectory_steps`` commands interpolated from the current command to it.
+    The solution, or ``trajectory_steps`` commands interpolated from the current command to it. With ``execute``:
+    the solution once the arm settled at it (the action signal scheme_node learns from, as babble_node's).
+<controller>/joint_trajectory : trajectory_msgs/JointTrajectory  (execute)
+    The solution as a JointTrajectoryController goal, after babble_node's safety checks (joint limits less the
+    margin, workspace box, collision screen).
 ik_result : body_scheme_msgs/IKResult
-    One per request, success or not, with the reason.
+    One per request, success or not, with the reason; with ``execute``, after the move: ``executed``, where the part
+    went (``reached``: seen by the camera after the move, else predicted at the joint states) and its distance from
+    the target.
 /diagnostics : diagnostic_msgs/DiagnosticArray
     ``body_scheme: control``: model age, requests, successes, last outcome (1 Hz).
 
@@ -30,6 +39,10 @@ trajectory_steps : int 1             commands per solution (1: jump to it)
 trajectory_period : double 0.05 s    time between interpolated commands
 stay_in_training_range : bool true   search only actions the learned local models were trained on
                                      (:func:`~body_scheme_core.ik.trained_bounds`); false: the full joint limits
+execute : bool false                 move the arm through its JointTrajectoryController (arm_driver)
+observe_timeout : double 1.0 s       execute: how long to wait for the camera to see the part after the move
+robot, controller, joint_states_topic, max_velocity, max_acceleration, limit_margin, workspace, collision_check,
+package_path, settle_*               execute: as babble_node's (config/babble_node.yaml)
 """
 
 from __future__ import annotations
@@ -48,9 +61,10 @@ from sensor_msgs.msg import JointState
 
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.ik import solve_ik, trained_bounds
-from body_scheme_msgs.msg import IKResult, IKTarget, ModelSnapshot
+from body_scheme_msgs.msg import IKResult, IKTarget, MarkerPoses, ModelSnapshot
 
 from . import conversions
+from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .spin import run_node
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -69,12 +83,19 @@ class ControlNode(Node):
         self.trajectory_steps = max(1, self.declare_parameter("trajectory_steps", 1).value)
         trajectory_period = self.declare_parameter("trajectory_period", 0.05).value
         self.stay_in_training_range = self.declare_parameter("stay_in_training_range", True).value
+        self.execute = self.declare_parameter("execute", False).value
+        self.observe_timeout = self.declare_parameter("observe_timeout", 1.0).value
+        driver_values = declare_driver_parameters(self)
+        self.driver = driver_from_parameters(self, driver_values) if self.execute else None
+        self.moving = None  # execute: (IKResult, part, target, model) of the move under way
+        self.settled_at = None  # execute: (time s, positions) the move settled at, until the part is seen
+        self.seen = {}  # part -> (stamp s, camera2part) of its last observation
 
         self.model = None  # (scheme, world2root, lower, upper, joint names, frame_id, received_at)
         self.current = None  # latest commanded actions, in the model's joint order
         self.requests = deque()  # (stamp msg, part, frame_id, position) awaiting a solve
         self.trajectory = deque()  # action vectors still to command
-        self.counts = {"requests": 0, "succeeded": 0, "failed": 0}
+        self.counts = {"requests": 0, "succeeded": 0, "failed": 0, "executed": 0}
         self.last_outcome = "none yet"
         self._lock = threading.Lock()
 
@@ -83,6 +104,8 @@ class ControlNode(Node):
         self.create_subscription(IKTarget, "ik_target", self._on_target, 10)
         self.create_subscription(PointStamped, "ik_target/point", self._on_point, 10)
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
+        if self.execute:
+            self.create_subscription(MarkerPoses, "observations", self._on_observations, 10)
         self.pub_command = self.create_publisher(JointState, "joint_commands", 10)
         self.pub_result = self.create_publisher(IKResult, "ik_result", 10)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -112,6 +135,14 @@ class ControlNode(Node):
         except BodySchemeError:
             pass  # someone else's command for other joints: not a start point for us
 
+    def _on_observations(self, msg):
+        try:
+            stamp, observed, _ = conversions.observations_from_msg(msg)
+        except BodySchemeError:
+            return
+        with self._lock:
+            self.seen.update({part: (stamp, pose) for part, pose in observed.items()})
+
     def _on_target(self, msg):
         part = self.default_part if msg.part_id < 0 else msg.part_id
         p = msg.position
@@ -125,6 +156,9 @@ class ControlNode(Node):
 
     # -- work in timers --------------------------------------------------------------------------------------------
     def _solve_pending(self):
+        if self.moving is not None:
+            self._watch_move()
+            return
         with self._lock:
             if not self.requests:
                 return
@@ -132,18 +166,68 @@ class ControlNode(Node):
             model = self.model
         self.counts["requests"] += 1
         result = self._solve(header, part, target, model)
+        if self.execute and result.success:
+            why = self._send(result, model)
+            if why is None:
+                self.moving = (result, part, target, model)
+                return
+            result.reason = f"converged, not executed: {why}"
+        self._report(result, part, target)
+
+    def _report(self, result, part, target):
         self.counts["succeeded" if result.success else "failed"] += 1
+        self.counts["executed"] += int(result.executed)
         self.last_outcome = f"part {part}: {result.reason}"
         self.pub_result.publish(result)
         text = f"IK part {part} -> {np.round(target, 3).tolist()}: {result.reason} (residual {result.residual:.4f} m)"
+        if result.executed:
+            text += f"; went to {result.reached_error * 1000:.1f} mm from it ({result.reached_source})"
         if result.success:
             self.get_logger().info(text)
         else:
             self.get_logger().warn(text)
 
+    # -- execute: true ---------------------------------------------------------------------------------------------
+    def _send(self, result, model):
+        """Send the solution to the controller (checked by the driver); returns None or why it was not sent."""
+        names = model[4]
+        if tuple(names) != self.driver.joint_names:
+            return f"the body scheme's joints {names} are not the robot's {list(self.driver.joint_names)}"
+        return self.driver.send(np.asarray(result.actions))
+
+    def _watch_move(self):
+        """Once the arm settled: publish the action signal, then report where the part went (seen by the camera
+        within observe_timeout, else predicted at the joint states)."""
+        result, part, target, model = self.moving
+        now = self.get_clock().now().nanoseconds * 1e-9
+        if self.settled_at is None:
+            goal = self.driver.settled()
+            if goal is None:
+                return
+            self.settled_at = (now, self.driver.positions)
+            self.pub_command.publish(conversions.joint_state_msg(now, model[4], goal))
+            self.current = goal
+        settled, positions = self.settled_at
+        with self._lock:
+            seen = self.seen.get(part)
+        if seen is not None and seen[0] >= settled:
+            reached, result.reached_source = seen[1][:3, 3], "observed"
+        elif now - settled >= self.observe_timeout:
+            scheme, world2root = model[0], model[1]
+            at = positions if positions is not None else np.asarray(result.actions)
+            reached, result.reached_source = (world2root @ scheme.predict(at)[part])[:3, 3], "predicted"
+        else:
+            return
+        result.executed = True
+        result.reached.x, result.reached.y, result.reached.z = (float(v) for v in reached)
+        result.reached_error = float(np.linalg.norm(reached - np.asarray(target)))
+        self.moving, self.settled_at = None, None
+        self._report(result, part, target)
+
     def _solve(self, header, part, target, model):
         # Refused before any evaluation: residual NaN and no actions, whatever the reason.
-        result = IKResult(header=header, part_id=part, success=False, residual=float("nan"))
+        result = IKResult(header=header, part_id=part, success=False, residual=float("nan"),
+                          reached_error=float("nan"))
         result.target.x, result.target.y, result.target.z = (float(v) for v in target)
         if not np.all(np.isfinite(target)):
             result.reason = "target contains NaN or inf"
@@ -171,7 +255,7 @@ class ControlNode(Node):
         result.residual = float(outcome.residual)
         # Not evaluated (e.g. the part is not in the body scheme): no actions, as IKResult.msg says.
         result.actions = [float(v) for v in outcome.actions] if np.isfinite(outcome.residual) else []
-        if outcome.success:
+        if outcome.success and not self.execute:
             steps = np.linspace(0.0, 1.0, self.trajectory_steps + 1)[1:]
             with self._lock:
                 self.trajectory = deque(a0 + s * (outcome.actions - a0) for s in steps)
@@ -200,9 +284,17 @@ class ControlNode(Node):
             level = DiagnosticStatus.WARN if stale else DiagnosticStatus.OK
             message = "model snapshot stale" if stale else "ready"
         values = dict(self.counts, model_age_s=age, last_outcome=self.last_outcome)
+        if self.driver is not None:
+            values.update({f"driver.{k}": v for k, v in self.driver.counts.items()})
         name = self.get_fully_qualified_name()  # node and namespace: two robots in one domain do not collide
         array.status.append(conversions.diagnostic_status(f"{name}: control", level, message, values, name))
         self.pub_diagnostics.publish(array)
+
+
+    def destroy_node(self):
+        if self.driver is not None:
+            self.driver.close()
+        super().destroy_node()
 
 
 def main(args=None):

@@ -1,10 +1,16 @@
-"""sim_node: a simulated arm with ArUco markers seen by a fixed camera; executes joint commands or babbles.
+"""sim_node: a simulated arm with ArUco markers seen by a fixed camera; executes joint commands or babbles, or
+stands in for a real arm's ``JointTrajectoryController``.
 
 Subscriptions
 -------------
 joint_commands : sensor_msgs/JointState  (reliable, depth 10)
     Commanded joint positions by joint name. Only the newest pending command is executed (older ones are counted
     as superseded). Ignored while babbling (counted), executed once ``babbling_steps`` commands were babbled.
+<controller>/joint_trajectory : trajectory_msgs/JointTrajectory  (reliable, depth 10)
+    As a ros2_control ``JointTrajectoryController``: the arm moves from where it is through the points, linearly
+    interpolated over their ``time_from_start`` (every joint of the robot must be named; an empty trajectory stops
+    the arm where it is). While it moves no picture is taken; at rest, one every ``camera_period``. From the first
+    trajectory on, ``joint_commands`` is the action signal of whoever sends them and is no longer executed.
 
 Publishers
 ----------
@@ -19,6 +25,8 @@ observations : body_scheme_msgs/MarkerPoses  (reliable, depth 100; perception_mo
     Visible markers' true poses with noise and random dropout, ``camera2marker``.
 ground_truth/marker_poses : body_scheme_msgs/MarkerPoses  (reliable, depth 100)
     True pose of every marker after each command, same stamp as the image or observations. Evaluation only.
+/joint_states : sensor_msgs/JointState  (depth 10)
+    The joints' positions (as executed: clipped, blocked joints held) every ``joint_state_period``.
 
 Services
 --------
@@ -29,6 +37,7 @@ Parameters
 ----------
 robot : string "powercube_6dof"      shipped robot name or URDF path
 markers_path : string ""             marker placement file ("" = shipped / next to the URDF)
+package_path : string[] []           directories searched first for package:// meshes
 frame_id : string "camera"           frame of images, observations and ground truth (camera optical frame)
 camera.width, camera.height : int 640, 480
 camera.fx, camera.fy, camera.cx, camera.cy : double   default Camera() intrinsics (60 deg horizontal FOV)
@@ -45,6 +54,9 @@ wait_for_subscribers : int 0         babble only once joint_commands has this ma
 markers_of_interest : int[] []       markers that must be visible in babbled configurations
 fault_schedule : string[] []         "step:kind:args" entries (core world.faults); steps count executed commands
 update_period : double 0.01 s        period of the timer executing subscribed commands
+controller : string "joint_trajectory_controller"   trajectories arrive on <controller>/joint_trajectory
+joint_state_period : double 0.02 s   period of /joint_states
+camera_period : double 0.2 s         trajectory mode: time between pictures while the arm is at rest
 """
 
 from __future__ import annotations
@@ -60,6 +72,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, JointState
+from trajectory_msgs.msg import JointTrajectory
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
 from body_scheme_core.transforms import transform_from_xyz_rpy, xyz_rpy_from_transform
@@ -114,6 +127,7 @@ class SimNode(Node):
         super().__init__("sim_node", **node_options)
         robot = self.declare_parameter("robot", "powercube_6dof").value
         markers_path = self.declare_parameter("markers_path", "").value or None
+        package_path = declare_list_parameter(self, "package_path", str)
         self.frame_id = self.declare_parameter("frame_id", "camera").value
         camera = camera_from_parameters(self)
         self.mode = self.declare_parameter("perception_mode", "rendered").value
@@ -130,12 +144,16 @@ class SimNode(Node):
         self.markers_of_interest = declare_list_parameter(self, "markers_of_interest", int)
         fault_schedule = declare_list_parameter(self, "fault_schedule", str)
         update_period = self.declare_parameter("update_period", 0.01).value
+        controller = self.declare_parameter("controller", "joint_trajectory_controller").value
+        self.joint_state_period = self.declare_parameter("joint_state_period", 0.02).value
+        self.camera_period = self.declare_parameter("camera_period", 0.2).value
         if self.image_encoding not in ("mono8", "rgb8"):
             raise InvalidInputError(f"image_encoding must be mono8 or rgb8, got {self.image_encoding!r}")
         if self.mode not in PERCEPTION_MODES:
             raise InvalidInputError(f"perception_mode must be one of {PERCEPTION_MODES}, got {self.mode!r}")
-        if not (babbling_period > 0 and update_period > 0):
-            raise InvalidInputError("babbling_period and update_period must be > 0 s")
+        if not (babbling_period > 0 and update_period > 0 and self.joint_state_period > 0 and self.camera_period > 0):
+            raise InvalidInputError("babbling_period, update_period, joint_state_period and camera_period must be "
+                                    "> 0 s")
         if self.babbling_steps < 0:
             raise InvalidInputError(f"babbling_steps must be >= 0, got {self.babbling_steps}")
         ObservationModel(self.sigma_trans, self.sigma_rot, self.visibility)  # validates the noise settings now
@@ -143,7 +161,10 @@ class SimNode(Node):
         self.schedule = parse_fault_schedule(fault_schedule)
         self.rng_babbling, self.rng_noise = np.random.default_rng(seed).spawn(2)
         self.world = SimWorld(robot, camera=camera, markers_path=markers_path, seed=seed,
-                              marker_texture=self.mode == "rendered")
+                              marker_texture=self.mode == "rendered", package_path=package_path)
+        for uri in self.world.missing_meshes[:1]:
+            self.get_logger().warn(f"{len(self.world.missing_meshes)} mesh(es) of {robot} not found (first: {uri}): "
+                                   f"drawn without them; add the package's directory to package_path")
         unknown = sorted(set(self.markers_of_interest) - set(self.world.marker_ids))
         if unknown:
             self.world.close()
@@ -154,6 +175,11 @@ class SimNode(Node):
         self.last_babbled_stamp = -np.inf
         self.counts = Counter()
         self._pending = None
+        self._pending_trajectory = None
+        self._motion = None  # (start time s, times (k,), positions (k, m)) of the trajectory being executed
+        self._next_frame = None  # trajectory mode: time of the next picture at rest
+        self._next_joint_state = 0.0
+        self._controller = False  # a trajectory arrived: sim_node acts as a JointTrajectoryController from now on
         self._lock = threading.Lock()
 
         work = MutuallyExclusiveCallbackGroup()
@@ -161,6 +187,8 @@ class SimNode(Node):
             self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
             self.babbling_timer = self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
+        self.create_subscription(JointTrajectory, f"{controller}/joint_trajectory", self._on_trajectory, 10)
+        self.pub_joint_states = self.create_publisher(JointState, "/joint_states", 10)
         self.create_timer(update_period, self._on_update_timer, callback_group=work)
         if self.mode == "rendered":
             self.pub_image = self.create_publisher(Image, "camera/image_raw", IMAGE_QOS)
@@ -178,6 +206,11 @@ class SimNode(Node):
     # -- callbacks ------------------------------------------------------------------------------------------------
     def _on_command(self, msg):
         with self._lock:
+            if self._controller:
+                # Acting as a JointTrajectoryController: joint_commands is the action signal of whoever sends the
+                # trajectories (babble_node), not a command.
+                self.counts["ignored_as_controller"] += 1
+                return
             if self.babbling or conversions.seconds_from_stamp(msg.header.stamp) <= self.last_babbled_stamp:
                 self.counts["ignored_while_babbling"] += 1  # our own babbling commands come back here too
                 return
@@ -185,9 +218,25 @@ class SimNode(Node):
                 self.counts["superseded"] += 1
             self._pending = msg
 
+    def _on_trajectory(self, msg):
+        with self._lock:
+            self._controller = True
+            if self._pending_trajectory is not None:
+                self.counts["trajectories_superseded"] += 1
+            self._pending_trajectory = msg
+
     def _on_update_timer(self):
+        now = self._now()
         with self._lock:
             msg, self._pending = self._pending, None
+            trajectory, self._pending_trajectory = self._pending_trajectory, None
+        if trajectory is not None:
+            self._start_trajectory(trajectory, now)
+        self._move(now)
+        if now >= self._next_joint_state:
+            self._next_joint_state = now + self.joint_state_period
+            self.pub_joint_states.publish(conversions.joint_state_msg(now, self.world.action_joint_names,
+                                                                      self.world.joint_positions()))
         if msg is None:
             return
         try:
@@ -233,6 +282,52 @@ class SimNode(Node):
             self.babbling_timer.cancel()
             self.get_logger().info(f"babbled {self.n_babbled} commands: now executing joint_commands")
 
+    def _start_trajectory(self, msg, now):
+        """Begin executing a JointTrajectory from where the arm is (an empty one stops it there)."""
+        names = list(self.world.action_joint_names)
+        if not msg.points:
+            self._motion = None
+            self.counts["trajectories_stopped"] += 1
+            return
+        try:
+            if sorted(msg.joint_names) != sorted(names):
+                raise InvalidInputError(f"a trajectory must name the joints {names}, got {list(msg.joint_names)}")
+            order = [list(msg.joint_names).index(name) for name in names]
+            times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points])
+            if any(len(p.positions) != len(names) for p in msg.points):
+                raise InvalidInputError("every trajectory point needs a position per joint")
+            goals = np.array([[p.positions[k] for k in order] for p in msg.points], dtype=float)
+            if not np.all(np.isfinite(goals)):
+                raise InvalidInputError("trajectory positions must be finite")
+            if not (times[0] >= 0 and np.all(np.diff(times) > 0)):
+                raise InvalidInputError(f"time_from_start must increase, got {times.tolist()}")
+        except InvalidInputError as error:
+            self.counts["trajectories_rejected"] += 1
+            self.get_logger().warn(f"rejected trajectory: {error}", throttle_duration_sec=5.0)
+            return
+        self._apply_due_faults()
+        start = self.world.joint_positions() if self._motion is None else self._position(now)
+        self._motion = (now, np.concatenate([[0.0], times]), np.vstack([start, goals]))
+        self._next_frame = None
+        self.counts["trajectories"] += 1
+
+    def _position(self, now):
+        t0, times, positions = self._motion
+        t = now - t0
+        return np.array([np.interp(t, times, positions[:, k]) for k in range(positions.shape[1])])
+
+    def _move(self, now):
+        """Trajectory mode: follow the trajectory being executed; at rest, take a picture every camera_period."""
+        if self._motion is not None:
+            self.world.execute(self._position(now))
+            if now - self._motion[0] >= self._motion[1][-1]:
+                self._motion = None
+                self.n_executed += 1
+                self._next_frame = now
+        elif self._next_frame is not None and now >= self._next_frame:  # at rest
+            self._next_frame = now + self.camera_period
+            self._publish_frame(now)
+
     # -- the work -------------------------------------------------------------------------------------------------
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
@@ -252,7 +347,10 @@ class SimNode(Node):
         self._apply_due_faults()
         self.world.execute(actions)
         self.n_executed += 1
-        stamp = max(self._now(), command_stamp)  # the picture is taken after the command, never before
+        self._publish_frame(max(self._now(), command_stamp))  # the picture is taken after the command, never before
+
+    def _publish_frame(self, stamp):
+        """Publish what the camera sees now, and the ground truth."""
         if self.mode == "rendered":
             rendered = self.world.render()
             if self.image_encoding == "mono8":

@@ -1,4 +1,5 @@
-"""The simulator's babbling screen (the paper's Sec. IV-B): commands the robot can safely execute and see.
+"""The simulator's babbling screen (the paper's Sec. IV-B): commands the robot can safely execute and see; and the
+collision screen of a real robot's moves (:class:`CollisionScreen`).
 
 :func:`babbling_screen` gives :func:`body_scheme_core.world.babble` (the one babbling loop) a screen that executes
 each candidate in the world (as it truly is, faults included) and rejects it if the robot collides with itself or the
@@ -10,9 +11,11 @@ as it was::
 
 from __future__ import annotations
 
+import numpy as np
+
 from body_scheme_core.errors import InvalidInputError
 
-__all__ = ["babbling_screen"]
+__all__ = ["babbling_screen", "CollisionScreen"]
 
 
 def babbling_screen(world, markers_of_interest=None):
@@ -50,3 +53,45 @@ def babbling_screen(world, markers_of_interest=None):
         return reasons
 
     return screen
+
+
+class CollisionScreen:
+    """Self-collision and ground checks of moves of a real robot, from its URDF, in a pybullet DIRECT world of
+    their own (no rendering, no markers).
+
+    Parameters
+    ----------
+    robot : str or os.PathLike
+        Shipped robot name or URDF path.
+    package_path : iterable of str
+        See :class:`~body_scheme_sim.world.SimWorld`.
+    path_points : int
+        Points checked on the straight joint-space path of a move, its goal included.
+    """
+
+    def __init__(self, robot, package_path=(), path_points=5):
+        from .world import SimWorld
+
+        if isinstance(path_points, bool) or not isinstance(path_points, int) or path_points < 1:
+            raise InvalidInputError(f"path_points must be an integer >= 1, got {path_points!r}")
+        self.world = SimWorld(robot, markers=(), marker_texture=False, package_path=package_path)
+        self.path_points = path_points
+
+    @property
+    def joint_names(self):
+        """Joint name per action."""
+        return self.world.action_joint_names
+
+    def collides(self, start, goal):
+        """Whether the robot hits itself or the ground anywhere on the straight path from ``start`` to ``goal``
+        (joint positions, shape (m,); ``start`` None checks the goal only)."""
+        goal = np.asarray(goal, dtype=float)
+        start = goal if start is None else np.asarray(start, dtype=float)
+        for s in np.linspace(0.0, 1.0, self.path_points + 1)[1:]:
+            self.world.execute(start + s * (goal - start))
+            if self.world.in_collision():
+                return True
+        return False
+
+    def close(self):
+        self.world.close()

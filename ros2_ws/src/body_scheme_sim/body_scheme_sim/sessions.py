@@ -67,7 +67,7 @@ RENDERED_SIGMA_ROT = math.radians(5.0)
 def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perception="noise",
                    sigma_trans=PAPER_SIGMA_TRANS, sigma_rot=PAPER_SIGMA_ROT, visibility=1.0, image_every=0,
                    markers_of_interest=None, period=0.1, protocol="none", camera=None, markers_path=None,
-                   progress=None):
+                   progress=None, package_path=()):
     """Babble with the simulator and record what happens.
 
     Parameters
@@ -98,6 +98,8 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     markers_path : str or os.PathLike or None
     progress : callable or None
         Called with the number of steps done after each step (e.g. a tqdm bar's ``update``-like callback).
+    package_path : iterable of str
+        Directories searched first for ``package://`` meshes (:class:`SimWorld`).
 
     Returns
     -------
@@ -125,7 +127,8 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
     rng_actions, rng_noise = np.random.default_rng(seed).spawn(2)
     period_ns = int(round(period * 1e9))
 
-    with SimWorld(robot=robot, camera=camera, markers_path=markers_path, seed=seed) as world:
+    with SimWorld(robot=robot, camera=camera, markers_path=markers_path, seed=seed,
+                  package_path=package_path) as world:
         marker_ids = tuple(sorted(world.marker_ids))
         tracker = _tracker(world) if perception == "rendered" else None
         actions = babble(world, n_steps, rng_actions, screen=babbling_screen(world, markers_of_interest))

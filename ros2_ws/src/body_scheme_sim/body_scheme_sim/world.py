@@ -38,6 +38,7 @@ from body_scheme_core.world import (
     KinematicTree,
     ObservationModel,
 )
+from body_scheme_core.world.robot_files import resolve_meshes
 
 from .camera import Camera
 from .markers import PLATE_THICKNESS, marker_corners, marker_texture, plate_side, write_plate_obj
@@ -96,6 +97,12 @@ class SimWorld:
         See :data:`MAX_VIEW_ANGLE`.
     min_marker_pixels : float
         See :data:`MIN_MARKER_PIXELS`.
+    markers : iterable of Marker or None
+        The markers, instead of a marker file (e.g. none: a robot for collision checks only).
+    package_path : iterable of str or os.PathLike
+        Directories searched first for ``package://`` meshes
+        (:func:`~body_scheme_core.world.robot_files.resolve_resource`). Meshes that are not found are left out of
+        the drawing and listed in :attr:`missing_meshes`; the kinematics do not need them.
 
     Notes
     -----
@@ -104,19 +111,25 @@ class SimWorld:
     """
 
     def __init__(self, robot="powercube_6dof", camera=None, markers_path=None, seed=0, marker_texture=True,
-                 max_view_angle=MAX_VIEW_ANGLE, min_marker_pixels=MIN_MARKER_PIXELS):
+                 max_view_angle=MAX_VIEW_ANGLE, min_marker_pixels=MIN_MARKER_PIXELS, package_path=(), markers=None):
         self.camera = Camera() if camera is None else camera
         if not isinstance(self.camera, Camera):
             raise InvalidInputError(f"camera must be a Camera, got {type(self.camera).__name__}")
         self.rng = np.random.default_rng(seed)
         self.max_view_angle = float(max_view_angle)
         self.min_marker_pixels = float(min_marker_pixels)
+        self._package_path = tuple(package_path)
+        #: Mesh URIs of the robot's URDF that were not found (drawn without them).
+        self.missing_meshes = []
         self._tmp = tempfile.TemporaryDirectory(prefix="body_scheme_sim_")
         self._dir = pathlib.Path(self._tmp.name)
         self._pb = None
         self._backdrop_cache = None
         if isinstance(robot, KinematicTree):
             tree, self._urdf_path = robot, None
+        elif markers is not None:
+            self._urdf_path = robot_files(robot, require_markers=False)[0]
+            tree = load_robot(self._urdf_path, markers=markers)
         else:
             self._urdf_path, markers_path = robot_files(robot, markers_path)
             tree = load_robot(self._urdf_path, markers_path)
@@ -144,17 +157,22 @@ class SimWorld:
     def _load_robot(self, tree):
         """Load the robot into pybullet: its own URDF file, or one drawn for a deformed or in-memory tree."""
         self._n_loads += 1
-        if self._urdf_path is not None and tree is self._nominal.tree:
-            path = self._urdf_path
+        if self._urdf_path is not None and tree is self._nominal.tree and self._redraw_from_tree:
+            path = self._urdf_path  # a shipped robot: its own file
         else:
             path = self._dir / f"robot_{self._n_loads}.urdf"
             if self._redraw_from_tree:
                 text = tree.to_urdf("body_scheme_sim_robot")
             else:
-                text = _patched_urdf(self._urdf_path.read_text(encoding="utf-8"), self._urdf_path.resolve().parent,
-                                     tree)
+                text, self.missing_meshes = _patched_urdf(
+                    self._urdf_path.read_text(encoding="utf-8"), self._urdf_path.resolve().parent, tree,
+                    self._package_path)
             path.write_text(text, encoding="utf-8")
-        return self._pb.loadURDF(str(path), basePosition=(0.0, 0.0, 0.0), useFixedBase=True)
+        try:
+            return self._pb.loadURDF(str(path), basePosition=(0.0, 0.0, 0.0), useFixedBase=True)
+        except pybullet.error as error:
+            raise InvalidInputError(f"pybullet cannot load the robot's URDF {self._urdf_path or path}: {error}") \
+                from None
 
     def _index_links(self, tree):
         pb = self._pb
@@ -163,10 +181,11 @@ class SimWorld:
             info = pb.getJointInfo(self._robot_id, index)
             joint_index[info[1].decode()] = index
             link_index[info[12].decode()] = index
-        missing = [name for name in tree.action_joint_names if name not in joint_index]
+        movable = [j.name for j in tree.joints if j.is_movable]
+        missing = [name for name in movable if name not in joint_index]
         if missing:
             raise InvalidInputError(f"pybullet did not load joints {missing} of the robot")
-        self._action_joint_index = [joint_index[name] for name in tree.action_joint_names]
+        self._movable_joint_index = {name: joint_index[name] for name in movable}
         self._link_index = link_index
         self._parent_index = {link_index[j.child]: link_index[j.parent] for j in tree.joints}
 
@@ -296,8 +315,8 @@ class SimWorld:
 
     def _set_configuration(self, q):
         pb = self._pb
-        for index, value in zip(self._action_joint_index, q, strict=True):
-            pb.resetJointState(self._robot_id, index, float(value))
+        for name, value in self._body.tree.joint_positions(q).items():  # mimic and passive joints too
+            pb.resetJointState(self._robot_id, self._movable_joint_index[name], value)
         self._q = np.array(q, dtype=float)
         root2marker = self._body.tree.marker_poses(self._q)
         self._world2marker = root2marker
@@ -556,8 +575,9 @@ def _deeper_than(points, tolerance=COLLISION_TOLERANCE):
     return any(point[8] < -tolerance for point in points)
 
 
-def _patched_urdf(urdf_text, urdf_dir, tree):
-    """URDF text with every joint's ``<origin>`` set from ``tree`` and relative mesh paths made absolute."""
+def _patched_urdf(urdf_text, urdf_dir, tree, package_path=()):
+    """URDF text with every joint's ``<origin>`` set from ``tree`` and its meshes resolved (``resolve_meshes``);
+    returns ``(text, missing mesh URIs)``."""
     root = ET.fromstring(urdf_text)
     for element in root.iter("joint"):
         name = element.get("name")
@@ -569,8 +589,4 @@ def _patched_urdf(urdf_text, urdf_dir, tree):
         xyz, rpy = xyz_rpy_from_transform(tree.joint(name).origin)
         origin.set("xyz", " ".join(repr(float(v)) for v in xyz))
         origin.set("rpy", " ".join(repr(float(v)) for v in rpy))
-    for mesh in root.iter("mesh"):
-        filename = mesh.get("filename", "")
-        if filename and "://" not in filename and not os.path.isabs(filename):
-            mesh.set("filename", str(urdf_dir / filename))
-    return ET.tostring(root, encoding="unicode")
+    return resolve_meshes(ET.tostring(root, encoding="unicode"), urdf_dir, package_path)

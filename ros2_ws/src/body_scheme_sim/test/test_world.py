@@ -327,3 +327,20 @@ def test_creating_worlds_prints_no_argv_line():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "argv[0]=" not in out.stdout and "done" in out.stdout, out.stdout
+
+
+def test_a_urdf_whose_meshes_are_missing_still_loads_for_its_kinematics(tmp_path):
+    """Meshes that cannot be found are listed once and left out of the drawing; the robot moves and its markers'
+    ground truth follows the URDF's kinematics."""
+    mesh = '<collision><geometry><mesh filename="package://nope/m.stl"/></geometry></collision>'
+    urdf = tmp_path / "r.urdf"
+    urdf.write_text(f'<robot name="r"><link name="a">{mesh}</link><link name="b">{mesh}<visual><geometry><mesh '
+                    f'filename="package://nope/m.stl"/></geometry></visual></link><joint name="j" type="revolute">'
+                    f'<parent link="a"/><child link="b"/><origin xyz="0 0 0.5"/><axis xyz="0 0 1"/><limit '
+                    f'lower="-1" upper="1" effort="1" velocity="1"/></joint></robot>')
+    with SimWorld(urdf, markers=[Marker(1, "a"), Marker(2, "b")], marker_texture=False) as world:
+        assert world.missing_meshes == ["package://nope/m.stl"]
+        world.execute([0.7])
+        truth = world.world_marker_poses()
+        np.testing.assert_allclose(truth[2][:3, 3], [0.0, 0.0, 0.5], atol=1e-12)
+        np.testing.assert_allclose(truth[2][:3, :3], world.robot.link_poses([0.7])["b"][:3, :3], atol=1e-12)

@@ -13,7 +13,9 @@ A list of elements applied left to right, ``parent2child = E_0 @ E_1 @ ...``:
 - ``{"type": "fixed", "transform": [[4 x 4]]}`` a constant transform;
 - ``{"type": "revolute" | "prismatic", "axis": [x, y, z], "action": k, "sign": +1 | -1}`` a rotation about
   (translation along) the unit ``axis`` by ``sign * a[k]``. ``sign = -1`` appears where the path runs from a child
-  link up to its parent (``inverse(origin @ motion(q)) = motion(-q) @ inverse(origin)``).
+  link up to its parent (``inverse(origin @ motion(q)) = motion(-q) @ inverse(origin)``). A mimic joint's element
+  also has ``"scale"`` and ``"offset"`` (its URDF multiplier and offset): the motion is by
+  ``sign * (scale * a[k] + offset)``.
 """
 
 from __future__ import annotations
@@ -72,14 +74,18 @@ def chain_from_tree(tree, parent_marker, child_marker):
             chain.append({"type": "fixed", "transform": pending.tolist()})
         pending = np.eye(4)
         kind = "prismatic" if joint.type == "prismatic" else "revolute"
-        chain.append({"type": kind, "axis": joint.axis.tolist(), "action": joint.action, "sign": sign})
+        element = {"type": kind, "axis": joint.axis.tolist(), "action": joint.action, "sign": sign}
+        if joint.mimic is not None:
+            element.update(scale=joint.multiplier, offset=joint.offset)
+        chain.append(element)
     if not chain or not np.array_equal(pending, np.eye(4)):
         chain.append({"type": "fixed", "transform": pending.tolist()})
     return chain
 
 
 def _parse_chain(chain, error=InvalidInputError):
-    """Validate a chain and convert it into ``[("fixed", T) | (kind, axis, action, sign)]`` with arrays."""
+    """Validate a chain and convert it into ``[("fixed", T) | (kind, axis, action, gain, bias)]`` with arrays
+    (``q = gain * a[k] + bias``)."""
     if not isinstance(chain, (list, tuple)) or not chain:
         raise error(f"chain must be a non-empty list of elements, got {chain!r}")
     parsed = []
@@ -103,7 +109,11 @@ def _parse_chain(chain, error=InvalidInputError):
                 sign = element.get("sign", 1)
                 if sign not in (1, -1):
                     raise InvalidInputError(f"chain element {index} sign must be +1 or -1, got {sign!r}")
-                parsed.append((kind, axis, int(action), float(sign)))
+                scale, offset = float(element.get("scale", 1.0)), float(element.get("offset", 0.0))
+                if not (np.isfinite(scale) and np.isfinite(offset)):
+                    raise InvalidInputError(f"chain element {index} scale and offset must be finite")
+                # Stored as q = gain * a[k] + bias.
+                parsed.append((kind, axis, int(action), float(sign) * scale, float(sign) * offset))
             else:
                 raise InvalidInputError(f"chain element {index} has unknown type {kind!r}")
         except (KeyError, TypeError, ValueError) as exc:
@@ -168,8 +178,8 @@ class EngineeredModel(LocalModel):
             if element[0] == "fixed":
                 transforms.append(element[1])
                 continue
-            kind, axis, action, sign = element
-            q = sign * A[:, action]
+            kind, axis, action, gain, bias = element
+            q = gain * A[:, action] + bias
             T = np.tile(np.eye(4), (A.shape[0], 1, 1))
             if kind == "revolute":
                 T[:, :3, :3] = Rotation.from_rotvec(q[:, None] * axis[None, :]).as_matrix()
@@ -204,9 +214,9 @@ class EngineeredModel(LocalModel):
     def jacobian(self, a, eps=None):
         """Analytic ``dZ/da`` (m, 4, 4) at one full action vector ``a`` (m,).
 
-        For a joint element ``E_k(q) = exp(sign * q * xi)`` with generator ``xi`` (``[axis]x`` for revolute, a
-        translation along ``axis`` for prismatic), ``dE_k/dq = sign * E_k(q) @ xi``, so
-        ``dZ/dq = sign * (E_0 ... E_k) @ xi @ (E_k+1 ...)``: the joint's screw axis applied in place.
+        For a joint element ``E_k(a) = exp((gain * a + bias) * xi)`` (``gain = sign * scale``) with generator ``xi``
+        (``[axis]x`` for revolute, a translation along ``axis`` for prismatic), ``dE_k/da = gain * E_k @ xi``, so
+        ``dZ/da = gain * (E_0 ... E_k) @ xi @ (E_k+1 ...)``: the joint's screw axis applied in place.
 
         Parameters
         ----------
@@ -229,13 +239,13 @@ class EngineeredModel(LocalModel):
         for i, element in enumerate(self._elements):
             if element[0] == "fixed":
                 continue
-            kind, axis, action, sign = element
+            kind, axis, action, gain, _ = element
             xi = np.zeros((4, 4))
             if kind == "revolute":
                 xi[:3, :3] = _skew(axis)
             else:
                 xi[:3, 3] = axis
-            J[action] += sign * prefix[i + 1] @ xi @ suffix[i + 1]
+            J[action] += gain * prefix[i + 1] @ xi @ suffix[i + 1]
         return J
 
     def to_dict(self):

@@ -4,6 +4,7 @@ placement YAML.
 
 from __future__ import annotations
 
+import math
 import os
 import xml.etree.ElementTree as ET
 
@@ -14,7 +15,8 @@ from ..errors import InvalidInputError
 from ..transforms import transform_from_xyz_rpy, xyz_rpy_from_transform
 from .tree import CONTINUOUS_RANGE, JOINT_TYPES, MOVABLE_JOINT_TYPES, Joint, KinematicTree, Marker
 
-__all__ = ["tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml"]
+__all__ = ["tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml", "resolve_resource",
+           "resolve_meshes"]
 
 
 def tree_from_urdf(xml_string, markers=(), joint_actions=None):
@@ -26,67 +28,122 @@ def tree_from_urdf(xml_string, markers=(), joint_actions=None):
         URDF document.
     markers : iterable of Marker
     joint_actions : dict of str to int or None
-        Action index per joint name. ``None``: movable joints get indices 0, 1, ... in URDF order. Movable
-        joints missing from a given mapping are passive (held at 0).
+        Action index per joint name. ``None``: movable joints that do not mimic another get indices 0, 1, ... in
+        URDF order. Movable joints missing from a given mapping are passive (held at 0).
 
     Returns
     -------
     tree : KinematicTree
 
+    Raises
+    ------
+    InvalidInputError
+        With one line naming the element, for anything the tree cannot hold (floating and planar joints, a mimic
+        of a mimic, a joint without parent or child, numbers that do not parse).
+
     Notes
     -----
-    Continuous joints, and revolute joints whose URDF ``lower > upper`` (pybullet's "unlimited"), get the range
-    :data:`CONTINUOUS_RANGE` unless a limit with ``lower < upper`` is given.
+    Only ``<link>`` and ``<joint>`` elements are read: transmissions, ``<gazebo>``, ``<ros2_control>`` and other
+    extensions are ignored (so are their own ``<joint>`` children). Continuous joints, and revolute joints whose URDF
+    ``lower > upper`` (pybullet's "unlimited"), get the range :data:`CONTINUOUS_RANGE` unless a limit with
+    ``lower < upper`` is given. A mimic joint (``<mimic joint= multiplier= offset=>``) shares the action of the joint
+    it follows.
     """
-    from urdf_parser_py.urdf import URDF
-
     if isinstance(xml_string, bytes):
-        xml_string = xml_string.decode("utf-8")
+        xml_string = xml_string.decode("utf-8", errors="replace")
     try:
-        robot = URDF.from_xml_string(xml_string)
-    except Exception as exc:  # urdf_parser_py raises assorted types (AssertionError, ValueError, ...)
-        raise InvalidInputError(f"cannot parse URDF: {type(exc).__name__}: {exc}") from exc
-    movable = [j for j in robot.joints if j.type in MOVABLE_JOINT_TYPES]
+        robot = ET.fromstring(xml_string)
+    except ET.ParseError as exc:
+        raise InvalidInputError(f"cannot parse URDF: {exc}") from exc
+    if robot.tag != "robot":
+        raise InvalidInputError(f"a URDF's root element is <robot>, got <{robot.tag}>")
+    raw = [_urdf_joint(element) for element in robot.findall("joint")]
+    mimics = {j["name"]: j["mimic"] for j in raw if j["mimic"] is not None}
+    movable = [j["name"] for j in raw if j["type"] in MOVABLE_JOINT_TYPES and j["name"] not in mimics]
     if joint_actions is None:
-        joint_actions = {j.name: k for k, j in enumerate(movable)}
+        joint_actions = {name: k for k, name in enumerate(movable)}
     else:
         joint_actions = dict(joint_actions)
-        unknown = sorted(set(joint_actions) - {j.name for j in movable})
+        unknown = sorted(set(joint_actions) - set(movable))
         if unknown:
             raise InvalidInputError(
-                f"joint_actions names {unknown} are not movable joints of the URDF; movable: "
-                f"{[j.name for j in movable]}")
+                f"joint_actions names {unknown} are not movable joints of the URDF; movable: {movable}")
+    names = {j["name"] for j in raw}
+    for name, followed in mimics.items():
+        if followed not in names:
+            raise InvalidInputError(f"URDF joint {name!r} mimics {followed!r}, which the URDF does not have")
+        if followed in mimics:
+            raise InvalidInputError(f"URDF joint {name!r} mimics {followed!r}, itself a mimic joint")
     joints = []
-    for j in robot.joints:
-        if j.type not in JOINT_TYPES:
-            raise InvalidInputError(
-                f"URDF joint {j.name!r} has type {j.type!r}; supported types are {JOINT_TYPES}")
-        if j.mimic is not None:
-            raise InvalidInputError(f"URDF joint {j.name!r} is a mimic joint; mimic joints are not supported")
-        origin = np.eye(4)
-        if j.origin is not None:
-            origin = transform_from_xyz_rpy(j.origin.xyz or [0.0, 0.0, 0.0], j.origin.rpy or [0.0, 0.0, 0.0])
-        axis = np.array(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=float)
-        norm = np.linalg.norm(axis)
-        if j.type != "fixed" and not norm > 1e-9:
-            raise InvalidInputError(f"URDF joint {j.name!r} has a zero axis")
-        axis = axis / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
-        lower, upper = CONTINUOUS_RANGE
-        if j.limit is not None and j.type in MOVABLE_JOINT_TYPES:
-            lo = j.limit.lower if j.limit.lower is not None else 0.0
-            hi = j.limit.upper if j.limit.upper is not None else 0.0
-            if lo < hi or (lo == hi and j.type != "continuous"):
-                lower, upper = lo, hi
-            elif j.type == "prismatic":
-                raise InvalidInputError(f"URDF prismatic joint {j.name!r} has limits lower {lo} > upper {hi}")
-        elif j.type == "prismatic":
-            raise InvalidInputError(f"URDF prismatic joint {j.name!r} needs a <limit>")
-        joints.append(Joint(name=j.name, type=j.type, parent=j.parent, child=j.child, origin=origin, axis=axis,
-                            lower=lower, upper=upper,
-                            action=joint_actions.get(j.name) if j.type != "fixed" else None))
-    link_names = {link.name for link in robot.links}
-    tree = KinematicTree(joints, markers, root_link=None if joints else (sorted(link_names)[0] if link_names else None))
-    return tree
+    for j in raw:
+        followed = j["mimic"]
+        action = joint_actions.get(followed if followed is not None else j["name"])
+        mimic = {} if followed is None else {"mimic": followed, "multiplier": j["multiplier"], "offset": j["offset"]}
+        joints.append(Joint(name=j["name"], type=j["type"], parent=j["parent"], child=j["child"], origin=j["origin"],
+                            axis=j["axis"], lower=j["lower"], upper=j["upper"],
+                            action=action if j["type"] != "fixed" else None, **mimic))
+    link_names = sorted(link.get("name") for link in robot.findall("link") if link.get("name"))
+    return KinematicTree(joints, markers, root_link=None if joints else (link_names[0] if link_names else None))
+
+
+def _urdf_numbers(element, attribute, count, default, where):
+    """``count`` floats of an attribute (whitespace-separated), or ``default`` if the element or attribute is
+    missing."""
+    text = None if element is None else element.get(attribute)
+    if text is None:
+        return default
+    try:
+        values = [float(v) for v in text.split()]
+    except ValueError:
+        raise InvalidInputError(f"URDF {where}: {attribute}={text!r} is not {count} numbers") from None
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise InvalidInputError(f"URDF {where}: {attribute}={text!r} is not {count} finite numbers")
+    return values[0] if count == 1 else values
+
+
+def _urdf_joint(element):
+    """One ``<joint>`` element as a dict of checked values (one-line errors that name the joint)."""
+    name = element.get("name")
+    if not name:
+        raise InvalidInputError("URDF <joint> without a name")
+    where = f"joint {name!r}"
+    kind = element.get("type")
+    if kind not in JOINT_TYPES:
+        raise InvalidInputError(f"URDF {where} has type {kind!r}; supported types are {JOINT_TYPES}")
+    links = {}
+    for tag in ("parent", "child"):
+        link = element.find(tag)
+        links[tag] = None if link is None else link.get("link")
+        if not links[tag]:
+            raise InvalidInputError(f"URDF {where} needs <{tag} link=...>")
+    origin = element.find("origin")
+    xyz = _urdf_numbers(origin, "xyz", 3, [0.0, 0.0, 0.0], where)
+    rpy = _urdf_numbers(origin, "rpy", 3, [0.0, 0.0, 0.0], where)
+    axis = np.array(_urdf_numbers(element.find("axis"), "xyz", 3, [1.0, 0.0, 0.0], where), dtype=float)
+    norm = np.linalg.norm(axis)
+    if kind != "fixed" and not norm > 1e-9:
+        raise InvalidInputError(f"URDF {where} has a zero axis")
+    axis = axis / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
+    lower, upper = CONTINUOUS_RANGE
+    limit = element.find("limit")
+    if limit is not None and kind in MOVABLE_JOINT_TYPES:
+        lo = _urdf_numbers(limit, "lower", 1, 0.0, where)
+        hi = _urdf_numbers(limit, "upper", 1, 0.0, where)
+        if lo < hi or (lo == hi and kind != "continuous"):
+            lower, upper = lo, hi
+        elif kind == "prismatic":
+            raise InvalidInputError(f"URDF prismatic {where} has limits lower {lo} > upper {hi}")
+    elif kind == "prismatic":
+        raise InvalidInputError(f"URDF prismatic {where} needs a <limit>")
+    mimic = element.find("mimic")
+    followed = None if mimic is None or kind == "fixed" else mimic.get("joint")
+    if mimic is not None and kind != "fixed" and not followed:
+        raise InvalidInputError(f"URDF {where}: <mimic> needs joint=...")
+    return {"name": name, "type": kind, "parent": links["parent"], "child": links["child"],
+            "origin": transform_from_xyz_rpy(xyz, rpy), "axis": axis, "lower": lower, "upper": upper,
+            "mimic": followed, "multiplier": _urdf_numbers(mimic, "multiplier", 1, 1.0, where),
+            "offset": _urdf_numbers(mimic, "offset", 1, 0.0, where)}
+
 
 def tree_to_urdf(tree, name="robot"):
     """URDF text of the tree, loadable by pybullet.
@@ -130,8 +187,8 @@ def tree_to_urdf(tree, name="robot"):
                 ET.SubElement(geometry, kind, **attributes)
                 if tag == "visual":
                     ET.SubElement(shape, "material", name="body_scheme_grey")
-    commanded = sorted((j for j in tree.joints if j.action is not None), key=lambda j: j.action)
-    for joint in commanded + [j for j in tree.joints if j.action is None]:
+    commanded = sorted((j for j in tree.joints if j.action is not None and j.mimic is None), key=lambda j: j.action)
+    for joint in commanded + [j for j in tree.joints if j not in commanded]:
         element = ET.SubElement(robot, "joint", name=joint.name, type=joint.type)
         ET.SubElement(element, "parent", link=joint.parent)
         ET.SubElement(element, "child", link=joint.child)
@@ -140,6 +197,9 @@ def tree_to_urdf(tree, name="robot"):
             ET.SubElement(element, "axis", xyz=_format_floats(joint.axis))
             ET.SubElement(element, "limit", lower=repr(joint.lower), upper=repr(joint.upper), effort="100",
                           velocity="2")
+        if joint.mimic is not None:
+            ET.SubElement(element, "mimic", joint=joint.mimic, multiplier=repr(joint.multiplier),
+                          offset=repr(joint.offset))
     ET.indent(robot)
     return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"
 
@@ -166,6 +226,100 @@ def _bone_geometry(offset, radius=0.015):
     pose[:3, :3] = rotation.as_matrix()
     pose[:3, 3] = 0.5 * np.asarray(offset, dtype=float)
     return pose, ("cylinder", {"radius": repr(radius), "length": repr(length)})
+
+
+# ---------------------------------------------------------------------- resources (meshes)
+def _package_roots(package_path):
+    """Directories that may hold packages, in search order: ``package_path``, then ``ROS_PACKAGE_PATH``."""
+    roots = [os.fspath(d) for d in package_path]
+    roots += [d for d in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if d]
+    return roots
+
+
+def resolve_resource(uri, urdf_dir=None, package_path=()):
+    """The file a URDF resource names, or None if it cannot be found.
+
+    Parameters
+    ----------
+    uri : str
+        ``package://<package>/<path>``, ``file://<absolute path>``, an absolute path, or a path relative to the
+        URDF's directory.
+    urdf_dir : str or os.PathLike or None
+        Directory of the URDF file.
+    package_path : iterable of str or os.PathLike
+        Directories to search first (``--package-path``): each is a package named by its last component, or holds
+        packages as subdirectories.
+
+    Returns
+    -------
+    path : str or None
+        An existing file.
+
+    Notes
+    -----
+    ``package://<package>/<path>`` is searched in ``package_path``, then ``ROS_PACKAGE_PATH`` (same rule), then the
+    ament index of every prefix in ``AMENT_PREFIX_PATH`` (``<prefix>/share/<package>``), and last in the URDF's
+    directory and its ancestors (``<dir>/<package>``, as pybullet does: robot descriptions are often shipped beside
+    their meshes).
+    """
+    if uri.startswith("file://"):
+        candidates = [uri[len("file://"):]]
+    elif uri.startswith("package://"):
+        package, _, rest = uri[len("package://"):].partition("/")
+        candidates = []
+        for root in _package_roots(package_path):
+            candidates += [os.path.join(root, rest) if os.path.basename(os.path.normpath(root)) == package
+                           else os.path.join(root, package, rest)]
+        for prefix in (d for d in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if d):
+            marker = os.path.join(prefix, "share", "ament_index", "resource_index", "packages", package)
+            if os.path.exists(marker):
+                candidates.append(os.path.join(prefix, "share", package, rest))
+        if urdf_dir is not None:
+            here = os.path.abspath(os.fspath(urdf_dir))
+            while True:
+                candidates.append(os.path.join(here, package, rest))
+                if os.path.dirname(here) == here:
+                    break
+                here = os.path.dirname(here)
+    elif "://" in uri:
+        return None  # http:// and other schemes are not fetched
+    elif os.path.isabs(uri) or urdf_dir is None:
+        candidates = [uri]
+    else:
+        candidates = [os.path.join(os.fspath(urdf_dir), uri)]
+    return next((os.path.abspath(c) for c in candidates if os.path.isfile(c)), None)
+
+
+def resolve_meshes(urdf_text, urdf_dir=None, package_path=()):
+    """URDF text with every ``<mesh filename>`` resolved to an absolute path (:func:`resolve_resource`), and the
+    ``<visual>`` and ``<collision>`` elements whose mesh cannot be found removed.
+
+    Returns
+    -------
+    text : str
+    missing : list of str
+        The mesh URIs that were not found, each once, in document order.
+    """
+    try:
+        root = ET.fromstring(urdf_text)
+    except ET.ParseError as exc:
+        raise InvalidInputError(f"cannot parse URDF: {exc}") from exc
+    missing = []
+    for link in root.iter("link"):
+        for tag in ("visual", "collision"):
+            for shape in link.findall(tag):
+                mesh = shape.find("geometry/mesh")
+                if mesh is None:
+                    continue
+                uri = mesh.get("filename", "")
+                path = resolve_resource(uri, urdf_dir, package_path)
+                if path is None:
+                    if uri not in missing:
+                        missing.append(uri)
+                    link.remove(shape)
+                else:
+                    mesh.set("filename", path)
+    return ET.tostring(root, encoding="unicode"), missing
 
 
 # ---------------------------------------------------------------------- marker placement files

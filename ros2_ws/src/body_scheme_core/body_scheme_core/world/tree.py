@@ -13,6 +13,8 @@ Conventions
   joint frame.
 - Each movable joint is commanded by at most one action: ``joint.action = k`` means ``a[k]`` is its target position.
   Action indices of a tree are exactly ``0 .. m-1``. A movable joint without an action is passive and stays at 0.
+- A mimic joint (URDF ``<mimic>``, e.g. a gripper's second finger) follows the joint it mimics: it shares that joint's
+  action ``k`` and sits at ``multiplier * a[k] + offset``. It adds no action of its own.
 - A marker is rigidly attached to one link at ``link2marker``; its id is the body-part id of the paper (``X_i``).
 - Roll-pitch-yaw (``rpy``) is URDF's: fixed axes x, then y, then z (``Rotation.from_euler("xyz", rpy)``).
 """
@@ -73,6 +75,10 @@ class Joint:
         Position limits (rad or m); actions are drawn and clipped within them.
     action : int or None
         Index into the action vector that commands the joint; ``None`` for fixed and passive joints.
+    mimic : str or None
+        Name of the joint this one mimics (it then shares that joint's ``action``); ``None`` for other joints.
+    multiplier, offset : float
+        Joint position ``multiplier * a[action] + offset`` (1 and 0 unless ``mimic`` is set).
     """
 
     name: str
@@ -84,6 +90,9 @@ class Joint:
     lower: float = CONTINUOUS_RANGE[0]
     upper: float = CONTINUOUS_RANGE[1]
     action: int | None = None
+    mimic: str | None = None
+    multiplier: float = 1.0
+    offset: float = 0.0
 
     def __post_init__(self):
         if self.type not in JOINT_TYPES:
@@ -108,6 +117,17 @@ class Joint:
             action = int(action)
             if self.type == "fixed":
                 raise InvalidInputError(f"fixed joint {self.name!r} cannot be commanded by action {action}")
+        multiplier, offset = float(self.multiplier), float(self.offset)
+        if not (math.isfinite(multiplier) and math.isfinite(offset)):
+            raise InvalidInputError(f"joint {self.name!r} needs a finite multiplier and offset, got {multiplier}, "
+                                    f"{offset}")
+        if self.mimic is None and (multiplier, offset) != (1.0, 0.0):
+            raise InvalidInputError(f"joint {self.name!r}: only a mimic joint has a multiplier and offset")
+        if self.mimic is not None and (not isinstance(self.mimic, str) or self.mimic in ("", self.name)
+                                       or self.type == "fixed"):
+            raise InvalidInputError(f"joint {self.name!r} cannot mimic {self.mimic!r}")
+        object.__setattr__(self, "multiplier", multiplier)
+        object.__setattr__(self, "offset", offset)
         object.__setattr__(self, "origin", origin)
         object.__setattr__(self, "axis", axis)
         object.__setattr__(self, "lower", lower)
@@ -118,6 +138,13 @@ class Joint:
     def is_movable(self):
         """Whether the joint has a degree of freedom (it may still be passive, ``action is None``)."""
         return self.type in MOVABLE_JOINT_TYPES
+
+    def position(self, A):
+        """The joint's positions for action vectors ``A`` (n, m): its action scaled for a mimic joint, zero for a
+        fixed or passive joint; shape (n,)."""
+        if self.action is None:
+            return np.zeros(A.shape[0])
+        return self.multiplier * A[:, self.action] + self.offset
 
     def motion(self, q):
         """``joint_frame2child_link`` for joint position(s) ``q``.
@@ -147,7 +174,8 @@ class Joint:
         """JSON-serialisable dict."""
         return {"name": self.name, "type": self.type, "parent": self.parent, "child": self.child,
                 "origin": self.origin.tolist(), "axis": self.axis.tolist(), "lower": self.lower,
-                "upper": self.upper, "action": self.action}
+                "upper": self.upper, "action": self.action, "mimic": self.mimic, "multiplier": self.multiplier,
+                "offset": self.offset}
 
     @classmethod
     def from_dict(cls, data):
@@ -283,9 +311,18 @@ class KinematicTree:
             if marker.link not in links:
                 raise InvalidInputError(
                     f"marker {marker.id} is on unknown link {marker.link!r}; links: {sorted(links)}")
-        actions = sorted(j.action for j in joints if j.action is not None)
+        actions = sorted(j.action for j in joints if j.action is not None and j.mimic is None)
         if actions != list(range(len(actions))):
             raise InvalidInputError(f"action indices must be exactly 0..m-1 without repeats, got {actions}")
+        by_name = {j.name: j for j in joints}
+        for joint in joints:
+            if joint.mimic is None:
+                continue
+            followed = by_name.get(joint.mimic)
+            if followed is None or followed.mimic is not None or followed.action != joint.action:
+                raise InvalidInputError(
+                    f"mimic joint {joint.name!r} must follow a joint of the tree that is not a mimic joint itself, "
+                    f"with its action; got {joint.mimic!r} (action {joint.action})")
 
         self.joints = joints
         self.markers = tuple(sorted(markers, key=lambda m: m.id))
@@ -295,7 +332,7 @@ class KinematicTree:
         self._parent_joint = parent_joint
         self._joint_by_name = {j.name: j for j in joints}
         self._marker_by_id = {m.id: m for m in self.markers}
-        self._action_joint = {j.action: j for j in joints if j.action is not None}
+        self._action_joint = {j.action: j for j in joints if j.action is not None and j.mimic is None}
         depth = {root_link: 0}
         for joint in order:
             depth[joint.child] = depth[joint.parent] + 1
@@ -394,11 +431,16 @@ class KinematicTree:
             if joint.action is None:
                 parent2child = joint.origin  # fixed or passive joint: zero position
             else:
-                parent2child = joint.transform(A[:, joint.action])
+                parent2child = joint.transform(joint.position(A))
             poses[joint.child] = poses[joint.parent] @ parent2child
         if single:
             return {link: T[0] for link, T in poses.items()}
         return poses
+
+    def joint_positions(self, a):
+        """Position of every movable joint for actions ``a`` (m,): ``{name: float}``, mimic joints included."""
+        A = check_action_batch(np.asarray(a, dtype=float), self.n_actions, name="a")
+        return {j.name: float(j.position(A)[0]) for j in self.joints if j.is_movable}
 
     def marker_poses(self, a):
         """Poses of all markers in the root link frame.
@@ -452,7 +494,7 @@ class KinematicTree:
     def path_actions(self, id_i, id_j):
         """Sorted action indices of the commanded joints between the links of markers ``id_i`` and ``id_j``."""
         up, down = self.link_path(self.marker(id_i).link, self.marker(id_j).link)
-        return tuple(sorted(j.action for j in up + down if j.action is not None))
+        return tuple(sorted({j.action for j in up + down if j.action is not None}))  # a mimic shares its action
 
     @property
     def root_marker(self):

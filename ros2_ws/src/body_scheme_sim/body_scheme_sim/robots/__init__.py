@@ -58,7 +58,7 @@ def robot_names():
     return tuple(ROBOT_BUILDERS)
 
 
-def robot_files(name_or_urdf_path, markers_path=None):
+def robot_files(name_or_urdf_path, markers_path=None, require_markers=True):
     """URDF and marker file paths of a shipped robot name or a URDF path.
 
     Parameters
@@ -67,6 +67,8 @@ def robot_files(name_or_urdf_path, markers_path=None):
         A name from :func:`robot_names` or the path of a URDF file.
     markers_path : str or os.PathLike or None
         Marker placement file; ``None``: the shipped one, or ``<urdf stem>.markers.yaml`` next to the URDF.
+    require_markers : bool
+        ``False``: a URDF without a marker file is fine (``markers_path`` is then None).
 
     Returns
     -------
@@ -88,16 +90,20 @@ def robot_files(name_or_urdf_path, markers_path=None):
         markers_path = urdf_path.with_name(urdf_path.name[:-len(".urdf")] + MARKERS_SUFFIX) \
             if urdf_path.name.endswith(".urdf") else urdf_path.with_name(urdf_path.name + MARKERS_SUFFIX)
         if not markers_path.is_file():
-            raise RobotFileError(
-                f"no marker file for {urdf_path}: expected {markers_path} or an explicit markers_path")
-    markers_path = pathlib.Path(markers_path)
+            if not require_markers:
+                markers_path = None
+            else:
+                raise RobotFileError(
+                    f"no marker file for {urdf_path}: expected {markers_path}, or give one (--markers); without "
+                    f"one, calibrate --simulate plans them (docs/your-robot.md)")
+    markers_path = None if markers_path is None else pathlib.Path(markers_path)
     for path in (urdf_path, markers_path):
-        if not path.is_file():
+        if path is not None and not path.is_file():
             raise RobotFileError(f"robot file {path} does not exist")
     return urdf_path, markers_path
 
 
-def load_robot(name_or_urdf_path, markers_path=None):
+def load_robot(name_or_urdf_path, markers_path=None, markers=None):
     """The :class:`KinematicTree` of a shipped robot or of a URDF with a marker placement file.
 
     Movable joints get action indices in URDF order (``KinematicTree.from_urdf``).
@@ -107,6 +113,8 @@ def load_robot(name_or_urdf_path, markers_path=None):
     name_or_urdf_path : str or os.PathLike
     markers_path : str or os.PathLike or None
         See :func:`robot_files`.
+    markers : iterable of Marker or None
+        The markers, instead of a marker file.
 
     Returns
     -------
@@ -117,12 +125,15 @@ def load_robot(name_or_urdf_path, markers_path=None):
     RobotFileError
         If a file is missing, or the URDF or marker file is invalid (the message names the file).
     """
-    urdf_path, markers_path = robot_files(name_or_urdf_path, markers_path)
+    urdf_path, markers_path = robot_files(name_or_urdf_path, markers_path, require_markers=markers is None)
     try:
-        markers = load_markers_yaml(markers_path)
-        return KinematicTree.from_urdf(urdf_path.read_text(encoding="utf-8"), markers=markers)
+        markers = load_markers_yaml(markers_path) if markers is None else list(markers)
+        return KinematicTree.from_urdf(urdf_path.read_text(encoding="utf-8", errors="replace"), markers=markers)
     except InvalidInputError as error:
-        raise RobotFileError(f"robot {urdf_path} with markers {markers_path}: {error}") from error
+        raise RobotFileError(f"robot {urdf_path}" + (f" with markers {markers_path}" if markers_path else "")
+                             + f": {error}") from error
+    except OSError as error:
+        raise RobotFileError(f"cannot read robot {urdf_path}: {error.strerror or error}") from error
 
 
 def generate_robot_files(name):

@@ -1,0 +1,93 @@
+"""Bring your own robot: the ``--robot``, ``--markers``, ``--camera`` and ``--package-path`` options every command
+shares (``calibrate --simulate``, ``record``, ``live_demo``, ``core_demo``, ``plan_markers``), resolved in one place.
+
+``--robot`` is a shipped robot's name or a URDF path. Its markers are ``--markers``, else the shipped file or
+``<stem>.markers.yaml`` beside the URDF, else they are planned for the camera
+(:func:`body_scheme_sim.planning.plan_markers`) and written next to the command's output. The camera is
+``--camera "x y z roll pitch yaw"`` (its optical frame in the world, m and rad, URDF rpy; a 1280 x 960 camera),
+``auto`` (framing every marker), or by default the simulator's camera for a shipped robot and ``auto`` for a URDF.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from dataclasses import dataclass
+
+__all__ = ["RobotChoice", "add_robot_arguments", "resolve_robot"]
+
+
+@dataclass
+class RobotChoice:
+    """What the options resolved to.
+
+    Attributes
+    ----------
+    robot : str
+        Shipped name or URDF path.
+    markers_path : pathlib.Path or None
+        None for a shipped robot's own file.
+    camera : Camera or None
+        None: the simulator's default camera.
+    package_path : list of str
+    tree : KinematicTree
+        The robot with its markers.
+    """
+
+    robot: str
+    markers_path: object
+    camera: object
+    package_path: list
+    tree: object
+
+
+def add_robot_arguments(parser, default="powercube_6dof", camera=True):
+    """Add ``--robot``, ``--markers``, ``--camera`` (unless ``camera`` is false: a command without one) and
+    ``--package-path`` to an argparse parser."""
+    parser.add_argument("--robot", default=default, help="a shipped robot's name or a URDF path (default: "
+                                                         "%(default)s)")
+    parser.add_argument("--markers", help="marker placement YAML (default: the shipped one, <stem>.markers.yaml "
+                                          "beside the URDF, else planned and written to the output directory)")
+    if camera:
+        parser.add_argument("--camera", default="default",
+                            help='"x y z roll pitch yaw" of the camera\'s optical frame in the world (m, rad), or '
+                                 "auto (default: the simulator's camera for a shipped robot, auto for a URDF)")
+    parser.add_argument("--package-path", action="append", default=[], metavar="DIR",
+                        help="a directory searched first for package:// meshes (repeatable; then ROS_PACKAGE_PATH, "
+                             "the ament index and the URDF's directory)")
+
+
+def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_to="markers.yaml", seed=0, log=print):
+    """Resolve the options (see the module docstring); plans markers into the file ``plan_to`` when none exist.
+
+    Raises
+    ------
+    BodySchemeError
+        One line: an unknown robot, an unreadable URDF or marker file, no marker could be planned.
+    """
+    from body_scheme_sim.errors import RobotFileError
+    from body_scheme_sim.planning import auto_camera, parse_camera, plan_markers, write_markers
+    from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
+
+    shipped = robot in ROBOT_BUILDERS
+    if camera == "default":
+        camera = None if shipped else "auto"
+    chosen = None if camera is None else parse_camera(camera)
+    markers_path = None if markers is None else pathlib.Path(markers)
+    if markers_path is None and not shipped:
+        markers_path = robot_files(robot, require_markers=False)[1]
+        if markers_path is None:
+            planned, skipped, chosen = plan_markers(robot, camera=chosen, package_path=package_path, seed=seed)
+            if not planned:
+                raise RobotFileError(f"no marker could be planned on {robot}: no link's collision geometry is in "
+                                     f"view (are its meshes found? see --package-path)")
+            plan_to = pathlib.Path(plan_to)
+            plan_to.parent.mkdir(parents=True, exist_ok=True)
+            markers_path = write_markers(planned, plan_to)
+            log(f"planned {len(planned)} markers ({', '.join(p.marker.link for p in planned)}), wrote {markers_path}"
+                + "".join(f"; no marker on {link}: {why}" for link, why in skipped.items()))
+    tree = load_robot(robot, markers_path)
+    if camera is not None and chosen is None:
+        chosen = auto_camera(tree)
+    if camera == "auto":
+        log(f"camera at {[round(float(v), 3) for v in chosen.position]} looking at the robot (--camera auto)")
+    return RobotChoice(str(robot), markers_path, chosen, list(package_path), tree)

@@ -1,0 +1,153 @@
+"""Moving a real arm safely: trajectory durations from joint limits, the limits' safety margin, and settling.
+
+What a node that drives an arm through ros2_control's ``JointTrajectoryController`` needs, without ROS: how long a
+point-to-point move takes under per-joint velocity and acceleration limits (:func:`trajectory_duration`), which
+commands are allowed (:class:`SafetyLimits`: joint limits shrunk by a margin and a workspace box around the root),
+and when the arm has come to rest at its goal (:class:`SettleDetector`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InvalidInputError
+
+__all__ = ["trajectory_duration", "SafetyLimits", "SettleDetector"]
+
+
+def trajectory_duration(start, goal, max_velocity, max_acceleration, min_duration=0.1):
+    """Time of a synchronised point-to-point move with a trapezoidal (or triangular) velocity profile per joint.
+
+    Parameters
+    ----------
+    start, goal : array-like, shape (m,)
+        Joint positions.
+    max_velocity, max_acceleration : array-like, shape (m,) or float
+        Per-joint limits (> 0), rad/s (m/s) and rad/s^2 (m/s^2).
+    min_duration : float
+        Lower bound, s (a controller needs a non-zero ``time_from_start``).
+
+    Returns
+    -------
+    duration : float
+        Seconds: the slowest joint's time to cover its distance from rest to rest, ``2 sqrt(d / a)`` when it never
+        reaches ``v`` (``d < v^2 / a``), else ``d / v + v / a``.
+    """
+    start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
+    if start.shape != goal.shape or start.ndim != 1:
+        raise InvalidInputError(f"start and goal must be vectors of one length, got {start.shape}, {goal.shape}")
+    v = np.broadcast_to(np.asarray(max_velocity, dtype=float), start.shape)
+    a = np.broadcast_to(np.asarray(max_acceleration, dtype=float), start.shape)
+    if not (np.all(np.isfinite(v)) and np.all(v > 0) and np.all(np.isfinite(a)) and np.all(a > 0)):
+        raise InvalidInputError("velocity and acceleration limits must be finite and > 0")
+    if not (np.all(np.isfinite(start)) and np.all(np.isfinite(goal))):
+        raise InvalidInputError("start and goal must be finite")
+    d = np.abs(goal - start)
+    t = np.where(d < v * v / a, 2.0 * np.sqrt(d / a), d / v + v / a)
+    return max(float(t.max(initial=0.0)), float(min_duration))
+
+
+@dataclass
+class SafetyLimits:
+    """Which commands an arm may be sent.
+
+    Parameters
+    ----------
+    lower, upper : array-like, shape (m,)
+        Joint limits (the robot's specification).
+    margin : float or array-like
+        Kept away from each limit, in the joint's unit (rad or m); at most half the range.
+    workspace : array-like, shape (2, 3) or None
+        ``[[x_min, y_min, z_min], [x_max, y_max, z_max]]`` in the root link's frame, m: every point that
+        ``points(a)`` returns must lie inside. ``None``: no box.
+    points : callable or None
+        ``points(a) -> (k, 3)``: the points to keep in the box for command ``a`` (e.g. every link origin from the
+        URDF's forward kinematics).
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    margin: float = 0.05
+    workspace: np.ndarray | None = None
+    points: object = None
+
+    def __post_init__(self):
+        lower, upper = np.asarray(self.lower, dtype=float), np.asarray(self.upper, dtype=float)
+        if lower.shape != upper.shape or lower.ndim != 1 or not np.all(lower <= upper):
+            raise InvalidInputError(f"joint limits must be vectors with lower <= upper, got {lower}, {upper}")
+        margin = np.broadcast_to(np.asarray(self.margin, dtype=float), lower.shape)
+        if not (np.all(np.isfinite(margin)) and np.all(margin >= 0)):
+            raise InvalidInputError(f"margin must be >= 0, got {self.margin}")
+        margin = np.minimum(margin, 0.5 * (upper - lower))
+        self.lower, self.upper = lower + margin, upper - margin
+        if self.workspace is not None:
+            box = np.asarray(self.workspace, dtype=float)
+            if box.shape != (2, 3) or not np.all(box[0] < box[1]):
+                raise InvalidInputError(f"workspace must be [[x,y,z min], [x,y,z max]] with min < max, got {box}")
+            if self.points is None:
+                raise InvalidInputError("a workspace box needs the points to keep inside it")
+            self.workspace = box
+
+    def violation(self, a):
+        """Why command ``a`` may not be sent, or None: ``"joint limit"`` or ``"workspace"``."""
+        a = np.asarray(a, dtype=float)
+        if a.shape != self.lower.shape or not np.all(np.isfinite(a)):
+            return "malformed"
+        if np.any(a < self.lower - 1e-12) or np.any(a > self.upper + 1e-12):
+            return "joint limit"
+        if self.workspace is not None:
+            points = np.asarray(self.points(a), dtype=float).reshape(-1, 3)
+            if np.any(points < self.workspace[0]) or np.any(points > self.workspace[1]):
+                return "workspace"
+        return None
+
+
+class SettleDetector:
+    """Whether an arm has come to rest at its goal: every joint within ``tolerance`` of the goal and moving less
+    than ``still`` between readings ``window`` s apart; or ``timeout`` s after the move should have ended.
+
+    Parameters
+    ----------
+    tolerance : float
+        rad (m) from the goal.
+    still : float
+        Largest change (rad, m) between two readings at least ``window`` s apart that counts as at rest.
+    window : float
+        s.
+    timeout : float
+        s after the planned end of the move at which it counts as settled anyway (``timed_out``).
+    """
+
+    def __init__(self, tolerance=0.01, still=0.002, window=0.1, timeout=2.0):
+        for name, value in (("tolerance", tolerance), ("still", still), ("window", window), ("timeout", timeout)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"{name} must be a finite number >= 0, got {value!r}")
+        self.tolerance, self.still, self.window, self.timeout = tolerance, still, window, timeout
+        self._goal = None
+
+    def start(self, goal, planned_end):
+        """A new move towards ``goal`` (m,) that should end at time ``planned_end`` (s)."""
+        self._goal = np.asarray(goal, dtype=float)
+        self._end = float(planned_end)
+        self._previous = None
+        self.timed_out = False
+
+    def update(self, positions, now):
+        """Feed a joint reading (m,) taken at ``now`` (s); returns whether the arm has settled."""
+        if self._goal is None:
+            return False
+        positions = np.asarray(positions, dtype=float)
+        if now >= self._end + self.timeout:
+            self.timed_out = True
+            return True
+        if positions.shape != self._goal.shape or not np.all(np.isfinite(positions)):
+            return False
+        at_goal = bool(np.all(np.abs(positions - self._goal) <= self.tolerance))
+        if self._previous is None or now - self._previous[0] >= self.window - 1e-9:
+            still = self._previous is not None and bool(np.all(np.abs(positions - self._previous[1]) <= self.still))
+            self._previous = (now, positions)
+            return at_goal and still
+        return False

@@ -1,0 +1,203 @@
+"""babble_node: babbles a real arm through ros2_control and publishes the action signal once each move has settled.
+
+Each step: draw a random command within the joint limits (shrunk by ``limit_margin``), refuse it if it leaves the
+workspace box or if the robot would hit itself or the ground on the way (pybullet from the URDF), send it as a
+``trajectory_msgs/JointTrajectory`` to ``<controller>/joint_trajectory`` with a duration from the velocity and
+acceleration limits, wait until ``/joint_states`` settles at it (or ``settle_timeout`` after the planned end), then
+publish the commanded positions on ``joint_commands`` stamped at the settle time: the action signal scheme_node
+learns from. After ``dwell`` seconds (the camera takes its picture) the next step starts. The ``control_msgs``
+``FollowJointTrajectory`` action is not used: control_msgs is not on the PyPI route (docs/your-robot.md).
+
+It stops by itself (an empty trajectory: the controller holds the arm where it is) when scheme_node's /diagnostics
+status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning stalled), or when the camera
+goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s).
+
+Subscriptions
+-------------
+/joint_states : sensor_msgs/JointState              (``joint_states_topic``)
+/diagnostics : diagnostic_msgs/DiagnosticArray      statuses whose name contains ``watch_diagnostics``
+observations : body_scheme_msgs/MarkerPoses         (``camera_topic``) the camera watchdog
+
+Publishers
+----------
+<controller>/joint_trajectory : trajectory_msgs/JointTrajectory
+joint_commands : sensor_msgs/JointState             the action signal (``action_topic``)
+/diagnostics : diagnostic_msgs/DiagnosticArray      ``<node>: babbling``, 1 Hz: state, counters, stop reason
+
+Services
+--------
+~/pause, ~/resume, ~/stop : std_srvs/Trigger
+    Pause finishes the current move and waits; stop halts the arm at once. Resume continues after either.
+
+Parameters: config/babble_node.yaml.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_msgs.msg import MarkerPoses
+
+from . import conversions
+from .arm_driver import declare_driver_parameters, driver_from_parameters
+from .spin import run_node
+
+#: Random draws per step before the step is skipped (counted) because every draw was refused.
+MAX_DRAWS = 100
+
+
+class BabbleNode(Node):
+    """See the module docstring."""
+
+    def __init__(self, **node_options):
+        super().__init__("babble_node", **node_options)
+        p = self.declare_parameter
+        self.action_topic = p("action_topic", "joint_commands").value
+        self.dwell = p("dwell", 0.3).value
+        self.steps = p("steps", 0).value
+        seed = p("seed", 0).value
+        self.watch = p("watch_diagnostics", "scheme_node: body scheme").value
+        self.error_hold = p("error_hold", 2.0).value
+        camera_topic = p("camera_topic", "observations").value
+        self.camera_timeout = p("camera_timeout", 3.0).value
+        self.state = "paused" if p("start_paused", False).value else "waiting"
+        update_period = p("update_period", 0.02).value
+        if not (self.dwell >= 0 and self.camera_timeout >= 0 and self.error_hold >= 0 and update_period > 0
+                and self.steps >= 0):
+            raise InvalidInputError("dwell, camera_timeout, error_hold and steps must be >= 0 and update_period > 0")
+        self.driver = driver_from_parameters(self, declare_driver_parameters(self))
+        self.rng = np.random.default_rng(seed)
+        self.counts = Counter()
+        self.stop_reason = ""
+        self.next_at = 0.0  # monotonic time the next step may start (after the dwell)
+        self.last_camera = None  # monotonic time of the last camera message
+        self.error_since = None  # monotonic time the watched status turned ERROR (None: it is not)
+
+        work = MutuallyExclusiveCallbackGroup()
+        self.pub_action = self.create_publisher(JointState, self.action_topic, 100)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
+        self.create_subscription(MarkerPoses, camera_topic, self._on_camera, 10)
+        for name, handler in (("pause", self._on_pause), ("resume", self._on_resume), ("stop", self._on_stop)):
+            self.create_service(Trigger, f"~/{name}", handler, callback_group=work)
+        self.create_timer(update_period, self._on_timer, callback_group=work)
+        self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
+        self.get_logger().info(f"babble_node ready: joints {list(self.driver.joint_names)}, {self.state}")
+
+    # -- inputs -----------------------------------------------------------------------------------------------------
+    def _on_camera(self, _msg):
+        self.last_camera = time.monotonic()
+
+    def _on_diagnostics(self, msg):
+        if not self.watch:
+            return
+        for status in msg.status:
+            if self.watch not in status.name:
+                continue
+            if status.level != DiagnosticStatus.ERROR:
+                self.error_since = None
+                continue
+            now = time.monotonic()
+            self.error_since = now if self.error_since is None else self.error_since
+            if now - self.error_since >= self.error_hold and self.state not in ("stopped", "done"):
+                self._stop(f"{status.name} reported ERROR for {now - self.error_since:.1f} s: {status.message}")
+
+    def _on_pause(self, _request, response):
+        if self.state == "stopped":
+            response.success, response.message = False, f"stopped ({self.stop_reason}): resume first"
+            return response
+        self.state = "paused"
+        response.success, response.message = True, "paused after the current move"
+        return response
+
+    def _on_resume(self, _request, response):
+        previous = self.state
+        if previous not in ("paused", "stopped"):
+            response.success, response.message = False, f"not paused or stopped ({previous})"
+            return response
+        self.state, self.stop_reason = "idle", ""
+        self.last_camera = time.monotonic() if self.last_camera is not None else None  # a fresh watchdog period
+        response.success, response.message = True, f"resumed (was {previous})"
+        return response
+
+    def _on_stop(self, _request, response):
+        self._stop("stop requested")
+        response.success, response.message = True, "stopped: the arm holds its position"
+        return response
+
+    # -- the loop -------------------------------------------------------------------------------------------------
+    def _stop(self, reason):
+        self.driver.halt()
+        self.state, self.stop_reason = "stopped", reason
+        self.counts["stops"] += 1
+        self.get_logger().warn(f"babbling stopped: {reason}")
+
+    def _on_timer(self):
+        now = time.monotonic()
+        if self.state in ("stopped", "paused", "done") and self.driver.goal is None:
+            return
+        if self.state == "waiting":
+            if self.driver.positions is None:
+                self.get_logger().info("waiting for /joint_states", throttle_duration_sec=5.0)
+                return
+            self.state, self.started = "idle", now
+        if self.camera_timeout > 0 and self.state != "stopped":
+            quiet_since = self.last_camera if self.last_camera is not None else self.started
+            if now - quiet_since > self.camera_timeout:
+                self._stop(f"the camera is quiet: nothing on the camera topic for {now - quiet_since:.1f} s")
+                return
+        if self.driver.goal is not None:
+            goal = self.driver.settled()
+            if goal is not None:
+                msg = conversions.joint_state_msg(self.get_clock().now().nanoseconds * 1e-9,
+                                                  self.driver.joint_names, goal)
+                self.pub_action.publish(msg)
+                self.counts["actions"] += 1
+                self.next_at = now + self.dwell
+            return
+        if self.state != "idle" or now < self.next_at:
+            return
+        if self.steps and self.counts["actions"] >= self.steps:
+            self.state = "done"
+            self.get_logger().info(f"babbled {self.counts['actions']} commands: done")
+            return
+        safety = self.driver.safety
+        for _ in range(MAX_DRAWS):
+            goal = self.rng.uniform(safety.lower, safety.upper)
+            why = self.driver.send(goal)
+            if why is None:
+                return
+        self.counts["steps_without_a_safe_command"] += 1
+
+    def _publish_diagnostics(self):
+        level = {"stopped": DiagnosticStatus.ERROR if self.stop_reason != "stop requested" else DiagnosticStatus.WARN,
+                 "paused": DiagnosticStatus.WARN, "waiting": DiagnosticStatus.WARN}.get(self.state,
+                                                                                      DiagnosticStatus.OK)
+        message = self.state + (f": {self.stop_reason}" if self.stop_reason else "")
+        values = dict(state=self.state, **self.counts, **{f"driver.{k}": v for k, v in self.driver.counts.items()})
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        name = self.get_fully_qualified_name()
+        array.status.append(conversions.diagnostic_status(f"{name}: babbling", level, message, values, name))
+        self.pub_diagnostics.publish(array)
+
+    def destroy_node(self):
+        self.driver.close()
+        super().destroy_node()
+
+
+def main(args=None):
+    return run_node(BabbleNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,81 @@
+"""babble_node's parameters (in-process; driving an arm over DDS is in tests/test_system_babble_node.py)."""
+
+from __future__ import annotations
+
+import contextlib
+import pathlib
+
+import numpy as np
+import pybullet_data
+import pytest
+import rclpy
+import yaml
+from rclpy.parameter import Parameter
+
+from body_scheme_core.errors import InvalidInputError
+from body_scheme_nodes.babble_node import BabbleNode
+
+CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "babble_node.yaml"
+BUILT_IN = {"use_sim_time", "start_type_description_service"}
+
+
+@contextlib.contextmanager
+def babble_node(overrides=()):
+    """A BabbleNode with ``overrides`` in a fresh rclpy context."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = BabbleNode(context=context, parameter_overrides=list(overrides))
+        try:
+            yield node
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def declared_parameters(overrides=()):
+    """The parameters of a BabbleNode with ``overrides``, and its joint names."""
+    with babble_node(overrides) as node:
+        names = [n for n in node.list_parameters([], 10).names if n not in BUILT_IN]
+        return {p.name: p.value for p in node.get_parameters(names)}, node.driver.joint_names
+
+
+def test_yaml_holds_every_parameter_at_its_declared_default():
+    """config/babble_node.yaml lists exactly the declared parameters, each at its default and of its type."""
+    declared, joint_names = declared_parameters()
+    in_yaml = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]
+    assert set(in_yaml) == set(declared)
+    for name, value in in_yaml.items():
+        default = declared[name] if declared[name] is not None else []
+        assert value == (list(default) if isinstance(default, (list, tuple)) else default), name
+        assert type(value) is type(list(default) if isinstance(default, (list, tuple)) else default), name
+    assert joint_names == ("joint1", "joint2", "joint3", "joint4", "joint5", "joint6")
+
+
+def test_the_driver_refuses_goals_past_the_margin_in_collision_or_outside_the_box():
+    """Joint limits less the margin, the workspace box (every link origin under 0.9 m: the upright arm is not) and
+    the collision screen (a 7-joint arm from pybullet_data, with its meshes) each refuse a goal, by name; a goal that
+    passes all three is fine."""
+    box = Parameter("workspace", value=[-2.0, -2.0, -0.01, 2.0, 2.0, 0.9])
+    with babble_node([box, Parameter("limit_margin", value=0.1)]) as node:
+        driver = node.driver
+        safety, zero = driver.safety, np.zeros(6)
+        assert np.allclose(safety.upper, [1.4, 1.1, 1.4, 1.4, 1.4, 1.4])
+        assert driver.refusal([1.45, 0.5, 0.5, 0, 0, 0], start=zero) == "joint limit"
+        assert driver.refusal(zero, start=zero) == "workspace"
+        goals = np.random.default_rng(0).uniform(safety.lower, safety.upper, size=(200, 6))
+        assert {driver.refusal(goal, start=zero) for goal in goals} == {None, "workspace"}
+    kuka = str(pathlib.Path(pybullet_data.getDataPath()) / "kuka_iiwa" / "model.urdf")
+    with babble_node([Parameter("robot", value=kuka)]) as node:  # +-170 deg: it can hit itself and the ground
+        safety, zero = node.driver.safety, np.zeros(7)
+        goals = np.random.default_rng(0).uniform(safety.lower, safety.upper, size=(100, 7))
+        assert {node.driver.refusal(goal, start=zero) for goal in goals} == {None, "collision"}
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("workspace", [0.0, 1.0], "workspace"), ("max_velocity", 0.0, "limits"), ("dwell", -1.0, "dwell"),
+    ("robot", "no_robot", "unknown robot"), ("settle_tolerance", -0.1, "tolerance")])
+def test_bad_parameters_stop_the_node_with_a_reason(name, value, message):
+    with pytest.raises(InvalidInputError, match=message):
+        declared_parameters([Parameter(name, value=value)])

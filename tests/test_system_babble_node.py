@@ -1,0 +1,138 @@
+"""System test of the graph a real robot uses: babble_node -> sim_node (as a JointTrajectoryController) ->
+tracker_node -> scheme_node, as processes over DDS, from scratch."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+
+from body_scheme_msgs.msg import BodySchemeStructure
+from body_scheme_sim.babbling import CollisionScreen
+from body_scheme_sim.robots import ROBOTS_DIR, load_robot
+from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
+
+pytestmark = pytest.mark.system
+
+ROBOT = "powercube_6dof"
+MARGIN = 0.05
+
+
+class Watcher:
+    """What the test node sees: the trajectories sim_node receives, the action signals, the structure and
+    babble_node's status."""
+
+    def __init__(self, node):
+        self.trajectories, self.actions, self.structure, self.babbling = [], [], None, {}
+        node.create_subscription(JointTrajectory, "joint_trajectory_controller/joint_trajectory",
+                                 self.trajectories.append, 100)
+        node.create_subscription(JointState, "joint_commands", self.actions.append, 100)
+        node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, 10)
+        node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
+
+    def _structure(self, msg):
+        self.structure = msg
+
+    def _diagnostics(self, msg):
+        for status in msg.status:
+            if status.name.endswith(": babbling"):
+                self.babbling = {"level": status.level, "message": status.message,
+                                 **{kv.key: kv.value for kv in status.values}}
+
+    def edges(self):
+        return set() if self.structure is None else {frozenset((e.parent_id, e.child_id))
+                                                     for e in self.structure.edges}
+
+    def goals(self):
+        return [np.array(t.points[-1].positions) for t in self.trajectories if t.points]
+
+
+def _call(ros_node, spin_until, service):
+    client = ros_node.create_client(Trigger, f"/babble_node/{service}")
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(Trigger.Request())
+    assert spin_until(future.done, timeout=10)
+    return future.result()
+
+
+def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_and_error(start_node, ros_node,
+                                                                                         spin_until):
+    """From scratch through the controller interface: the true tree; every goal sim_node received was inside the
+    limits less the margin and collision-free from the previous one; every action signal is a received goal. Then
+    pause holds the babbling, resume continues it, stop halts the arm (an empty trajectory), a status that stays
+    ERROR stops it, and so does a camera that goes quiet."""
+    tree = load_robot(ROBOT)
+    ids, names = list(tree.marker_ids), list(tree.action_joint_names)
+    watcher = Watcher(ros_node)
+    start_node("body_scheme_nodes", "scheme_node", {
+        "part_ids": ids, "joint_names": names, "action_lower": tree.action_lower.tolist(),
+        "action_upper": tree.action_upper.tolist(), "learner.sigma_trans": RENDERED_SIGMA_TRANS,
+        "learner.sigma_rot": RENDERED_SIGMA_ROT})
+    tracker = start_node("body_scheme_nodes", "tracker_node", {
+        "markers_path": str(ROBOTS_DIR / f"{ROBOT}.markers.yaml"), "image_reliability": "reliable"})
+    start_node("body_scheme_nodes", "sim_node", {"robot": ROBOT, "perception_mode": "rendered",
+                                                 "camera_period": 0.05})
+    babble = start_node("body_scheme_nodes", "babble_node", {
+        "robot": ROBOT, "max_velocity": 20.0, "max_acceleration": 100.0, "limit_margin": MARGIN, "dwell": 0.1,
+        "settle_window": 0.05, "camera_timeout": 4.0, "error_hold": 0.5,
+        "watch_diagnostics": "/alarm: body scheme"})  # the test's stand-in for scheme_node's status
+    true_edges = {frozenset(e) for e in tree.marker_tree_edges()}
+    learned = spin_until(lambda: watcher.edges() == true_edges, timeout=240)
+    assert learned, (watcher.edges(), len(watcher.actions), babble.output()[-2000:])
+
+    screen = CollisionScreen(ROBOT)
+    try:
+        previous = np.zeros(len(names))
+        for goal in watcher.goals():
+            assert np.all(goal >= tree.action_lower + MARGIN - 1e-9) and np.all(goal <= tree.action_upper - MARGIN)
+            assert not screen.collides(previous, goal)
+            previous = goal
+    finally:
+        screen.close()
+    sent = {tuple(np.round(g, 9)) for g in watcher.goals()}
+    assert watcher.actions and all(tuple(np.round(a.position, 9)) in sent for a in watcher.actions)
+
+    # Pause: the current move ends, then nothing is sent; resume: babbling goes on.
+    assert _call(ros_node, spin_until, "pause").success
+    spin_until(lambda: False, timeout=1.0)
+    n = len(watcher.trajectories)
+    spin_until(lambda: False, timeout=1.5)
+    assert len(watcher.trajectories) == n and watcher.babbling.get("state") == "paused"
+    assert _call(ros_node, spin_until, "resume").success
+    assert spin_until(lambda: len(watcher.trajectories) > n + 2, timeout=10)
+
+    # Stop: an empty trajectory (the controller holds the arm), then nothing.
+    assert _call(ros_node, spin_until, "stop").success
+    assert spin_until(lambda: not watcher.trajectories[-1].points, timeout=5)
+    n = len(watcher.trajectories)
+    spin_until(lambda: False, timeout=1.5)
+    assert len(watcher.trajectories) == n
+
+    # A watched status that stays ERROR stops it (published by the test as scheme_node would publish its own).
+    assert _call(ros_node, spin_until, "resume").success
+    assert spin_until(lambda: len(watcher.trajectories) > n + 1 and watcher.babbling.get("state") == "idle",
+                      timeout=10)
+    alarm = ros_node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+    error = DiagnosticArray(status=[DiagnosticStatus(name="/alarm: body scheme", level=DiagnosticStatus.ERROR,
+                                                     message="2 local model(s) invalid (adapting)",
+                                                     values=[KeyValue(key="step", value="1")])])
+    deadline = time.monotonic() + 10
+    while watcher.babbling.get("state") != "stopped" and time.monotonic() < deadline:
+        alarm.publish(error)
+        spin_until(lambda: False, timeout=0.2)
+    assert watcher.babbling.get("state") == "stopped" and "ERROR" in watcher.babbling["message"], watcher.babbling
+    assert watcher.babbling["level"] == DiagnosticStatus.ERROR
+
+    # The camera goes quiet (the tracker dies): babbling stops within camera_timeout.
+    ok = DiagnosticArray(status=[DiagnosticStatus(name="/alarm: body scheme", level=DiagnosticStatus.OK)])
+    alarm.publish(ok)
+    assert _call(ros_node, spin_until, "resume").success
+    assert spin_until(lambda: watcher.babbling.get("state") == "idle", timeout=5)
+    tracker.stop()
+    assert spin_until(lambda: "camera is quiet" in watcher.babbling.get("message", ""), timeout=15), \
+        watcher.babbling
