@@ -56,7 +56,9 @@ TARGETS = {**{f"yourrobot_{r}_max_axis_deg": 1.0 for r in ROBOTS}, **{f"yourrobo
 MIN_TARGETS = {f"yourrobot_{r}_true_tree": 1.0 for r in ROBOTS}
 SANITY = {**{f"yourrobot_{r}_true_tree": (0.0, 1.0) for r in ROBOTS},
           **{f"yourrobot_{r}_steps_to_tree": (1.0, float(N_STEPS)) for r in ROBOTS}}
-NOTES = """Each robot's figures come from one session of its own (no averaging: a user calibrates once). The report
+NOTES = """These runs are on rendered images (through our tracker), though the table lists them in the "noise" column
+(``--quick`` runs the noise model instead). Each robot's figures come from one session of its own (no averaging: a
+user calibrates once). The report
 pictures show the learned body (blue, red: joint axes) over the specified one (grey), and the per-joint deviations.
 The markers of a gripper's fingers are not planned (their 4 cm stroke is within the camera's noise), so the finger
 action is a dummy action the learner finds no model for."""
