@@ -34,7 +34,7 @@ from body_scheme_core.learned_body import calibration_report, format_report, lea
 from body_scheme_core.persistence import load_state
 from body_scheme_core.world.robot_files import load_markers_yaml, tree_from_urdf
 
-from .robot_option import resolve_robot
+from .robot_option import add_camera_arguments, resolve_robot
 
 __all__ = ["calibrate", "plot_report", "main"]
 
@@ -145,12 +145,7 @@ def main(argv=None):
                                           "default: beside the URDF, else planned into --out)")
     parser.add_argument("--prefix", default="", help="prefix of link names (joints keep the robot's)")
     parser.add_argument("--steps", type=int, default=600, help="--simulate: babbling steps (default: %(default)s)")
-    parser.add_argument("--camera", default="default",
-                        help='--simulate: "x y z roll pitch yaw" of the camera\'s optical frame in the world (m, rad) '
-                             "or auto (default: the simulator's camera for a shipped robot, auto for a URDF)")
-    parser.add_argument("--package-path", action="append", default=[], metavar="DIR",
-                        help="--simulate: a directory searched first for package:// meshes (repeatable; then "
-                             "ROS_PACKAGE_PATH, the ament index and the URDF's directory)")
+    add_camera_arguments(parser, prefix="--simulate: ")
     parser.add_argument("--perception", choices=("rendered", "noise"), default="rendered",
                         help="--simulate: our tracker on rendered images, or noise at its accuracy "
                              "(default: %(default)s)")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import pathlib
 from dataclasses import dataclass
 
-__all__ = ["RobotChoice", "add_robot_arguments", "resolve_robot"]
+__all__ = ["RobotChoice", "add_robot_arguments", "add_camera_arguments", "resolve_robot"]
 
 
 @dataclass
@@ -48,12 +48,21 @@ def add_robot_arguments(parser, default="powercube_6dof", camera=True):
     parser.add_argument("--markers", help="marker placement YAML (default: the shipped one, <stem>.markers.yaml "
                                           "beside the URDF, else planned and written to the output directory)")
     if camera:
+        add_camera_arguments(parser, package_path=False)
+    add_camera_arguments(parser, camera=False)
+
+
+def add_camera_arguments(parser, camera=True, package_path=True, prefix=""):
+    """Add ``--camera`` and ``--package-path`` (their help texts start with ``prefix``, e.g. ``"--simulate: "``)."""
+    if camera:
         parser.add_argument("--camera", default="default",
-                            help='"x y z roll pitch yaw" of the camera\'s optical frame in the world (m, rad), or '
-                                 "auto (default: the simulator's camera for a shipped robot, auto for a URDF)")
-    parser.add_argument("--package-path", action="append", default=[], metavar="DIR",
-                        help="a directory searched first for package:// meshes (repeatable; then ROS_PACKAGE_PATH, "
-                             "the ament index and the URDF's directory)")
+                            help=f'{prefix}"x y z roll pitch yaw" of the camera\'s optical frame in the world (m, '
+                                 "rad), or auto (default: the simulator's camera for a shipped robot, auto for a "
+                                 "URDF)")
+    if package_path:
+        parser.add_argument("--package-path", action="append", default=[], metavar="DIR",
+                            help=f"{prefix}a directory searched first for package:// meshes (repeatable; then "
+                                 "ROS_PACKAGE_PATH, the ament index and the URDF's directory)")
 
 
 def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_to="markers.yaml", seed=0, log=print):
