@@ -12,6 +12,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
+from body_scheme_core.motion import path_samples
 from body_scheme_msgs.msg import BodySchemeStructure
 from body_scheme_sim.babbling import CollisionScreen
 from body_scheme_sim.robots import ROBOTS_DIR, load_robot
@@ -28,10 +29,11 @@ class Watcher:
     babble_node's status."""
 
     def __init__(self, node):
-        self.trajectories, self.actions, self.structure, self.babbling = [], [], None, {}
+        self.trajectories, self.actions, self.structure, self.babbling, self.joint_states = [], [], None, {}, []
         node.create_subscription(JointTrajectory, "joint_trajectory_controller/joint_trajectory",
                                  self.trajectories.append, 100)
         node.create_subscription(JointState, "joint_commands", self.actions.append, 100)
+        node.create_subscription(JointState, "/joint_states", self.joint_states.append, 1000)
         node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, 10)
         node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
 
@@ -64,7 +66,7 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
                                                                                          spin_until):
     """From scratch through the controller interface: the true tree; every goal sim_node received was inside the
     limits less the margin and collision-free from the previous one; every action signal is a received goal. Then
-    pause holds the babbling, resume continues it, stop halts the arm (an empty trajectory), a status that stays
+    pause holds the babbling, resume continues it, stop halts the arm (a trajectory to where it is), a status that stays
     ERROR stops it, and so does a camera that goes quiet."""
     tree = load_robot(ROBOT)
     ids, names = list(tree.marker_ids), list(tree.action_joint_names)
@@ -90,12 +92,13 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
         previous = np.zeros(len(names))
         for goal in watcher.goals():
             assert np.all(goal >= tree.action_lower + MARGIN - 1e-9) and np.all(goal <= tree.action_upper - MARGIN)
-            assert not screen.collides(previous, goal)
+            assert not screen.collides(path_samples(previous, goal))
             previous = goal
     finally:
         screen.close()
     sent = {tuple(np.round(g, 9)) for g in watcher.goals()}
-    assert watcher.actions and all(tuple(np.round(a.position, 9)) in sent for a in watcher.actions)
+    unsent = [k for k, a in enumerate(watcher.actions) if tuple(np.round(a.position, 9)) not in sent]
+    assert watcher.actions and not unsent, (unsent, len(watcher.actions), len(watcher.trajectories))
 
     # Pause: the current move ends, then nothing is sent; resume: babbling goes on.
     assert _call(ros_node, spin_until, "pause").success
@@ -106,12 +109,18 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     assert _call(ros_node, spin_until, "resume").success
     assert spin_until(lambda: len(watcher.trajectories) > n + 2, timeout=10)
 
-    # Stop: an empty trajectory (the controller holds the arm), then nothing.
+    # Stop: one point where the arm is (a JointTrajectoryController rejects an empty trajectory), then nothing; the
+    # arm stays there.
+    n = len(watcher.trajectories)
     assert _call(ros_node, spin_until, "stop").success
-    assert spin_until(lambda: not watcher.trajectories[-1].points, timeout=5)
+    assert spin_until(lambda: watcher.babbling.get("state") == "stopped", timeout=5)
+    spin_until(lambda: False, timeout=1.5)
+    hold = watcher.trajectories[-1]
+    assert len(watcher.trajectories) > n and len(hold.points) == 1
     n = len(watcher.trajectories)
     spin_until(lambda: False, timeout=1.5)
     assert len(watcher.trajectories) == n
+    assert np.allclose(watcher.joint_states[-1].position, hold.points[0].positions, atol=0.02)
 
     # A watched status that stays ERROR stops it (published by the test as scheme_node would publish its own).
     assert _call(ros_node, spin_until, "resume").success

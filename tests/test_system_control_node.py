@@ -113,5 +113,7 @@ def test_control_node_executes_an_ik_answer_through_the_controller(start_node, r
     assert result.success and result.executed, result.reason
     assert result.reached_source == "observed" and result.reached_error < 0.02, result
     assert len(trajectories) == 1 and trajectories[0].points
+    seen = len(truth)  # the arm has settled: the next ground-truth frames show where it stands
+    assert spin_until(lambda: len(truth) > seen, timeout=30), "no ground truth from sim_node"
     _, last = conversions.observations_from_msg(truth[-1])[:2]
     assert np.linalg.norm(last[end_effector][:3, 3] - target) < 0.010

@@ -134,3 +134,30 @@ def test_rendered_mode_answers_commands_with_images_over_dds(start_node, ros_nod
     for msg in recorder.messages["ground_truth/marker_poses"]:
         _, poses, _ = conversions.observations_from_msg(msg)
         assert any(matches(poses, truth_of_command(tree, camera, actions)) for _, _, actions in sent)
+
+
+def test_as_a_controller_it_follows_the_cubic_of_a_partial_trajectory_and_rejects_an_empty_one(
+        start_node, ros_node, spin_until):
+    """A one-point trajectory naming one joint, with zero velocity, over 2 s: that joint follows the cubic a
+    JointTrajectoryController would (at a quarter of the time, 5/32 of the way, not the 1/4 of a straight line), the
+    others hold, it ends at the goal; an empty trajectory is rejected and does not stop the arm."""
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    start_node("body_scheme_nodes", "sim_node", {"robot": "powercube_6dof", "perception_mode": "noise"})
+    states = []
+    ros_node.create_subscription(JointState, "/joint_states", states.append, 100)
+    trajectories = ros_node.create_publisher(JointTrajectory, "joint_trajectory_controller/joint_trajectory", 10)
+    assert spin_until(lambda: len(states) > 5 and trajectories.get_subscription_count() > 0, timeout=30)
+    spin_until(lambda: False, timeout=0.5)
+    goal, duration = 0.8, 2.0
+    trajectories.publish(JointTrajectory(joint_names=["joint2"], points=[JointTrajectoryPoint(
+        positions=[goal], velocities=[0.0], time_from_start=Duration(sec=2))]))
+    spin_until(lambda: False, timeout=0.5)
+    trajectories.publish(JointTrajectory(joint_names=["joint2"]))  # empty: rejected, the move goes on
+    assert spin_until(lambda: abs(states[-1].position[1] - goal) < 1e-6, timeout=10)
+    readings = [(conversions.seconds_from_stamp(m.header.stamp), np.array(m.position)) for m in states]
+    t0 = max(t for t, p in readings if p[1] == 0.0)  # the last reading before the move
+    quarter = min(readings, key=lambda r: abs(r[0] - t0 - duration / 4))
+    assert quarter[1][1] == pytest.approx(goal * 5 / 32, abs=0.03 * goal)
+    assert all(np.all(p[[0, 2, 3, 4, 5]] == 0.0) for _, p in readings)

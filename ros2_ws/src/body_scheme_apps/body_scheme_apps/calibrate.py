@@ -163,7 +163,7 @@ def main(argv=None):
             if args.urdf or args.markers:
                 if not (args.urdf and args.markers):
                     parser.error("--urdf and --markers go together")
-                nominal = tree_from_urdf(pathlib.Path(args.urdf).read_text(), load_markers_yaml(args.markers))
+                nominal = tree_from_urdf(pathlib.Path(args.urdf).read_bytes(), load_markers_yaml(args.markers))
         names = (args.joint_names.split(",") if args.joint_names else
                  list(nominal.action_joint_names) if nominal is not None else
                  [f"joint_{k}" for k in range(learner.n_actions)])

@@ -2,8 +2,9 @@
 
 What a node that drives an arm through ros2_control's ``JointTrajectoryController`` needs, without ROS: how long a
 point-to-point move takes under per-joint velocity and acceleration limits (:func:`trajectory_duration`), which
-commands are allowed (:class:`SafetyLimits`: joint limits shrunk by a margin and a workspace box around the root),
-and when the arm has come to rest at its goal (:class:`SettleDetector`).
+postures the move passes through (:func:`path_samples`), which are allowed (:class:`SafetyLimits`: joint limits
+shrunk by a margin and a workspace box around the root), and when the arm has come to rest at its goal
+(:class:`SettleDetector`).
 """
 
 from __future__ import annotations
@@ -15,11 +16,16 @@ import numpy as np
 
 from .errors import InvalidInputError
 
-__all__ = ["trajectory_duration", "SafetyLimits", "SettleDetector"]
+__all__ = ["trajectory_duration", "path_samples", "SafetyLimits", "SettleDetector"]
 
 
 def trajectory_duration(start, goal, max_velocity, max_acceleration, min_duration=0.1):
-    """Time of a synchronised point-to-point move with a trapezoidal (or triangular) velocity profile per joint.
+    """Time of a one-point trajectory that a ``JointTrajectoryController`` executes within per-joint limits.
+
+    Given one point with positions and zero velocities, the controller moves each joint from rest along the cubic
+    ``p(s) = p0 + d (3 s^2 - 2 s^3)``, ``s = t / T``: its peak speed is ``1.5 d / T`` (at ``s = 1/2``) and its peak
+    acceleration ``6 d / T^2`` (at the start and the end). The duration is the smallest ``T`` that keeps every joint
+    within both limits.
 
     Parameters
     ----------
@@ -33,8 +39,7 @@ def trajectory_duration(start, goal, max_velocity, max_acceleration, min_duratio
     Returns
     -------
     duration : float
-        Seconds: the slowest joint's time to cover its distance from rest to rest, ``2 sqrt(d / a)`` when it never
-        reaches ``v`` (``d < v^2 / a``), else ``d / v + v / a``.
+        Seconds: ``max over joints of max(1.5 d / v, sqrt(6 d / a))``, at least ``min_duration``.
     """
     start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
     if start.shape != goal.shape or start.ndim != 1:
@@ -46,8 +51,19 @@ def trajectory_duration(start, goal, max_velocity, max_acceleration, min_duratio
     if not (np.all(np.isfinite(start)) and np.all(np.isfinite(goal))):
         raise InvalidInputError("start and goal must be finite")
     d = np.abs(goal - start)
-    t = np.where(d < v * v / a, 2.0 * np.sqrt(d / a), d / v + v / a)
+    t = np.maximum(1.5 * d / v, np.sqrt(6.0 * d / a))
     return max(float(t.max(initial=0.0)), float(min_duration))
+
+
+def path_samples(start, goal, max_step=0.05):
+    """Postures along the straight joint-space path from ``start`` to ``goal`` (what a controller's interpolation
+    passes through), no joint moving more than ``max_step`` (rad, m) between two; ``start`` excluded, ``goal``
+    included. Shape (k, m), k >= 1."""
+    start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
+    if not (max_step > 0):
+        raise InvalidInputError(f"max_step must be > 0, got {max_step!r}")
+    n = max(1, int(np.ceil(np.max(np.abs(goal - start), initial=0.0) / max_step)))
+    return start + np.linspace(0.0, 1.0, n + 1)[1:, None] * (goal - start)
 
 
 @dataclass
@@ -107,7 +123,11 @@ class SafetyLimits:
 
 class SettleDetector:
     """Whether an arm has come to rest at its goal: every joint within ``tolerance`` of the goal and moving less
-    than ``still`` between readings ``window`` s apart; or ``timeout`` s after the move should have ended.
+    than ``still`` between readings taken at least ``window`` s apart; or ``timeout`` s after the move should have
+    ended (:meth:`expired`).
+
+    Readings are judged by the time they were taken, so a joint state that stopped arriving never looks still: the
+    same reading fed twice is ignored.
 
     Parameters
     ----------
@@ -118,7 +138,7 @@ class SettleDetector:
     window : float
         s.
     timeout : float
-        s after the planned end of the move at which it counts as settled anyway (``timed_out``).
+        s after the planned end of the move at which it counts as settled anyway.
     """
 
     def __init__(self, tolerance=0.01, still=0.002, window=0.1, timeout=2.0):
@@ -133,21 +153,23 @@ class SettleDetector:
         self._goal = np.asarray(goal, dtype=float)
         self._end = float(planned_end)
         self._previous = None
-        self.timed_out = False
+        self._last_stamp = -math.inf
 
-    def update(self, positions, now):
-        """Feed a joint reading (m,) taken at ``now`` (s); returns whether the arm has settled."""
-        if self._goal is None:
+    def reading(self, positions, stamp):
+        """Feed a joint reading (m,) taken at ``stamp`` (s); returns whether the arm has settled at the goal."""
+        if self._goal is None or stamp <= self._last_stamp:
             return False
+        self._last_stamp = stamp
         positions = np.asarray(positions, dtype=float)
-        if now >= self._end + self.timeout:
-            self.timed_out = True
-            return True
         if positions.shape != self._goal.shape or not np.all(np.isfinite(positions)):
             return False
         at_goal = bool(np.all(np.abs(positions - self._goal) <= self.tolerance))
-        if self._previous is None or now - self._previous[0] >= self.window - 1e-9:
+        if self._previous is None or stamp - self._previous[0] >= self.window - 1e-9:
             still = self._previous is not None and bool(np.all(np.abs(positions - self._previous[1]) <= self.still))
-            self._previous = (now, positions)
+            self._previous = (stamp, positions)
             return at_goal and still
         return False
+
+    def expired(self, now):
+        """Whether ``timeout`` s have passed since the planned end of the move at time ``now`` (s)."""
+        return self._goal is not None and now >= self._end + self.timeout

@@ -40,6 +40,7 @@ from body_scheme_core.errors import InvalidInputError
 __all__ = [
     "MarkerTracker",
     "check_image",
+    "rejection_kind",
     "marker_object_points",
     "DOCUMENTED_TRANS_ERROR_MEDIAN",
     "DOCUMENTED_TRANS_ERROR_P90",
@@ -287,8 +288,14 @@ class MarkerTracker:
         projected, _ = cv2.projectPoints(object_points, rvec, tvec, self.camera_matrix, self.dist_coeffs)
         error = math.sqrt(np.mean(np.sum((projected.reshape(4, 2) - image_points) ** 2, axis=1)))
         if error > self.max_reprojection_error:
-            return None, f"reprojection error {error:.2f} px > {self.max_reprojection_error} px"
+            return None, f"reprojection error: {error:.2f} px > {self.max_reprojection_error} px"
         camera2marker = np.eye(4)
         camera2marker[:3, :3] = cv2.Rodrigues(rvec)[0]
         camera2marker[:3, 3] = tvec[:, 0]
         return camera2marker, None
+
+
+def rejection_kind(reason):
+    """The counter key of a rejection reason: its words before the first colon (the numbers after it would make
+    every rejection a key of its own)."""
+    return str(reason).split(":", 1)[0].strip()

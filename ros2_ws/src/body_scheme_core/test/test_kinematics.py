@@ -347,6 +347,12 @@ def test_a_mimic_joint_follows_its_action_with_multiplier_and_offset():
         np.testing.assert_allclose(tree.link_poses(a)[link], T, atol=1e-5)
 
 
+def test_a_mimic_of_a_passive_joint_sits_at_its_offset():
+    """finger1 has no action (passive, held at 0): finger2, which mimics it, sits at its offset, not at 0."""
+    tree = KinematicTree.from_urdf(_gripper_urdf(), [Marker(1, "base")], joint_actions={"wrist": 0})
+    assert tree.joint_positions([0.3]) == pytest.approx({"wrist": 0.3, "finger1": 0.0, "finger2": 0.01, "twin": 0.6})
+
+
 def test_an_engineered_model_through_a_mimic_joint_is_exact():
     """The engineered model between the two fingers predicts the tree's relative pose and its Jacobian matches
     finite differences (the mimic's multiplier enters the chain rule)."""

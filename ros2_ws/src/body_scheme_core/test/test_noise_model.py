@@ -83,6 +83,27 @@ def test_one_marker_with_a_wrong_model_does_not_move_the_pooled_noise():
     assert noise.axis_sigmas(5)[0] == pytest.approx(2 * noise.axis_sigmas()[0])
 
 
+def test_a_marker_seen_from_one_viewpoint_is_left_out_of_the_pooled_estimate():
+    """Three of five markers never move (spread under STILL_SPREAD) and their residuals are larger (a still
+    marker's errors repeat): the pooled estimate follows the two that move, although a median over all five would
+    follow the still majority; with nothing moving, the still markers are all there is."""
+    from body_scheme_core.noise_model import STILL_SPREAD
+
+    rng = np.random.default_rng(6)
+    still = [np.tile([0.1 * k, 0.3, 2.0], (100, 1)) + rng.normal(scale=STILL_SPREAD / 10, size=(100, 3))
+             for k in range(3)]
+    moving = [rng.normal(scale=0.3, size=(100, 3)) + [0.0, 0.3, 2.0] for _ in range(2)]
+    parts, rt, rr, pos = _camera_residuals(rng, (1, 2, 3, 4, 5), 100, 0.004, 0.004, 0.02, still + moving)
+    rt[parts <= 3] *= 3.0
+    noise = NoiseModel((1, 2, 3, 4, 5), 0.05, 0.2, auto=(True, True))
+    noise.update(parts, rt, rr, pos)
+    assert noise.axis_sigmas()[0] == pytest.approx(0.004, rel=0.1)
+    assert noise.n_observations == 200
+    only_still = parts <= 3
+    noise.update(parts[only_still], rt[only_still], rr[only_still], pos[only_still])
+    assert noise.axis_sigmas()[0] == pytest.approx(0.012, rel=0.1) and noise.n_observations == 300
+
+
 def test_an_auto_prior_yields_to_data_and_a_given_prior_weighs_like_fifty_observations():
     """With "auto" the first estimate replaces the prior; a prior the user gave is averaged with the data."""
     rng = np.random.default_rng(4)

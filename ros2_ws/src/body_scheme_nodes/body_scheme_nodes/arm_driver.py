@@ -19,11 +19,14 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.motion import SafetyLimits, SettleDetector, trajectory_duration
+from body_scheme_core.motion import SafetyLimits, SettleDetector, path_samples, trajectory_duration
 
 from . import conversions
 
 __all__ = ["ArmDriver", "declare_driver_parameters", "driver_from_parameters"]
+
+#: Largest joint step (rad, m) between two postures checked along a move's path.
+PATH_STEP = 0.05
 
 
 def declare_driver_parameters(node):
@@ -39,6 +42,7 @@ def declare_driver_parameters(node):
         ("settle_window", 0.1), ("settle_timeout", 2.0))}
     values["package_path"] = declare_list_parameter(node, "package_path", str)
     values["workspace"] = declare_list_parameter(node, "workspace", float)
+    values["joint_names"] = declare_list_parameter(node, "joint_names", str)
     return values
 
 
@@ -54,15 +58,10 @@ def driver_from_parameters(node, values):
     settle = SettleDetector(values["settle_tolerance"], values["settle_still"], values["settle_window"],
                             values["settle_timeout"])
     tree = load_robot(values["robot"], markers=())
-
-    def points(a):  # every link origin, in the root link's frame
-        return np.array([T[:3, 3] for T in tree.link_poses(a).values()])
-
-    safety = SafetyLimits(tree.action_lower, tree.action_upper, values["limit_margin"],
-                          np.reshape(workspace, (2, 3)) if workspace else None, points if workspace else None)
     screen = CollisionScreen(values["robot"], package_path=values["package_path"]) \
         if values["collision_check"] else None
-    return ArmDriver(node, tree.action_joint_names, safety, screen, values["max_velocity"],
+    return ArmDriver(node, tree, values["joint_names"] or tree.action_joint_names, values["limit_margin"],
+                     np.reshape(workspace, (2, 3)) if workspace else None, screen, values["max_velocity"],
                      values["max_acceleration"], settle, values["controller"], values["joint_states_topic"])
 
 
@@ -72,9 +71,15 @@ class ArmDriver:
     Parameters
     ----------
     node : rclpy.node.Node
+    tree : KinematicTree
+        The robot (limits, forward kinematics for the workspace box); its action joints are the robot's joints.
     joint_names : sequence of str
-        Joint per action, in action order.
-    safety : SafetyLimits
+        The joints this driver commands, a subset of the robot's (e.g. an arm's without its gripper's). The others
+        are read from the joint states when they are there (else held at 0) and are never sent.
+    limit_margin : float
+        rad (m) kept from every joint limit (:class:`~body_scheme_core.motion.SafetyLimits`).
+    workspace : array-like, shape (2, 3) or None
+        Box in the root link's frame that every link origin stays in, at every checked posture of a move.
     screen : CollisionScreen or None
     max_velocity, max_acceleration : float
         Per-joint limits of the moves (rad/s, rad/s^2; :func:`~body_scheme_core.motion.trajectory_duration`).
@@ -82,24 +87,32 @@ class ArmDriver:
     controller : str
         The ``JointTrajectoryController``'s name: goals go to ``<controller>/joint_trajectory``.
     joint_states_topic : str
-
-    Attributes
-    ----------
-    counts : Counter
-        ``sent``, ``settled``, ``settle_timeouts``, ``halted``, ``refused.<reason>`` (joint limit, workspace,
-        collision), ``joint_states`` received and ``joint_states_rejected``.
     """
 
-    def __init__(self, node, joint_names, safety, screen, max_velocity, max_acceleration, settle, controller,
-                 joint_states_topic):
+    def __init__(self, node, tree, joint_names, limit_margin, workspace, screen, max_velocity, max_acceleration,
+                 settle, controller, joint_states_topic):
         self.node = node
+        self.robot_joints = tuple(tree.action_joint_names)
         self.joint_names = tuple(joint_names)
-        self.safety, self.screen, self.settle = safety, screen, settle
+        unknown = sorted(set(self.joint_names) - set(self.robot_joints))
+        if unknown or len(set(self.joint_names)) != len(self.joint_names) or not self.joint_names:
+            raise InvalidInputError(f"joint_names must name joints of the robot, each once, got "
+                                    f"{list(self.joint_names)}; the robot's are {list(self.robot_joints)}")
+        self._index = np.array([self.robot_joints.index(name) for name in self.joint_names])
+        self._others = [name for name in self.robot_joints if name not in self.joint_names]
+
+        def link_origins(a):  # in the root link's frame, at command a with the other joints where they are
+            return np.array([T[:3, 3] for T in tree.link_poses(self.posture(a)).values()])
+
+        self.safety = SafetyLimits(tree.action_lower[self._index], tree.action_upper[self._index], limit_margin,
+                                   workspace, link_origins if workspace is not None else None)
+        self.screen, self.settle = screen, settle
         self.max_velocity, self.max_acceleration = max_velocity, max_acceleration
         trajectory_duration(np.zeros(1), np.ones(1), max_velocity, max_acceleration)  # validates the limits now
-        self.counts = Counter()
+        self._counts = Counter()
         self.goal = None  # the goal being moved to, until it settled
-        self._positions = None  # (time s, positions) of the last joint state
+        self._reading = None  # (receipt time s, positions of joint_names) of the last joint state
+        self._held = np.zeros(len(self.robot_joints))  # the robot's last known posture (action order)
         self._lock = threading.Lock()
         self.pub_trajectory = node.create_publisher(JointTrajectory, f"{controller}/joint_trajectory", 10)
         node.create_subscription(JointState, joint_states_topic, self._on_joint_states, 50)
@@ -107,30 +120,66 @@ class ArmDriver:
     def _now(self):
         return self.node.get_clock().now().nanoseconds * 1e-9
 
+    def _count(self, key):
+        with self._lock:
+            self._counts[key] += 1
+
+    @property
+    def counts(self):
+        """A copy of the counters: ``sent``, ``settled``, ``settle_timeouts``, ``halted``, ``refused.<reason>``
+        (joint limit, workspace, collision), ``joint_states`` received and ``joint_states_rejected``."""
+        with self._lock:
+            return dict(self._counts)
+
     def _on_joint_states(self, msg):
         try:
             _, positions = conversions.actions_from_joint_state(msg, self.joint_names)
         except BodySchemeError:
-            self.counts["joint_states_rejected"] += 1
+            self._count("joint_states_rejected")
             return
+        by_name = dict(zip(msg.name, msg.position, strict=False))
         with self._lock:
-            self._positions = (self._now(), positions)
-            self.counts["joint_states"] += 1
+            self._reading = (self._now(), positions)
+            self._held[self._index] = positions
+            for name in self._others:
+                if name in by_name and np.isfinite(by_name[name]):
+                    self._held[self.robot_joints.index(name)] = by_name[name]
+            self._counts["joint_states"] += 1
 
     @property
     def positions(self):
-        """The arm's last reported joint positions (action order), or None before the first joint state."""
+        """The commanded joints' last reported positions, or None before the first joint state."""
         with self._lock:
-            return None if self._positions is None else self._positions[1].copy()
+            return None if self._reading is None else self._reading[1].copy()
+
+    def joint_state_age(self):
+        """Seconds since the last joint state, or None before the first."""
+        with self._lock:
+            return None if self._reading is None else self._now() - self._reading[0]
+
+    def posture(self, a):
+        """The robot's whole posture (its action order) with the commanded joints at ``a``."""
+        with self._lock:
+            full = self._held.copy()
+        full[self._index] = a
+        return full
 
     def refusal(self, goal, start=None):
-        """Why ``goal`` may not be sent from ``start`` (default: the arm's position), or None."""
+        """Why ``goal`` may not be sent from ``start`` (default: the arm's position), or None. The joint limits are
+        checked at the goal; the workspace box and collisions at every :data:`PATH_STEP` along the way (only at the
+        goal for the box when the arm starts outside it: the way back in is allowed)."""
+        goal = np.asarray(goal, dtype=float)
         why = self.safety.violation(goal)
-        if why is None and self.screen is not None:
-            start = self.positions if start is None else start
-            if self.screen.collides(start, goal):
-                why = "collision"
-        return why
+        if why is not None:
+            return why
+        start = self.positions if start is None else np.asarray(start, dtype=float)
+        path = path_samples(goal if start is None else start, goal, PATH_STEP)
+        if start is not None and self.safety.violation(start) != "workspace":
+            if any(self.safety.violation(a) == "workspace" for a in path[:-1]):
+                return "workspace"
+        if self.screen is not None and self.screen.collides([self.posture(a) for a in path]):
+            return "collision"
+        return None
 
     def send(self, goal):
         """Check ``goal`` and send it as a one-point trajectory; returns None, or the refusal (counted)."""
@@ -140,40 +189,46 @@ class ArmDriver:
             return "no joint state yet"
         why = self.refusal(goal, start)
         if why is not None:
-            self.counts[f"refused.{why}"] += 1
+            self._count(f"refused.{why}")
             return why
         duration = trajectory_duration(start, goal, self.max_velocity, self.max_acceleration)
-        seconds = int(duration)
-        point = JointTrajectoryPoint(positions=[float(v) for v in goal], velocities=[0.0] * len(goal),
-                                     time_from_start=Duration(sec=seconds, nanosec=int((duration - seconds) * 1e9)))
-        msg = JointTrajectory(joint_names=list(self.joint_names), points=[point])  # stamp 0: start at once
         self.goal = goal
         self.settle.start(goal, self._now() + duration)
-        self.pub_trajectory.publish(msg)
-        self.counts["sent"] += 1
+        self.pub_trajectory.publish(self._trajectory(goal, duration))
+        self._count("sent")
         return None
 
+    def _trajectory(self, positions, duration):
+        """A one-point trajectory to ``positions`` at rest after ``duration`` s, stamped 0 (start at once)."""
+        seconds = int(duration)
+        point = JointTrajectoryPoint(positions=[float(v) for v in positions], velocities=[0.0] * len(positions),
+                                     time_from_start=Duration(sec=seconds, nanosec=int((duration - seconds) * 1e9)))
+        return JointTrajectory(joint_names=list(self.joint_names), points=[point])
+
     def settled(self):
-        """The goal being moved to once the arm has come to rest at it (or timed out: counted), else None; a
-        settled goal is done."""
+        """The goal being moved to once the arm has come to rest at it (or ``settle.timeout`` after the planned
+        end: counted as a settle timeout), else None; a settled goal is done."""
         if self.goal is None:
             return None
         with self._lock:
-            reading = self._positions
-        now = self._now()
-        done = self.settle.update(reading[1] if reading is not None else np.full(len(self.joint_names), np.nan),
-                                  now)
-        if not done:
+            reading = self._reading
+        at_rest = reading is not None and self.settle.reading(reading[1], reading[0])
+        if not at_rest and not self.settle.expired(self._now()):
             return None
-        self.counts["settle_timeouts" if self.settle.timed_out else "settled"] += 1
+        self._count("settled" if at_rest else "settle_timeouts")
         goal, self.goal = self.goal, None
         return goal
 
     def halt(self):
-        """Stop the arm where it is: an empty trajectory (a ``JointTrajectoryController`` then holds its position)."""
-        self.pub_trajectory.publish(JointTrajectory(joint_names=list(self.joint_names)))
+        """Stop the arm where it is: a one-point trajectory to its last reported position, at rest within the time
+        the acceleration limit needs to stop from full speed (a ``JointTrajectoryController`` rejects an empty
+        trajectory)."""
+        positions = self.positions
         self.goal = None
-        self.counts["halted"] += 1
+        self._count("halted")
+        if positions is not None:
+            self.pub_trajectory.publish(self._trajectory(positions, max(0.1, 1.5 * self.max_velocity /
+                                                                         self.max_acceleration)))
 
     def close(self):
         if self.screen is not None:

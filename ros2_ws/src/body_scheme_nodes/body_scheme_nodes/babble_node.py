@@ -5,12 +5,15 @@ workspace box or if the robot would hit itself or the ground on the way (pybulle
 ``trajectory_msgs/JointTrajectory`` to ``<controller>/joint_trajectory`` with a duration from the velocity and
 acceleration limits, wait until ``/joint_states`` settles at it (or ``settle_timeout`` after the planned end), then
 publish the commanded positions on ``joint_commands`` stamped at the settle time: the action signal scheme_node
-learns from. After ``dwell`` seconds (the camera takes its picture) the next step starts. The ``control_msgs``
+learns from. The next step starts once the camera has sent a frame taken after the settle time (``wait_for_frame``)
+and ``dwell`` seconds have passed. ``joint_names`` limits the commanded joints to a subset of the robot's (e.g. an
+arm without its gripper; give scheme_node the same list). The ``control_msgs``
 ``FollowJointTrajectory`` action is not used: control_msgs is not on the PyPI route (docs/your-robot.md).
 
-It stops by itself (an empty trajectory: the controller holds the arm where it is) when scheme_node's /diagnostics
-status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning stalled), or when the camera
-goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s).
+It stops by itself (a trajectory to where the arm is: the controller holds it there) when scheme_node's /diagnostics
+status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning stalled), when the camera
+goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s), or when the joint states do (none for
+``joint_state_timeout`` s).
 
 Subscriptions
 -------------
@@ -69,24 +72,30 @@ class BabbleNode(Node):
         self.error_hold = p("error_hold", 2.0).value
         camera_topic = p("camera_topic", "observations").value
         self.camera_timeout = p("camera_timeout", 3.0).value
+        self.wait_for_frame = p("wait_for_frame", True).value
+        self.joint_state_timeout = p("joint_state_timeout", 3.0).value
         self.state = "paused" if p("start_paused", False).value else "waiting"
         update_period = p("update_period", 0.02).value
         if not (self.dwell >= 0 and self.camera_timeout >= 0 and self.error_hold >= 0 and update_period > 0
-                and self.steps >= 0):
-            raise InvalidInputError("dwell, camera_timeout, error_hold and steps must be >= 0 and update_period > 0")
+                and self.steps >= 0 and self.joint_state_timeout >= 0):
+            raise InvalidInputError("dwell, camera_timeout, joint_state_timeout, error_hold and steps must be >= 0 "
+                                    "and update_period > 0")
         self.driver = driver_from_parameters(self, declare_driver_parameters(self))
         self.rng = np.random.default_rng(seed)
         self.counts = Counter()
         self.stop_reason = ""
         self.next_at = 0.0  # monotonic time the next step may start (after the dwell)
+        self.started = None  # monotonic time the first joint state was seen
         self.last_camera = None  # monotonic time of the last camera message
+        self.last_frame_stamp = -np.inf  # header stamp (s) of the last camera message
+        self.settled_stamp = -np.inf  # stamp (s) of the last action signal
         self.error_since = None  # monotonic time the watched status turned ERROR (None: it is not)
 
         work = MutuallyExclusiveCallbackGroup()
         self.pub_action = self.create_publisher(JointState, self.action_topic, 100)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
-        self.create_subscription(MarkerPoses, camera_topic, self._on_camera, 10)
+        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10, callback_group=work)
+        self.create_subscription(MarkerPoses, camera_topic, self._on_camera, 10, callback_group=work)
         for name, handler in (("pause", self._on_pause), ("resume", self._on_resume), ("stop", self._on_stop)):
             self.create_service(Trigger, f"~/{name}", handler, callback_group=work)
         self.create_timer(update_period, self._on_timer, callback_group=work)
@@ -94,8 +103,9 @@ class BabbleNode(Node):
         self.get_logger().info(f"babble_node ready: joints {list(self.driver.joint_names)}, {self.state}")
 
     # -- inputs -----------------------------------------------------------------------------------------------------
-    def _on_camera(self, _msg):
+    def _on_camera(self, msg):
         self.last_camera = time.monotonic()
+        self.last_frame_stamp = max(self.last_frame_stamp, conversions.seconds_from_stamp(msg.header.stamp))
 
     def _on_diagnostics(self, msg):
         if not self.watch:
@@ -124,8 +134,11 @@ class BabbleNode(Node):
         if previous not in ("paused", "stopped"):
             response.success, response.message = False, f"not paused or stopped ({previous})"
             return response
-        self.state, self.stop_reason = "idle", ""
-        self.last_camera = time.monotonic() if self.last_camera is not None else None  # a fresh watchdog period
+        self.state, self.stop_reason = ("idle" if self.started is not None else "waiting"), ""
+        self.error_since = None  # the watched status must stay ERROR for error_hold again
+        now = time.monotonic()
+        self.last_camera = now if self.last_camera is not None else None  # a fresh watchdog period
+        self.started = now if self.started is not None else None
         response.success, response.message = True, f"resumed (was {previous})"
         return response
 
@@ -150,22 +163,23 @@ class BabbleNode(Node):
                 self.get_logger().info("waiting for /joint_states", throttle_duration_sec=5.0)
                 return
             self.state, self.started = "idle", now
-        if self.camera_timeout > 0 and self.state != "stopped":
-            quiet_since = self.last_camera if self.last_camera is not None else self.started
-            if now - quiet_since > self.camera_timeout:
-                self._stop(f"the camera is quiet: nothing on the camera topic for {now - quiet_since:.1f} s")
+        if self.state != "stopped":
+            why = self._quiet(now)
+            if why:
+                self._stop(why)
                 return
         if self.driver.goal is not None:
             goal = self.driver.settled()
             if goal is not None:
-                msg = conversions.joint_state_msg(self.get_clock().now().nanoseconds * 1e-9,
-                                                  self.driver.joint_names, goal)
-                self.pub_action.publish(msg)
+                self.settled_stamp = self.get_clock().now().nanoseconds * 1e-9
+                self.pub_action.publish(conversions.joint_state_msg(self.settled_stamp, self.driver.joint_names, goal))
                 self.counts["actions"] += 1
                 self.next_at = now + self.dwell
             return
         if self.state != "idle" or now < self.next_at:
             return
+        if self.wait_for_frame and self.last_frame_stamp < self.settled_stamp:
+            return  # the camera has not yet seen the arm at the last action
         if self.steps and self.counts["actions"] >= self.steps:
             self.state = "done"
             self.get_logger().info(f"babbled {self.counts['actions']} commands: done")
@@ -177,6 +191,17 @@ class BabbleNode(Node):
             if why is None:
                 return
         self.counts["steps_without_a_safe_command"] += 1
+
+    def _quiet(self, now):
+        """Why babbling must stop because the camera or the joint states went quiet, or ""."""
+        if self.camera_timeout > 0:
+            quiet_since = self.last_camera if self.last_camera is not None else self.started
+            if now - quiet_since > self.camera_timeout:
+                return f"the camera is quiet: nothing on the camera topic for {now - quiet_since:.1f} s"
+        age = self.driver.joint_state_age()
+        if self.joint_state_timeout > 0 and age is not None and age > self.joint_state_timeout:
+            return f"the joint states are quiet: none for {age:.1f} s"
+        return ""
 
     def _publish_diagnostics(self):
         level = {"stopped": DiagnosticStatus.ERROR if self.stop_reason != "stop requested" else DiagnosticStatus.WARN,

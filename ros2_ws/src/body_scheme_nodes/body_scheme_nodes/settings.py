@@ -254,7 +254,7 @@ def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids):
     """
     if not markers_path:
         raise InvalidInputError("urdf_path needs markers_path: the marker placement file of the robot")
-    tree = KinematicTree.from_urdf(pathlib.Path(urdf_path).read_text(), markers=load_markers_yaml(markers_path),
+    tree = KinematicTree.from_urdf(pathlib.Path(urdf_path).read_bytes(), markers=load_markers_yaml(markers_path),
                                    joint_actions={name: k for k, name in enumerate(joint_names)})
     if sorted(tree.marker_ids) != sorted(part_ids):
         raise InvalidInputError(f"markers of {markers_path} are {sorted(tree.marker_ids)}, part_ids are "

@@ -7,10 +7,11 @@ joint_commands : sensor_msgs/JointState  (reliable, depth 10)
     Commanded joint positions by joint name. Only the newest pending command is executed (older ones are counted
     as superseded). Ignored while babbling (counted), executed once ``babbling_steps`` commands were babbled.
 <controller>/joint_trajectory : trajectory_msgs/JointTrajectory  (reliable, depth 10)
-    As a ros2_control ``JointTrajectoryController``: the arm moves from where it is through the points, linearly
-    interpolated over their ``time_from_start`` (every joint of the robot must be named; an empty trajectory stops
-    the arm where it is). While it moves no picture is taken; at rest, one every ``camera_period``. From the first
-    trajectory on, ``joint_commands`` is the action signal of whoever sends them and is no longer executed.
+    As a ros2_control ``JointTrajectoryController``: the arm moves from where it is through the points over their
+    ``time_from_start``, by cubics where the points give velocities, else by straight lines; joints not named hold;
+    an empty trajectory is rejected, as Jazzy's controller does. While it moves no picture is taken; at rest, one
+    every ``camera_period``. From the first trajectory on, ``joint_commands`` is the action signal of whoever sends
+    them and is no longer executed.
 
 Publishers
 ----------
@@ -71,6 +72,7 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from scipy.interpolate import CubicHermiteSpline, make_interp_spline
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory
 
@@ -176,9 +178,8 @@ class SimNode(Node):
         self.counts = Counter()
         self._pending = None
         self._pending_trajectory = None
-        self._motion = None  # (start time s, times (k,), positions (k, m)) of the trajectory being executed
+        self._motion = None  # (start time s, duration s, path(t) -> positions) of the trajectory being executed
         self._next_frame = None  # trajectory mode: time of the next picture at rest
-        self._next_joint_state = 0.0
         self._controller = False  # a trajectory arrived: sim_node acts as a JointTrajectoryController from now on
         self._lock = threading.Lock()
 
@@ -189,6 +190,9 @@ class SimNode(Node):
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
         self.create_subscription(JointTrajectory, f"{controller}/joint_trajectory", self._on_trajectory, 10)
         self.pub_joint_states = self.create_publisher(JointState, "/joint_states", 10)
+        # Its own group, as a real arm's joint_state_broadcaster is its own process: rendering does not hold it up.
+        self.create_timer(self.joint_state_period, self._publish_joint_states,
+                          callback_group=MutuallyExclusiveCallbackGroup())
         self.create_timer(update_period, self._on_update_timer, callback_group=work)
         if self.mode == "rendered":
             self.pub_image = self.create_publisher(Image, "camera/image_raw", IMAGE_QOS)
@@ -233,10 +237,6 @@ class SimNode(Node):
         if trajectory is not None:
             self._start_trajectory(trajectory, now)
         self._move(now)
-        if now >= self._next_joint_state:
-            self._next_joint_state = now + self.joint_state_period
-            self.pub_joint_states.publish(conversions.joint_state_msg(now, self.world.action_joint_names,
-                                                                      self.world.joint_positions()))
         if msg is None:
             return
         try:
@@ -246,6 +246,10 @@ class SimNode(Node):
             self.get_logger().warn(f"rejected joint command: {error}", throttle_duration_sec=5.0)
             return
         self._step(actions, stamp)
+
+    def _publish_joint_states(self):
+        self.pub_joint_states.publish(conversions.joint_state_msg(self._now(), self.world.action_joint_names,
+                                                                  self.world.joint_positions()))
 
     def _subscribers_ready(self):
         """Whether babbling may start (see ``wait_for_subscribers``); logs while waiting."""
@@ -283,44 +287,59 @@ class SimNode(Node):
             self.get_logger().info(f"babbled {self.n_babbled} commands: now executing joint_commands")
 
     def _start_trajectory(self, msg, now):
-        """Begin executing a JointTrajectory from where the arm is (an empty one stops it there)."""
+        """Begin executing a JointTrajectory from where the arm is, as a ``JointTrajectoryController`` does: joints
+        it does not name hold; points with velocities are joined by cubics, points without by straight lines; an
+        empty trajectory is rejected (a Jazzy controller rejects it too)."""
         names = list(self.world.action_joint_names)
-        if not msg.points:
-            self._motion = None
-            self.counts["trajectories_stopped"] += 1
-            return
         try:
-            if sorted(msg.joint_names) != sorted(names):
-                raise InvalidInputError(f"a trajectory must name the joints {names}, got {list(msg.joint_names)}")
-            order = [list(msg.joint_names).index(name) for name in names]
+            if not msg.points:
+                raise InvalidInputError("an empty trajectory")
+            given = list(msg.joint_names)
+            if len(set(given)) != len(given) or not set(given) <= set(names) or not given:
+                raise InvalidInputError(f"a trajectory names joints of {names}, each once, got {given}")
+            index = [names.index(name) for name in given]
             times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points])
-            if any(len(p.positions) != len(names) for p in msg.points):
+            if any(len(p.positions) != len(given) for p in msg.points):
                 raise InvalidInputError("every trajectory point needs a position per joint")
-            goals = np.array([[p.positions[k] for k in order] for p in msg.points], dtype=float)
-            if not np.all(np.isfinite(goals)):
-                raise InvalidInputError("trajectory positions must be finite")
-            if not (times[0] >= 0 and np.all(np.diff(times) > 0)):
-                raise InvalidInputError(f"time_from_start must increase, got {times.tolist()}")
+            cubic = all(len(p.velocities) == len(given) for p in msg.points)
+            goals = np.array([p.positions for p in msg.points], dtype=float)
+            speeds = np.array([p.velocities for p in msg.points], dtype=float) if cubic else None
+            if not (np.all(np.isfinite(goals)) and (speeds is None or np.all(np.isfinite(speeds)))):
+                raise InvalidInputError("trajectory positions and velocities must be finite")
+            if not (times[0] > 0 and np.all(np.diff(times) > 0)):
+                raise InvalidInputError(f"time_from_start must be > 0 and increase, got {times.tolist()}")
         except InvalidInputError as error:
             self.counts["trajectories_rejected"] += 1
             self.get_logger().warn(f"rejected trajectory: {error}", throttle_duration_sec=5.0)
             return
         self._apply_due_faults()
-        start = self.world.joint_positions() if self._motion is None else self._position(now)
-        self._motion = (now, np.concatenate([[0.0], times]), np.vstack([start, goals]))
+        if self._motion is None:
+            start, start_speed = self.world.joint_positions(), np.zeros(len(names))
+        else:
+            start, start_speed = self._position(now), self._motion[2](now - self._motion[0], 1)
+        positions = np.repeat(start[None], len(times) + 1, axis=0)
+        positions[1:, index] = goals
+        times = np.concatenate([[0.0], times])
+        if cubic:
+            velocities = np.zeros_like(positions)
+            velocities[0] = start_speed
+            velocities[1:, index] = speeds
+            path = CubicHermiteSpline(times, positions, velocities, axis=0)
+        else:
+            path = make_interp_spline(times, positions, k=1, axis=0)
+        self._motion = (now, times[-1], path)
         self._next_frame = None
         self.counts["trajectories"] += 1
 
     def _position(self, now):
-        t0, times, positions = self._motion
-        t = now - t0
-        return np.array([np.interp(t, times, positions[:, k]) for k in range(positions.shape[1])])
+        t0, duration, path = self._motion
+        return path(min(now - t0, duration))
 
     def _move(self, now):
         """Trajectory mode: follow the trajectory being executed; at rest, take a picture every camera_period."""
         if self._motion is not None:
             self.world.execute(self._position(now))
-            if now - self._motion[0] >= self._motion[1][-1]:
+            if now - self._motion[0] >= self._motion[1]:
                 self._motion = None
                 self.n_executed += 1
                 self._next_frame = now

@@ -51,7 +51,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.perception import MarkerTracker
+from body_scheme_core.perception import MarkerTracker, rejection_kind
 from body_scheme_core.world import load_markers_yaml
 from body_scheme_msgs.msg import MarkerPoses
 
@@ -157,11 +157,11 @@ class TrackerNode(Node):
             image = conversions.image_from_msg(msg)
             poses, rejected = tracker.detect(image)
         except InvalidInputError as error:
-            self.rejected[_short_reason(str(error))] += 1
+            self.rejected["image"] += 1
             self.get_logger().warn(f"image rejected: {error}", throttle_duration_sec=5.0)
             return
         for _, reason in rejected:
-            self.rejected[_short_reason(reason)] += 1
+            self.rejected[rejection_kind(reason)] += 1
         self.counts["processed"] += 1
         self.counts["poses"] += len(poses)
         self.counts["detections"] += len(poses) + len(rejected)
@@ -200,11 +200,6 @@ class TrackerNode(Node):
         names = ", ".join(p.name for p in parameters)
         return SetParametersResult(successful=False,
                                    reason=f"{names}: read at start-up only; restart tracker_node to change it")
-
-
-def _short_reason(text):
-    """Counter key for a rejection message: its first words, so similar rejections add up."""
-    return " ".join(str(text).split()[:4])
 
 
 def main(args=None):

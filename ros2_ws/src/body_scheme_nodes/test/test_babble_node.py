@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import pathlib
+import time
 
 import numpy as np
 import pybullet_data
@@ -11,6 +12,8 @@ import pytest
 import rclpy
 import yaml
 from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_nodes.babble_node import BabbleNode
@@ -66,6 +69,9 @@ def test_the_driver_refuses_goals_past_the_margin_in_collision_or_outside_the_bo
         assert driver.refusal(zero, start=zero) == "workspace"
         goals = np.random.default_rng(0).uniform(safety.lower, safety.upper, size=(200, 6))
         assert {driver.refusal(goal, start=zero) for goal in goals} == {None, "workspace"}
+        leaning, other_way = np.array([0, 1.0, 0, 0, 0, 0]), np.array([0, -1.0, 0, 0, 0, 0])
+        assert driver.refusal(leaning, start=leaning) is None and driver.refusal(other_way, start=other_way) is None
+        assert driver.refusal(other_way, start=leaning) == "workspace"  # on the way it stands upright
     kuka = str(pathlib.Path(pybullet_data.getDataPath()) / "kuka_iiwa" / "model.urdf")
     with babble_node([Parameter("robot", value=kuka)]) as node:  # +-170 deg: it can hit itself and the ground
         safety, zero = node.driver.safety, np.zeros(7)
@@ -73,9 +79,59 @@ def test_the_driver_refuses_goals_past_the_margin_in_collision_or_outside_the_bo
         assert {node.driver.refusal(goal, start=zero) for goal in goals} == {None, "collision"}
 
 
+def test_a_subset_of_joints_is_commanded_and_the_others_are_held_as_reported():
+    """joint_names: only those joints are limited and sent; the safety checks put the others where the last joint
+    state says (zero before), so a goal is refused when the other joints make it leave the box."""
+    box = Parameter("workspace", value=[-2.0, -2.0, -0.01, 2.0, 2.0, 0.9])
+    with babble_node([Parameter("joint_names", value=["joint3", "joint2"]), box]) as node:
+        driver = node.driver
+        assert driver.joint_names == ("joint3", "joint2") and driver.safety.lower.shape == (2,)
+        assert np.allclose(driver.posture([0.5, 0.7]), [0, 0.7, 0.5, 0, 0, 0])
+        leaning = [0.0, 1.0]
+        assert driver.refusal(leaning, start=leaning) is None
+        driver._on_joint_states(JointState(name=["joint1", "joint2", "joint3", "joint4"],
+                                           position=[0.3, 0.2, 0.1, float("nan")]))
+        assert np.allclose(driver.posture([0.5, 0.7]), [0.3, 0.7, 0.5, 0, 0, 0])  # the NaN is not taken
+        assert np.allclose(driver.positions, [0.1, 0.2])
+    with pytest.raises(InvalidInputError, match="joint_names"):
+        declared_parameters([Parameter("joint_names", value=["joint1", "gripper"])])
+
+
+def test_the_collision_screen_will_not_start_without_the_meshes(tmp_path):
+    """A URDF whose meshes are not found: the screen would pass collisions, so the node refuses to start and says
+    what to do."""
+    kuka = pathlib.Path(pybullet_data.getDataPath()) / "kuka_iiwa" / "model.urdf"
+    copy = tmp_path / "model.urdf"
+    copy.write_bytes(kuka.read_bytes())
+    with pytest.raises(InvalidInputError, match="collision screen needs the robot's meshes.*collision_check"):
+        declared_parameters([Parameter("robot", value=str(copy))])
+    params, _ = declared_parameters([Parameter("robot", value=str(copy)), Parameter("collision_check", value=False)])
+    assert params["collision_check"] is False
+
+
+def test_resume_before_the_first_joint_state_waits_for_it():
+    """Started paused and resumed before the arm reported: waiting (not a crash), and the babbling loop runs."""
+    with babble_node([Parameter("start_paused", value=True)]) as node:
+        response = node._on_resume(Trigger.Request(), Trigger.Response())
+        assert response.success and node.state == "waiting"
+        node._on_timer()
+        assert node.state == "waiting"
+
+
+def test_joint_states_that_go_quiet_stop_the_babbling():
+    """The arm reported once and then nothing for joint_state_timeout: the reason names the joint states."""
+    with babble_node([Parameter("joint_state_timeout", value=0.05), Parameter("camera_timeout", value=0.0)]) as node:
+        node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
+        node._on_timer()
+        assert node.state == "idle" and node._quiet(time.monotonic()) == ""
+        time.sleep(0.1)
+        assert "joint states are quiet" in node._quiet(time.monotonic())
+
+
 @pytest.mark.parametrize("name, value, message", [
     ("workspace", [0.0, 1.0], "workspace"), ("max_velocity", 0.0, "limits"), ("dwell", -1.0, "dwell"),
-    ("robot", "no_robot", "unknown robot"), ("settle_tolerance", -0.1, "tolerance")])
+    ("robot", "no_robot", "unknown robot"), ("settle_tolerance", -0.1, "tolerance"),
+    ("joint_state_timeout", -1.0, "joint_state_timeout")])
 def test_bad_parameters_stop_the_node_with_a_reason(name, value, message):
     with pytest.raises(InvalidInputError, match=message):
         declared_parameters([Parameter(name, value=value)])

@@ -56,7 +56,7 @@ def babbling_screen(world, markers_of_interest=None):
 
 
 class CollisionScreen:
-    """Self-collision and ground checks of moves of a real robot, from its URDF, in a pybullet DIRECT world of
+    """Self-collision and ground checks of a real robot's postures, from its URDF, in a pybullet DIRECT world of
     their own (no rendering, no markers).
 
     Parameters
@@ -65,30 +65,35 @@ class CollisionScreen:
         Shipped robot name or URDF path.
     package_path : iterable of str
         See :class:`~body_scheme_sim.world.SimWorld`.
-    path_points : int
-        Points checked on the straight joint-space path of a move, its goal included.
+
+    Raises
+    ------
+    InvalidInputError
+        If a mesh of the URDF is not found: without it the screen would pass postures in which that part collides.
     """
 
-    def __init__(self, robot, package_path=(), path_points=5):
+    def __init__(self, robot, package_path=()):
         from .world import SimWorld
 
-        if isinstance(path_points, bool) or not isinstance(path_points, int) or path_points < 1:
-            raise InvalidInputError(f"path_points must be an integer >= 1, got {path_points!r}")
         self.world = SimWorld(robot, markers=(), marker_texture=False, package_path=package_path)
-        self.path_points = path_points
+        missing = self.world.missing_meshes
+        if missing:
+            self.world.close()
+            raise InvalidInputError(
+                f"the collision screen needs the robot's meshes: {len(missing)} not found (first: {missing[0]}); "
+                "give their packages' parent directories in package_path, or switch the screen off "
+                "(collision_check: false)")
 
     @property
     def joint_names(self):
         """Joint name per action."""
         return self.world.action_joint_names
 
-    def collides(self, start, goal):
-        """Whether the robot hits itself or the ground anywhere on the straight path from ``start`` to ``goal``
-        (joint positions, shape (m,); ``start`` None checks the goal only)."""
-        goal = np.asarray(goal, dtype=float)
-        start = goal if start is None else np.asarray(start, dtype=float)
-        for s in np.linspace(0.0, 1.0, self.path_points + 1)[1:]:
-            self.world.execute(start + s * (goal - start))
+    def collides(self, postures):
+        """Whether the robot hits itself or the ground in any of ``postures`` (shape (k, m) or (m,): joint positions,
+        e.g. :func:`~body_scheme_core.motion.path_samples` of a move)."""
+        for posture in np.atleast_2d(np.asarray(postures, dtype=float)):
+            self.world.execute(posture)
             if self.world.in_collision():
                 return True
         return False

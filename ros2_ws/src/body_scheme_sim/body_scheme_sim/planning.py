@@ -131,7 +131,8 @@ def _surface_points(world, tree, link, q0):
 
 
 def _lifted(world, world2plate, size):
-    """How far (m, at most :data:`MAX_LIFT`) a plate must rise along its normal to clear the robot, or None."""
+    """How far (m, at most :data:`MAX_LIFT`) a plate's back face must rise along its normal to clear the robot, or
+    None."""
     pb = world._pb
     side = plate_side(size)
     shape = pb.createCollisionShape(pybullet.GEOM_BOX, halfExtents=(0.5 * side, 0.5 * side, 0.5 * PLATE_THICKNESS))
@@ -209,7 +210,8 @@ def _plates(world, tree, link, q0, sizes):
             link2marker[:3, 3] = link2point
             lift = _lifted(world, tree.link_poses(q0)[link] @ link2marker, size)
             if lift is not None:
-                link2marker[:3, 3] += lift * link2marker[:3, 2]
+                # The marker's frame is on the plate's front face: the checked plate spans [lift, lift + thickness].
+                link2marker[:3, 3] += (lift + PLATE_THICKNESS) * link2marker[:3, 2]
                 plates.append((size, link, link2marker))
                 break  # the biggest plate that fits at this point
     return plates

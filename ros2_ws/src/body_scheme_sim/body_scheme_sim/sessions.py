@@ -29,7 +29,7 @@ from collections import Counter
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.perception import MarkerTracker
+from body_scheme_core.perception import MarkerTracker, rejection_kind
 from body_scheme_core.world import (
     IMAGE_DELAY_NS,
     PAPER_SIGMA_ROT,
@@ -148,7 +148,7 @@ def record_session(robot="powercube_6dof", n_steps=400, seed=0, faults=(), perce
             image = world.render() if tracker is not None or (image_every and k % image_every == 0) else None
             if tracker is not None:
                 poses, dropped = tracker.detect(image)
-                rejected.update(reason for _, reason in dropped)
+                rejected.update(rejection_kind(reason) for _, reason in dropped)
             else:
                 poses = world.observe_noisy(sigma_trans, sigma_rot, visibility, rng=rng_noise)
             observations.append(poses)

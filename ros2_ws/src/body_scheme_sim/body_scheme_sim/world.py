@@ -164,9 +164,9 @@ class SimWorld:
             if self._redraw_from_tree:
                 text = tree.to_urdf("body_scheme_sim_robot")
             else:
-                text, self.missing_meshes = _patched_urdf(
-                    self._urdf_path.read_text(encoding="utf-8"), self._urdf_path.resolve().parent, tree,
-                    self._package_path)
+                urdf = self._urdf_path.read_text(encoding="utf-8", errors="replace")
+                text, self.missing_meshes = _patched_urdf(urdf, self._urdf_path.resolve().parent, tree,
+                                                          self._package_path)
             path.write_text(text, encoding="utf-8")
         try:
             return self._pb.loadURDF(str(path), basePosition=(0.0, 0.0, 0.0), useFixedBase=True)

@@ -13,6 +13,7 @@ from body_scheme_core.perception import (
     DOCUMENTED_TRANS_ERROR_MEDIAN,
     DOCUMENTED_TRANS_ERROR_P90,
     MarkerTracker,
+    rejection_kind,
 )
 from body_scheme_core.transforms import rotational_error, translational_error
 from body_scheme_core.world import babble
@@ -50,7 +51,8 @@ def test_finds_the_visible_markers_in_rendered_images(rendered):
     for image, truth, visible in frames:
         poses, rejected = tracker.detect(image)
         assert set(poses) <= set(truth)
-        assert all(reason.startswith(("ambiguous pose", "reprojection error")) for _, reason in rejected), rejected
+        assert {rejection_kind(reason) for _, reason in rejected} <= {"ambiguous pose", "reprojection error"}, \
+            rejected  # counter keys without the numbers, so similar rejections add up
         n_visible += len(visible)
         n_found += len(set(poses) & visible)
     assert n_visible > 100

@@ -46,7 +46,7 @@ def test_planned_plates_sit_outside_the_robot_and_the_camera_sees_them(panda_pla
         pb.performCollisionDetection()
         for marker_id, body in world._marker_bodies.items():
             deepest = min((c[8] for c in pb.getClosestPoints(body, world._robot_id, 0.0)), default=0.0)
-            assert deepest > -1e-3, (marker_id, deepest)
+            assert deepest > -1e-4, (marker_id, deepest)
         seen, rng = set(), np.random.default_rng(1)
         for _ in range(150):
             world.execute(rng.uniform(world.action_lower, world.action_upper))
@@ -67,11 +67,12 @@ def test_the_base_gets_a_marker_and_named_links_get_theirs():
 
 
 def test_the_auto_camera_frames_every_marker():
-    """Over random postures every planned marker projects inside the image, and closer would lose some."""
+    """Over random postures other than those the camera was fitted on, every planned marker projects inside the
+    image, in front of the camera."""
     planned, _, _ = plan_markers(XARM, n_postures=40)
     tree = load_robot(XARM, markers=[p.marker for p in planned])
     camera = auto_camera(tree, rng=np.random.default_rng(3))
-    A = np.random.default_rng(3).uniform(tree.action_lower, tree.action_upper, size=(30, tree.n_actions))
+    A = np.random.default_rng(4).uniform(tree.action_lower, tree.action_upper, size=(30, tree.n_actions))
     links = tree.link_poses(A)
     points = np.concatenate([(links[m.link] @ m.link2marker)[:, :3, 3] for m in tree.markers])
     uv, depth = camera.project(points)

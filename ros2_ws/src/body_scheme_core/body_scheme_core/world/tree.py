@@ -141,9 +141,9 @@ class Joint:
 
     def position(self, A):
         """The joint's positions for action vectors ``A`` (n, m): its action scaled for a mimic joint, zero for a
-        fixed or passive joint; shape (n,)."""
+        fixed or passive joint (a mimic of a passive joint: its offset); shape (n,)."""
         if self.action is None:
-            return np.zeros(A.shape[0])
+            return np.full(A.shape[0], self.offset)
         return self.multiplier * A[:, self.action] + self.offset
 
     def motion(self, q):
