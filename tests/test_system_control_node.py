@@ -88,7 +88,7 @@ def test_control_node_executes_an_ik_answer_through_the_controller(start_node, r
                                                  "sigma_trans": 0.002, "sigma_rot": 0.01, "camera_period": 0.1})
     process = start_node("body_scheme_nodes", "control_node", {
         "part_id": end_effector, "tolerance": 0.002, "execute": True, "robot": "powercube_6dof",
-        "max_velocity": 5.0, "max_acceleration": 20.0})
+        "max_velocity": 5.0, "max_acceleration": 20.0, "observe_timeout": 5.0})  # a loaded 2-core machine
     results, trajectories, truth = [], [], []
     ros_node.create_subscription(IKResult, "ik_result", results.append, 10)
     ros_node.create_subscription(JointTrajectory, "joint_trajectory_controller/joint_trajectory",

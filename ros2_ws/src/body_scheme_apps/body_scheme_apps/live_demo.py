@@ -75,7 +75,7 @@ class DemoResult:
     events: list = field(default_factory=list)          # dicts: step, kind, model, reason
     diagnostics: list = field(default_factory=list)   # (step, level) of "/scheme_node: body scheme" whenever it changes
     prediction_error: list = field(default_factory=list)  # (step, end-effector prediction error in m)
-    ik: list = field(default_factory=list)              # dicts: target, success, reason, residual, reached_error
+    ik: list = field(default_factory=list)  # dicts: target, success, reason, residual, position_std, reached_error
     scheme_status: dict = field(default_factory=dict)  # last "/scheme_node: body scheme" key-values, parsed
     n_observations: int = 0
     wall_time_s: float = 0.0
@@ -257,7 +257,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                 "part_ids": ids, "joint_names": names, "action_lower": lower, "action_upper": upper, **learner_noise})
             arm = {"robot": str(robot), "package_path": list(package_path), "max_velocity": 12.0,
                    "max_acceleration": 100.0, "settle_window": 0.05}
-            start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.005,
+            start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.05,
                                                              **({"execute": True, **arm} if controller else {})})
             if perception == "rendered":
                 start_node("body_scheme_nodes", "tracker_node", {"markers_path": str(markers_path),
@@ -313,15 +313,17 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                 outcome = monitor.ik_results[-1] if len(monitor.ik_results) > n_results else None
                 record = {"target": target.tolist(), "success": bool(outcome and outcome.success),
                           "reason": outcome.reason if outcome else "no IKResult within 20 s",
-                          "residual": float(outcome.residual) if outcome else float("nan"), "reached_error": None}
+                          "residual": float(outcome.residual) if outcome else float("nan"),
+                          "position_std": float(outcome.position_std) if outcome else float("nan"),
+                          "reached_error": None}
                 if outcome is not None and outcome.success and _spin(
                         executor, lambda n=n_truth: len(monitor.truth) > n, timeout=10, during=alive):
                     reached = monitor.truth[-1][1][end_effector][:3, 3]
                     record["reached_error"] = float(np.linalg.norm(reached - target))
                 result.ik.append(record)
                 reached_mm = "n/a" if record["reached_error"] is None else f"{record['reached_error'] * 1e3:.1f} mm"
-                log(f"IK target {np.round(target, 3).tolist()}: {record['reason']}; true end effector {reached_mm} "
-                    f"from the target")
+                log(f"IK target {np.round(target, 3).tolist()}: {record['reason']} (predicted std "
+                    f"{record['position_std'] * 1e3:.1f} mm); true end effector {reached_mm} from the target")
             _spin(executor, lambda: False, timeout=1.5)  # a last diagnostics message
         finally:
             result.wall_time_s = time.monotonic() - start

@@ -491,6 +491,7 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
             models = _refit_gp_edges(scheme, models, W, A, observations, since, gp_optimize)
     cov = _covariance(problem, info, cost)
     models = _with_covariances(problem, models, cov)
+    joint = [(problem.free, cov[6:, 6:])]  # without the root pose's 6
     free_below = [k for k, m in enumerate(models) if isinstance(m, RigidJointModel) and k not in fixed and k in below]
     if free_below:
         below_problem = _Problem(scheme, A, observations, since, free_below, axis_sigmas, root_since, below_gp=True)
@@ -499,9 +500,10 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
         params_b, _, info_b, cost_b, it, _ = _solve(below_problem, below_problem.stack(models), W, below_priors,
                                                      f_scale, max_iterations)
         iterations += it
-        models = _with_covariances(below_problem, _unstack(below_problem, models, params_b),
-                                   _covariance(below_problem, info_b, cost_b))
-    refined = BodyScheme(scheme.parts, scheme.root, models)
+        cov_b = _covariance(below_problem, info_b, cost_b)
+        models = _with_covariances(below_problem, _unstack(below_problem, models, params_b), cov_b)
+        joint.append((below_problem.free, cov_b[6:, 6:]))
+    refined = BodyScheme(scheme.parts, scheme.root, models, _joint_covariance(joint))
     rms = math.sqrt(cost / max(6 * problem.n_used, 1))
     problem.set_fixed(models)
     dt, dr = problem.raw_residuals(problem.predicted(problem.stack(models), W))
@@ -535,6 +537,20 @@ def _covariance(problem, info, cost):
         return info
     cov = np.linalg.pinv(info + 1e-9 * np.eye(problem.n_params), hermitian=True)
     return cov * max(1.0, cost / max(6 * problem.n_used - problem.n_params, 1))
+
+
+def _joint_covariance(blocks):
+    """``(model indices, matrix)`` for :class:`BodyScheme`'s ``param_covariance`` from the solved problems'
+    ``(free models, covariance without the root pose)`` blocks (independent of each other), or None."""
+    indices = [k for free, _ in blocks for k in free]
+    if not indices:
+        return None
+    matrix = np.zeros((sum(c.shape[0] for _, c in blocks),) * 2)
+    start = 0
+    for _, c in blocks:
+        matrix[start:start + c.shape[0], start:start + c.shape[0]] = c
+        start += c.shape[0]
+    return tuple(indices), matrix
 
 
 def _with_covariances(problem, models, cov):

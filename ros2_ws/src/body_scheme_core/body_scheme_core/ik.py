@@ -2,7 +2,11 @@
 
 The forward model of a :class:`~body_scheme_core.scheme.BodyScheme` is continuous, so its Jacobian (Eq. 10) drives a
 damped least-squares (Levenberg-Marquardt) search for actions that bring a part to a target position. The solver is
-honest: it reports ``success=False`` with a reason rather than returning a wrong answer labelled as success.
+honest: it reports ``success=False`` with a reason rather than returning a wrong answer labelled as success. A
+solution the *model* reaches is not enough: the body scheme is learned, so the part's predicted position has an
+uncertainty (:func:`~body_scheme_core.uncertainty.position_std`: the joint fit's parameter covariance and the GPs'
+latent variances, propagated along the chain), and ``success`` also needs the residual plus ``confidence`` standard
+deviations within the tolerance.
 
 The residual is a separate small class so that a pose target (position and orientation) can be added later by
 writing another residual with the same ``evaluate``/``jacobian`` pair.
@@ -16,12 +20,15 @@ import numpy as np
 
 from .errors import InvalidInputError
 from .transforms import check_transform, invert_transform
+from .uncertainty import position_std
 
 __all__ = ["IKResult", "solve_ik", "trained_bounds"]
 
 #: Stop an attempt when the residual improved by less than this fraction over ``_STALL_WINDOW`` iterations.
 _STALL_FRACTION = 1e-3
 _STALL_WINDOW = 8
+#: With ``confidence > 0`` the search stops at this fraction of the tolerance (the residual is part of the bound).
+_MODEL_FRACTION = 0.1
 #: Relative step size below which an attempt counts as stuck.
 _XTOL = 1e-10
 #: Damping above which the local linear model is useless: the attempt is stuck.
@@ -40,7 +47,7 @@ class IKResult:
     actions : ndarray, shape (m,)
         Best full action vector found, always within the joint limits (also when ``success`` is False).
     success : bool
-        True only if the position residual at ``actions`` is at most ``tol``.
+        True only if the model reaches the target (``converged``) and ``error_bound`` is at most ``tol``.
     iterations : int
         Total Levenberg-Marquardt iterations over all attempts.
     residual : float
@@ -52,6 +59,14 @@ class IKResult:
         Number of random restarts used.
     position : ndarray, shape (3,)
         Predicted position of the part in the root frame at ``actions`` (NaN if not evaluated).
+    position_std : float
+        Standard deviation (m, RMS over the three axes: ``sqrt(trace(cov))``) of the part's predicted position at
+        ``actions``; 0 for exact (engineered) models, NaN if not evaluated. The root's pose in the world is not
+        included.
+    converged : bool
+        Whether the residual at ``actions`` is at most ``tol`` (the model reaches the target, however unsure).
+    error_bound : float
+        ``residual + confidence * position_std`` (m): how far from the target the part may truly go.
     """
 
     actions: np.ndarray
@@ -61,6 +76,9 @@ class IKResult:
     reason: str
     restarts: int = 0
     position: np.ndarray | None = None
+    position_std: float = float("nan")
+    converged: bool = False
+    error_bound: float = float("nan")
 
 
 class _PositionResidual:
@@ -219,7 +237,7 @@ def trained_bounds(scheme, lower, upper):
 
 
 def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iterations=100, damping=0.1,
-             n_restarts=3, rng=None, world2root=None, derivatives="forward"):
+             n_restarts=3, rng=None, world2root=None, derivatives="forward", confidence=2.0, prefer_certain=False):
     """Actions that bring ``part`` to a target position, by damped least squares on the body scheme.
 
     Levenberg-Marquardt with adaptive damping (Nielsen's update) on ``|target - position(part)|^2``, using
@@ -257,13 +275,20 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
         forward differences computed in the same batched ``predict`` call as the forward chain (one model call per
         edge and iteration; about 1.5x faster on GP schemes). ``"analytic"``: each model's ``jacobian``. Both give
         the same iterates up to ~1e-7.
+    confidence : float
+        Standard deviations of the predicted position added to the residual for ``success`` (``error_bound``); 0:
+        the model's word alone.
+    prefer_certain : bool
+        Use every restart and return, among the solutions that reach the target in the model, the one whose
+        predicted position is least uncertain (e.g. postures near the training data); default: the first.
 
     Returns
     -------
     result : IKResult
-        ``success`` is True only if the residual is at most ``tol``; otherwise ``reason`` says why (``"part not in
-        body scheme"``, ``"no action influences part"``, ``"target unreachable: ..."``, ``"max iterations reached:
-        ..."``) and ``actions`` is the best vector found, within the limits.
+        ``success`` is True only if the residual is at most ``tol`` and so is ``error_bound``; otherwise ``reason``
+        says why (``"part not in body scheme"``, ``"no action influences part"``, ``"target unreachable: ..."``,
+        ``"max iterations reached: ..."``, ``"not sure enough: ..."``) and ``actions`` is the best vector found,
+        within the limits.
 
     Raises
     ------
@@ -289,6 +314,8 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
         raise InvalidInputError(f"n_restarts must be an integer >= 0, got {n_restarts!r}")
     if not (np.isfinite(damping) and damping > 0.0):
         raise InvalidInputError(f"damping must be a finite number > 0, got {damping!r}")
+    if not (np.isfinite(confidence) and confidence >= 0.0):
+        raise InvalidInputError(f"confidence must be a finite number >= 0, got {confidence!r}")
     if derivatives not in ("forward", "analytic"):
         raise InvalidInputError(f"derivatives must be 'forward' or 'analytic', got {derivatives!r}")
     if world2root is not None:
@@ -309,9 +336,10 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
     if active.size == 0:
         e, _ = residual.evaluate(np.zeros(0))
         r = float(np.linalg.norm(e))
-        reason = "converged: target already reached" if r <= tol else (
-            f"no action influences part {part}: residual {r:.3g} m cannot be reduced")
-        return IKResult(a, r <= tol, 0, r, reason, position=target - e)
+        if r > tol:
+            return _result(scheme, part, a, e, target, tol, confidence, 0, 0,
+                           f"no action influences part {part}: residual {r:.3g} m cannot be reduced")
+        return _result(scheme, part, a, e, target, tol, confidence, 0, 0, "converged: target already reached")
 
     lo, hi = lower[active], upper[active]
     # Restart box: the limits, or pi around the start where a limit is infinite.
@@ -320,27 +348,53 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
     box_hi = np.where(np.isfinite(hi), hi, np.minimum(hi, start + np.pi))
 
     best_x, best_e, best_status = None, None, None
+    reached = []  # (x, e) of the attempts that reached the target in the model
     iterations = 0
     restarts = 0
     x0 = start
+    # With an uncertainty to add, the model's own residual is driven well below the tolerance (it is part of the
+    # bound); without, reaching the tolerance is enough.
+    stop = tol if confidence == 0 else _MODEL_FRACTION * tol
     while True:
-        x, e, it, status = _attempt(residual, x0, lo, hi, tol, max_iterations, damping)
+        x, e, it, status = _attempt(residual, x0, lo, hi, stop, max_iterations, damping)
         iterations += it
         if best_e is None or e @ e < best_e @ best_e:
             best_x, best_e, best_status = x, e, status
-        if status == "converged" or restarts >= n_restarts:
+        if status == "converged":
+            reached.append((x, e))
+        if (reached and not prefer_certain) or restarts >= n_restarts:
             break
         restarts += 1
         x0 = rng.uniform(box_lo, box_hi)
 
-    a_best = a.copy()
-    a_best[active] = np.clip(best_x, lo, hi)
+    def full(x):
+        vector = a.copy()
+        vector[active] = np.clip(x, lo, hi)
+        return vector
+
+    if len(reached) > 1:  # prefer_certain: the least uncertain of the solutions
+        best_x, best_e = min(reached, key=lambda xe: position_std(scheme, full(xe[0]), part))
     r = float(np.linalg.norm(best_e))
     plural = "restart" if restarts == 1 else "restarts"
     if r <= tol:
-        success, reason = True, f"converged: residual {r:.3g} m after {iterations} iterations and {restarts} {plural}"
+        reason = f"converged: residual {r:.3g} m after {iterations} iterations and {restarts} {plural}"
     elif best_status == "max_iterations":
-        success, reason = False, f"max iterations reached: best residual {r:.3g} m after {restarts} {plural}"
+        reason = f"max iterations reached: best residual {r:.3g} m after {restarts} {plural}"
     else:
-        success, reason = False, f"target unreachable: best residual {r:.3g} m after {restarts} {plural}"
-    return IKResult(a_best, success, iterations, r, reason, restarts=restarts, position=target - best_e)
+        reason = f"target unreachable: best residual {r:.3g} m after {restarts} {plural}"
+    return _result(scheme, part, full(best_x), best_e, target, tol, confidence, iterations, restarts, reason)
+
+
+
+
+def _result(scheme, part, actions, e, target, tol, confidence, iterations, restarts, reason):
+    """The IKResult of a solution with residual vector ``e``: converged and sure, or why not."""
+    r = float(np.linalg.norm(e))
+    std = position_std(scheme, actions, part)
+    bound = r + confidence * std
+    success = r <= tol and bound <= tol
+    if r <= tol and not success:
+        reason = (f"not sure enough: the model reaches the target (residual {r:.3g} m) but the predicted error "
+                  f"bound (+{confidence:g} sigma) is {bound:.3g} m > tolerance {tol:.3g} m")
+    return IKResult(actions, success, iterations, r, reason, restarts=restarts, position=target - e,
+                    position_std=std, converged=r <= tol, error_bound=bound)

@@ -36,6 +36,26 @@ def _invert_single(A2B):
     return B2A
 
 
+def _checked_param_covariance(models, param_covariance):
+    """``(tuple of model indices, (P, P) matrix)`` from the ``param_covariance`` argument, or None; see BodyScheme."""
+    if param_covariance is None:
+        return None
+    try:
+        indices, matrix = param_covariance
+        indices = tuple(int(k) for k in indices)
+        matrix = np.array(matrix, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"param_covariance must be (model indices, matrix), got {param_covariance!r}") from exc
+    if len(set(indices)) != len(indices) or any(not 0 <= k < len(models) or not hasattr(models[k], "retract")
+                                                 for k in indices):
+        raise InvalidInputError(f"param_covariance names models {list(indices)}: each once, rigid-joint models of "
+                                f"the scheme (0..{len(models) - 1})")
+    size = sum(models[k].n_params for k in indices)
+    if matrix.shape != (size, size) or not np.all(np.isfinite(matrix)):
+        raise InvalidInputError(f"param_covariance's matrix must be finite, {size} x {size}, got {matrix.shape}")
+    return indices, matrix
+
+
 class BodyScheme:
     """A spanning tree of fitted local models over all body parts, used for prediction and control.
 
@@ -48,6 +68,11 @@ class BodyScheme:
     models : list of LocalModel
         Exactly ``len(parts) - 1`` fitted models whose ``(parent, child)`` pairs connect all parts without a cycle.
         A model may be traversed in either direction.
+    param_covariance : tuple (model indices, ndarray) or None
+        The joint fit's covariance of the parameters of several models together (their cross-covariances included):
+        ``(k_1, ..., k_j)`` positions in ``models`` of rigid-joint models, and the matrix over their parameter
+        increments concatenated in that order. :func:`~body_scheme_core.uncertainty.position_covariance` uses it;
+        models not named contribute their own covariance alone.
 
     Raises
     ------
@@ -67,7 +92,7 @@ class BodyScheme:
         the model predicts ``child2parent`` and is used inverted.
     """
 
-    def __init__(self, parts, root, models):
+    def __init__(self, parts, root, models, param_covariance=None):
         try:
             parts = tuple(int(p) for p in parts)
         except (TypeError, ValueError) as exc:
@@ -110,6 +135,7 @@ class BodyScheme:
         self.parts = parts
         self.root = root
         self.models = models
+        self.param_covariance = _checked_param_covariance(models, param_covariance)
         self.edges = []
         self._tree_parent = {root: None}
         self._edge_into = {}
@@ -475,6 +501,8 @@ class BodyScheme:
             "parts": list(self.parts),
             "root": self.root,
             "models": [model.to_dict() for model in self.models],
+            **({} if self.param_covariance is None else {"param_covariance": {
+                "models": list(self.param_covariance[0]), "matrix": self.param_covariance[1].tolist()}}),
         }
 
     @classmethod
@@ -505,7 +533,12 @@ class BodyScheme:
         except KeyError as exc:
             raise ModelFileError(f"body scheme dict is missing key {exc}") from exc
         models = [model_from_dict(d) for d in model_dicts]
+        covariance = data.get("param_covariance")
         try:
-            return cls(parts, root, models)
-        except InvalidInputError as exc:
+            if covariance is not None:
+                if not isinstance(covariance, dict) or set(covariance) != {"models", "matrix"}:
+                    raise InvalidInputError("param_covariance must be {models: [...], matrix: [[...]]}")
+                covariance = (covariance["models"], covariance["matrix"])
+            return cls(parts, root, models, covariance)
+        except (InvalidInputError, TypeError, ValueError) as exc:
             raise ModelFileError(f"body scheme dict does not describe a valid spanning tree: {exc}") from exc

@@ -247,12 +247,56 @@ def test_ik_on_learned_arm_reaches_reachable_targets():
         target = tree.relative_transform(1, 3, a_true)[:3, 3]
         # Targets the learned model can reach exactly: its own prediction; the true arm's pose is within model error.
         learned_target = scheme.predict(a_true)[3][:3, 3]
-        result = solve_ik(scheme, 3, learned_target, np.zeros(2), lower, upper, tol=1e-3)
-        assert result.success, result.reason
+        result = solve_ik(scheme, 3, learned_target, np.zeros(2), lower, upper, tol=1e-3, confidence=0.0)
+        assert result.success and result.converged, result.reason
         assert result.residual <= 1e-3
         assert np.all(result.actions >= lower) and np.all(result.actions <= upper)
         reached = tree.relative_transform(1, 3, result.actions)[:3, 3]
         assert np.linalg.norm(reached - target) < np.linalg.norm(learned_target - target) + 0.05
+
+
+def test_success_needs_the_predicted_error_bound_within_the_tolerance():
+    """On the GP arm the model reaches a target to 1 mm, but its predicted position is uncertain by centimetres: not
+    a success, and the reason says so; the bound is the residual plus two standard deviations; with confidence 0 the
+    model's word suffices. On exact (engineered) models the uncertainty is zero and nothing changes."""
+    rng = np.random.default_rng(0)
+    tree, scheme = learned_planar_arm(rng)
+    target = scheme.predict(np.array([0.4, -0.3]))[3][:3, 3]
+    result = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, tol=1e-3)
+    assert result.converged and not result.success and result.reason.startswith("not sure enough")
+    assert result.position_std > 1e-3
+    assert result.error_bound == pytest.approx(result.residual + 2.0 * result.position_std)
+    loose = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, tol=1e-3,
+                     confidence=0.0)
+    assert loose.success and loose.error_bound == pytest.approx(loose.residual)
+    exact = solve_ik(planar_arm(), 30, [0.3, 0.2, 0.0], np.zeros(2), -np.pi, np.pi)
+    assert exact.success and exact.position_std == 0.0
+
+
+def test_the_error_bound_covers_where_the_true_arm_goes():
+    """Over 40 random targets the true arm's part lands within the reported bound (residual + 2 sigma) of the
+    target for at least 90 % of them: the uncertainty is not overconfident."""
+    rng = np.random.default_rng(1)
+    tree, scheme = learned_planar_arm(rng)
+    covered = []
+    for a in rng.uniform(tree.action_lower, tree.action_upper, size=(40, 2)):
+        target = tree.relative_transform(1, 3, a)[:3, 3]
+        result = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper)
+        covered.append(np.linalg.norm(tree.relative_transform(1, 3, result.actions)[:3, 3] - target)
+                       <= result.error_bound)
+    assert np.mean(covered) >= 0.9
+
+
+def test_prefer_certain_returns_the_least_uncertain_solution():
+    """With every restart used, the solution returned is at most as uncertain as the first one found."""
+    rng = np.random.default_rng(2)
+    tree, scheme = learned_planar_arm(rng)
+    for a in rng.uniform(tree.action_lower, tree.action_upper, size=(10, 2)):
+        target = scheme.predict(a)[3][:3, 3]
+        first = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, rng=1)
+        certain = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, rng=1,
+                           prefer_certain=True)
+        assert certain.converged and certain.position_std <= first.position_std + 1e-12
 
 
 def test_ik_on_learned_arm_reports_unreachable_target():

@@ -32,7 +32,10 @@ ik_result : body_scheme_msgs/IKResult
 Parameters
 ----------
 part_id : int 7                      default part to move
-tolerance : double 0.005 m           IK success: predicted distance to the target below this
+tolerance : double 0.005 m           IK success: the predicted distance to the target plus ``confidence`` standard
+                                     deviations of the predicted position below this
+confidence : double 2.0              sigmas (0: the model's word alone, however unsure)
+prefer_certain : bool false          use every restart and keep the least uncertain solution
 max_iterations : int 100, restarts : int 3
 max_snapshot_age : double 0.0 s      refuse to act on an older model (0: never stale)
 trajectory_steps : int 1             commands per solution (1: jump to it)
@@ -59,7 +62,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.errors import BodySchemeError, InvalidInputError
 from body_scheme_core.ik import solve_ik, trained_bounds
 from body_scheme_msgs.msg import IKResult, IKTarget, MarkerPoses, ModelSnapshot
 
@@ -77,6 +80,10 @@ class ControlNode(Node):
         super().__init__("control_node")
         self.default_part = self.declare_parameter("part_id", 7).value
         self.tolerance = self.declare_parameter("tolerance", 0.005).value
+        self.confidence = self.declare_parameter("confidence", 2.0).value
+        self.prefer_certain = self.declare_parameter("prefer_certain", False).value
+        if not (isinstance(self.confidence, float) and np.isfinite(self.confidence) and self.confidence >= 0):
+            raise InvalidInputError(f"confidence must be a number >= 0 (sigmas), got {self.confidence!r}")
         self.max_iterations = self.declare_parameter("max_iterations", 100).value
         self.restarts = self.declare_parameter("restarts", 3).value
         self.max_age = self.declare_parameter("max_snapshot_age", 0.0).value
@@ -97,6 +104,7 @@ class ControlNode(Node):
         self.trajectory = deque()  # action vectors still to command
         self.counts = {"requests": 0, "succeeded": 0, "failed": 0, "executed": 0}
         self.last_outcome = "none yet"
+        self.last_uncertainty = (float("nan"), float("nan"))  # position_std, error_bound (m) of the last answer
         self._lock = threading.Lock()
 
         work = MutuallyExclusiveCallbackGroup()
@@ -178,8 +186,10 @@ class ControlNode(Node):
         self.counts["succeeded" if result.success else "failed"] += 1
         self.counts["executed"] += int(result.executed)
         self.last_outcome = f"part {part}: {result.reason}"
+        self.last_uncertainty = (result.position_std, result.error_bound)
         self.pub_result.publish(result)
-        text = f"IK part {part} -> {np.round(target, 3).tolist()}: {result.reason} (residual {result.residual:.4f} m)"
+        text = (f"IK part {part} -> {np.round(target, 3).tolist()}: {result.reason} (residual {result.residual:.4f} m, "
+                f"predicted std {result.position_std:.4f} m)")
         if result.executed:
             text += f"; went to {result.reached_error * 1000:.1f} mm from it ({result.reached_source})"
         if result.success:
@@ -227,6 +237,7 @@ class ControlNode(Node):
     def _solve(self, header, part, target, model):
         # Refused before any evaluation: residual NaN and no actions, whatever the reason.
         result = IKResult(header=header, part_id=part, success=False, residual=float("nan"),
+                          position_std=float("nan"), error_bound=float("nan"),
                           reached_error=float("nan"))
         result.target.x, result.target.y, result.target.z = (float(v) for v in target)
         if not np.all(np.isfinite(target)):
@@ -248,8 +259,12 @@ class ControlNode(Node):
         a0 = self.current if self.current is not None else (lower + upper) / 2.0
         a0 = np.where(np.isfinite(a0), a0, 0.0)
         outcome = solve_ik(scheme, part, target, a0, lower, upper, tol=self.tolerance,
-                           max_iterations=self.max_iterations, n_restarts=self.restarts, world2root=world2root)
+                           max_iterations=self.max_iterations, n_restarts=self.restarts, world2root=world2root,
+                           confidence=self.confidence, prefer_certain=self.prefer_certain)
         result.success = bool(outcome.success)
+        result.converged = bool(outcome.converged)
+        result.position_std = float(outcome.position_std)
+        result.error_bound = float(outcome.error_bound)
         result.reason = outcome.reason
         result.iterations = int(outcome.iterations)
         result.residual = float(outcome.residual)
@@ -283,7 +298,9 @@ class ControlNode(Node):
             stale = self.max_age > 0 and age > self.max_age
             level = DiagnosticStatus.WARN if stale else DiagnosticStatus.OK
             message = "model snapshot stale" if stale else "ready"
-        values = dict(self.counts, model_age_s=age, last_outcome=self.last_outcome)
+        values = dict(self.counts, model_age_s=age, last_outcome=self.last_outcome,
+                      last_position_std_mm=1e3 * self.last_uncertainty[0],
+                      last_error_bound_mm=1e3 * self.last_uncertainty[1])
         if self.driver is not None:
             values.update({f"driver.{k}": v for k, v in self.driver.counts.items()})
         name = self.get_fully_qualified_name()  # node and namespace: two robots in one domain do not collide

@@ -10,6 +10,7 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.transmission`: not in the paper: a nonlinear gear learned from scratch (GP edge, its hyperparameters).
 - :mod:`.zoo`: not in the paper: random bodies at four noise levels, learned from scratch and changed once.
 - :mod:`.yourrobot`: not in the paper: real arms' URDFs, markers planned, learned from rendered images, calibrated.
+- :mod:`.iksure`: not in the paper: IK's reported uncertainty against where the true arm goes.
 
 A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``PERCEPTIONS`` (default both
 ``"noise"`` and ``"rendered"``), ``NOISE_LEVELS`` (the noise-model runs of one seed, each passed as

@@ -17,7 +17,7 @@ import numpy as np
 __all__ = ["EXPERIMENTS", "Task", "experiment_module", "run_tasks", "aggregate", "sanity_problems"]
 
 #: Experiment name -> module (in this package), in the order of the paper.
-EXPERIMENTS = ("fig7", "table1", "control", "branching", "transmission", "zoo", "yourrobot")
+EXPERIMENTS = ("fig7", "table1", "control", "branching", "transmission", "zoo", "yourrobot", "iksure")
 _SKIP = ("curves", "events")
 
 

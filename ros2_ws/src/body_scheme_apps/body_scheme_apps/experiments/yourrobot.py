@@ -122,7 +122,7 @@ def run(seed, perception="iiwa", quick=False):
     rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[1])
     errors = []
     for a in rng.uniform(lower, upper, size=(N_TARGETS, nominal.n_actions)):
-        result = solve_ik(scheme, effector, truth(a), 0.5 * (lower + upper), lower, upper, rng=rng,
+        result = solve_ik(scheme, effector, truth(a), 0.5 * (lower + upper), lower, upper, rng=rng, confidence=0.0,
                           world2root=learner.root_pose)
         if result.success:
             errors.append(1e3 * float(np.linalg.norm(truth(result.actions) - truth(a))))

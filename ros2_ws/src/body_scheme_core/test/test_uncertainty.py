@@ -1,0 +1,81 @@
+"""The covariance of a part's predicted position (uncertainty.py) and the joint covariance a body scheme carries."""
+
+import numpy as np
+import pytest
+
+from body_scheme_core.errors import InvalidInputError, ModelFileError
+from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.models.engineered import engineered_models
+from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.uncertainty import position_covariance, position_std
+from body_scheme_core.world import make_session, powercube_6dof
+
+
+@pytest.fixture(scope="module")
+def learned():
+    """The 6-DOF arm learned from scratch (150 steps, the paper's noise): rigid-joint models and a joint fit."""
+    tree = powercube_6dof()
+    session = make_session(tree, 150, 0)
+    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions, action_lower=tree.action_lower,
+                                action_upper=tree.action_upper)
+    for t in range(150):
+        learner.update(session.actions[t], session.observations[t])
+    return tree, learner.body_scheme
+
+
+def test_the_joint_fit_leaves_its_covariance_with_the_scheme(learned):
+    """Every rigid model of the tree is in it, and its diagonal block is the model's own covariance."""
+    _, scheme = learned
+    indices, matrix = scheme.param_covariance
+    assert sorted(indices) == [k for k, m in enumerate(scheme.models) if hasattr(m, "retract")]
+    start = 0
+    for k in indices:
+        p = scheme.models[k].n_params
+        np.testing.assert_allclose(matrix[start:start + p, start:start + p], scheme.models[k].param_cov_)
+        start += p
+
+
+def test_first_order_propagation_matches_sampling_the_joint_covariance(learned):
+    """Parameters drawn from the joint covariance (cross terms included) move the tip as the first-order covariance
+    says (within 15 % in every direction); dropping the cross terms gives another, larger answer."""
+    tree, scheme = learned
+    indices, matrix = scheme.param_covariance
+    a, tip = np.full(tree.n_actions, 0.3), tree.marker_ids[-1]
+    predicted = position_covariance(scheme, a, tip)
+    rng = np.random.default_rng(0)
+    sizes = [scheme.models[k].n_params for k in indices]
+    tips = []
+    for delta in rng.multivariate_normal(np.zeros(matrix.shape[0]), matrix, size=2000):
+        models, start = list(scheme.models), 0
+        for k, p in zip(indices, sizes, strict=True):
+            models[k] = models[k].with_params(models[k].retract(delta[start:start + p]))
+            start += p
+        tips.append(BodyScheme(scheme.parts, scheme.root, models).predict(a)[tip][:3, 3])
+    sampled = np.cov(np.array(tips).T)
+    w, V = np.linalg.eigh(predicted)
+    np.testing.assert_allclose(np.diag(V.T @ sampled @ V), w, rtol=0.15)
+    independent = BodyScheme(scheme.parts, scheme.root, scheme.models)
+    assert position_std(independent, a, tip) > 1.2 * position_std(scheme, a, tip)
+
+
+def test_exact_models_are_certain_and_the_root_is_its_own_origin(learned):
+    """Engineered models (the robot's specification) give zero; the root part has nothing above it."""
+    tree, _ = learned
+    exact = BodyScheme(tree.marker_ids, tree.root_marker, engineered_models(tree))
+    assert position_std(exact, np.zeros(tree.n_actions), tree.marker_ids[-1]) == 0.0
+    assert position_std(exact, np.zeros(tree.n_actions), tree.root_marker) == 0.0
+    with pytest.raises(InvalidInputError):
+        position_covariance(exact, np.array([np.nan] * tree.n_actions), tree.root_marker)
+
+
+def test_the_joint_covariance_survives_a_round_trip_and_bad_ones_are_refused(learned):
+    _, scheme = learned
+    again = BodyScheme.from_dict(scheme.to_dict())
+    assert again.param_covariance[0] == scheme.param_covariance[0]
+    np.testing.assert_array_equal(again.param_covariance[1], scheme.param_covariance[1])
+    data = scheme.to_dict()
+    data["param_covariance"]["matrix"] = [[1.0]]
+    with pytest.raises(ModelFileError, match="param_covariance"):
+        BodyScheme.from_dict(data)
+    with pytest.raises(InvalidInputError, match="param_covariance"):
+        BodyScheme(scheme.parts, scheme.root, scheme.models, ([0, 0], np.eye(2)))
