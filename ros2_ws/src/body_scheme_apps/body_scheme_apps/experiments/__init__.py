@@ -11,6 +11,7 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.zoo`: not in the paper: random bodies at four noise levels, learned from scratch and changed once.
 - :mod:`.yourrobot`: not in the paper: real arms' URDFs, markers planned, learned from rendered images, calibrated.
 - :mod:`.iksure`: not in the paper: IK's reported uncertainty against where the true arm goes.
+- :mod:`.explore`: the paper's future work: active exploration against random babbling.
 
 A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``PERCEPTIONS`` (default both
 ``"noise"`` and ``"rendered"``), ``NOISE_LEVELS`` (the noise-model runs of one seed, each passed as

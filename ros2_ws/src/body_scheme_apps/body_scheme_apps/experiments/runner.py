@@ -17,7 +17,8 @@ import numpy as np
 __all__ = ["EXPERIMENTS", "Task", "experiment_module", "run_tasks", "aggregate", "sanity_problems"]
 
 #: Experiment name -> module (in this package), in the order of the paper.
-EXPERIMENTS = ("fig7", "table1", "control", "branching", "transmission", "zoo", "yourrobot", "iksure")
+EXPERIMENTS = ("fig7", "table1", "control", "branching", "transmission", "zoo", "yourrobot", "iksure",
+               "explore")
 _SKIP = ("curves", "events")
 
 
