@@ -145,3 +145,33 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     tracker.stop()
     assert spin_until(lambda: "camera is quiet" in watcher.babbling.get("message", ""), timeout=15), \
         watcher.babbling
+
+
+def test_active_babbling_follows_the_scheme_nodes_suggestions_and_learns_the_true_tree(start_node, ros_node,
+                                                                                        spin_until):
+    """mode active with scheme_node's exploration on: the graph learns the true tree from scratch, most commands are
+    scheme_node's suggestions (fallbacks are counted), and every goal stays within the limits less the margin."""
+    tree = load_robot(ROBOT)
+    ids, names = list(tree.marker_ids), list(tree.action_joint_names)
+    watcher = Watcher(ros_node)
+    suggestions = []
+    ros_node.create_subscription(JointState, "body_scheme/exploration_command", suggestions.append, 100)
+    start_node("body_scheme_nodes", "scheme_node", {
+        "part_ids": ids, "joint_names": names, "action_lower": tree.action_lower.tolist(),
+        "action_upper": tree.action_upper.tolist(), "learner.sigma_trans": RENDERED_SIGMA_TRANS,
+        "learner.sigma_rot": RENDERED_SIGMA_ROT, "exploration": True})
+    start_node("body_scheme_nodes", "tracker_node", {
+        "markers_path": str(ROBOTS_DIR / f"{ROBOT}.markers.yaml"), "image_reliability": "reliable"})
+    start_node("body_scheme_nodes", "sim_node", {"robot": ROBOT, "perception_mode": "rendered",
+                                                 "camera_period": 0.05})
+    babble = start_node("body_scheme_nodes", "babble_node", {
+        "robot": ROBOT, "max_velocity": 20.0, "max_acceleration": 100.0, "limit_margin": MARGIN, "dwell": 0.1,
+        "settle_window": 0.05, "mode": "active", "suggestion_timeout": 3.0})
+    true_edges = {frozenset(e) for e in tree.marker_tree_edges()}
+    assert spin_until(lambda: watcher.edges() == true_edges, timeout=240), (watcher.edges(), babble.output()[-2000:])
+    assert spin_until(lambda: "suggestions_followed" in watcher.babbling, timeout=5), watcher.babbling
+    followed = int(watcher.babbling["suggestions_followed"])
+    fallbacks = int(watcher.babbling.get("fallbacks", 0))
+    assert suggestions and followed >= 0.5 * (followed + fallbacks), watcher.babbling
+    for goal in watcher.goals():
+        assert np.all(goal >= tree.action_lower + MARGIN - 1e-9) and np.all(goal <= tree.action_upper - MARGIN)

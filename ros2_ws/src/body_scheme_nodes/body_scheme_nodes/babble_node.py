@@ -1,6 +1,9 @@
 """babble_node: babbles a real arm through ros2_control and publishes the action signal once each move has settled.
 
-Each step: draw a random command within the joint limits (shrunk by ``limit_margin``), refuse it if it leaves the
+Each step: draw a random command within the joint limits (shrunk by ``limit_margin``) or, with ``mode: active``, take
+scheme_node's latest suggestion (``body_scheme/exploration_command``, published after it learnt the last action; a
+random draw instead, counted as ``fallbacks``, when none arrives within ``suggestion_timeout`` s or the suggestion is
+refused); refuse it if it leaves the
 workspace box or if the robot would hit itself or the ground on the way (pybullet from the URDF), send it as a
 ``trajectory_msgs/JointTrajectory`` to ``<controller>/joint_trajectory`` with a duration from the velocity and
 acceleration limits, wait until ``/joint_states`` settles at it (or ``settle_timeout`` after the planned end), then
@@ -20,6 +23,7 @@ Subscriptions
 /joint_states : sensor_msgs/JointState              (``joint_states_topic``)
 /diagnostics : diagnostic_msgs/DiagnosticArray      statuses whose name contains ``watch_diagnostics``
 observations : body_scheme_msgs/MarkerPoses         (``camera_topic``) the camera watchdog
+body_scheme/exploration_command : sensor_msgs/JointState   ``mode: active``: scheme_node's suggestions
 
 Publishers
 ----------
@@ -74,6 +78,12 @@ class BabbleNode(Node):
         self.camera_timeout = p("camera_timeout", 3.0).value
         self.wait_for_frame = p("wait_for_frame", True).value
         self.joint_state_timeout = p("joint_state_timeout", 3.0).value
+        self.mode = p("mode", "random").value
+        self.suggestion_timeout = p("suggestion_timeout", 1.0).value
+        if self.mode not in ("random", "active"):
+            raise InvalidInputError(f"mode must be random or active, got {self.mode!r}")
+        if not self.suggestion_timeout >= 0:
+            raise InvalidInputError(f"suggestion_timeout must be >= 0 s, got {self.suggestion_timeout!r}")
         self.state = "paused" if p("start_paused", False).value else "waiting"
         update_period = p("update_period", 0.02).value
         if not (self.dwell >= 0 and self.camera_timeout >= 0 and self.error_hold >= 0 and update_period > 0
@@ -89,6 +99,8 @@ class BabbleNode(Node):
         self.last_camera = None  # monotonic time of the last camera message
         self.last_frame_stamp = -np.inf  # header stamp (s) of the last camera message
         self.settled_stamp = -np.inf  # stamp (s) of the last action signal
+        self.suggestion = None  # (stamp s, command in the driver's joint order) of scheme_node's latest suggestion
+        self.idle_since = None  # monotonic time the loop became ready for the next step
         self.error_since = None  # monotonic time the watched status turned ERROR (None: it is not)
 
         work = MutuallyExclusiveCallbackGroup()
@@ -96,6 +108,9 @@ class BabbleNode(Node):
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10, callback_group=work)
         self.create_subscription(MarkerPoses, camera_topic, self._on_camera, 10, callback_group=work)
+        if self.mode == "active":
+            self.create_subscription(JointState, "body_scheme/exploration_command", self._on_suggestion, 10,
+                                     callback_group=work)
         for name, handler in (("pause", self._on_pause), ("resume", self._on_resume), ("stop", self._on_stop)):
             self.create_service(Trigger, f"~/{name}", handler, callback_group=work)
         self.create_timer(update_period, self._on_timer, callback_group=work)
@@ -106,6 +121,14 @@ class BabbleNode(Node):
     def _on_camera(self, msg):
         self.last_camera = time.monotonic()
         self.last_frame_stamp = max(self.last_frame_stamp, conversions.seconds_from_stamp(msg.header.stamp))
+
+    def _on_suggestion(self, msg):
+        try:
+            stamp, command = conversions.actions_from_joint_state(msg, self.driver.joint_names)
+        except InvalidInputError:
+            self.counts["suggestions_rejected"] += 1
+            return
+        self.suggestion = (stamp, command)
 
     def _on_diagnostics(self, msg):
         if not self.watch:
@@ -184,6 +207,8 @@ class BabbleNode(Node):
             self.state = "done"
             self.get_logger().info(f"babbled {self.counts['actions']} commands: done")
             return
+        if self.mode == "active" and self._follow_suggestion(now):
+            return
         safety = self.driver.safety
         for _ in range(MAX_DRAWS):
             goal = self.rng.uniform(safety.lower, safety.upper)
@@ -191,6 +216,28 @@ class BabbleNode(Node):
             if why is None:
                 return
         self.counts["steps_without_a_safe_command"] += 1
+
+    def _follow_suggestion(self, now):
+        """Active mode: send scheme_node's suggestion made after the last action. True: sent, or still waiting for
+        one (at most ``suggestion_timeout``); False: draw at random instead (none came, counted as a fallback, or it
+        was refused)."""
+        if self.counts["actions"] == 0:
+            return False  # nothing learnt yet, so nothing to suggest: the first command is random
+        fresh = self.suggestion is not None and self.suggestion[0] >= self.settled_stamp
+        if not fresh:
+            self.idle_since = now if self.idle_since is None else self.idle_since
+            if now - self.idle_since < self.suggestion_timeout:
+                return True  # keep waiting
+            self.counts["fallbacks"] += 1
+            self.idle_since = None
+            return False
+        self.idle_since = None
+        command, self.suggestion = self.suggestion[1], None
+        if self.driver.send(command) is None:
+            self.counts["suggestions_followed"] += 1
+            return True
+        self.counts["suggestions_refused"] += 1
+        return False
 
     def _quiet(self, now):
         """Why babbling must stop because the camera or the joint states went quiet, or ""."""

@@ -21,6 +21,9 @@ body_scheme/markers : visualization_msgs/MarkerArray, body_scheme/poses : geomet
     The latest prediction for RViz, Foxglove and tf2 (at most every ``view_period``; see body_scheme_nodes.view).
 body_scheme/robot_description : std_msgs/String  (transient local)
     The learned body scheme as URDF (body_scheme_core.learned_body), republished when it changes.
+body_scheme/exploration_command : sensor_msgs/JointState  (``exploration`` true)
+    After each learnt sample, the next command to babble (body_scheme_core.exploration: a uniform draw while
+    bootstrapping, then the posture whose prediction is most uncertain); babble_node's ``mode: active`` follows it.
 
 Services
 --------
@@ -49,6 +52,8 @@ stall_timeout : double 10.0 s         input arriving but no learning step for th
 hardware_id : string ""               diagnostics hardware_id ("" = the node's fully qualified name)
 tf_prefix : string ""                 prefix of the TF frames and URDF links; joints keep the robot's names
 view_period : double 0.1 s            markers, poses and /tf at most this often
+exploration : bool false, exploration_candidates : int 256, exploration_travel_weight : double 0.0
+                                      suggest the next command (see body_scheme/exploration_command)
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
                                       $ROS_HOME/body_scheme)
 max_state_bytes : int 67108864        largest state file ~/load reads
@@ -86,6 +91,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import BodySchemeError, ModelFileError
+from body_scheme_core.exploration import ExplorationPolicy
 from body_scheme_core.learned_body import learned_tree, learned_urdf
 from body_scheme_core.persistence import encode_state, load_state, write_state_text
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -146,6 +152,12 @@ class SchemeNode(Node):
         self.pub_structure = self.create_publisher(BodySchemeStructure, "body_scheme/structure", LATCHED)
         self.pub_snapshot = self.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
         self.pub_events = self.create_publisher(SchemeEvent, "body_scheme/events", 100)
+        self.explorer = None
+        if self.settings.exploration:
+            self.explorer = ExplorationPolicy(self.settings.action_lower, self.settings.action_upper,
+                                              self.settings.exploration_candidates,
+                                              travel_weight=self.settings.exploration_travel_weight)
+            self.pub_exploration = self.create_publisher(JointState, "body_scheme/exploration_command", 10)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", 10)
         self.pub_markers = self.create_publisher(MarkerArray, "body_scheme/markers", 10)
@@ -355,6 +367,14 @@ class SchemeNode(Node):
             return False
         return True
 
+    def _suggest(self, actions):
+        """Publish the next command to babble, after the sample at ``actions`` was learnt."""
+        learner = self.learner
+        scheme = learner.body_scheme if learner.phase == "steady" else None
+        command = self.explorer.suggest(scheme, current=actions)
+        if command is not None:
+            self.pub_exploration.publish(conversions.joint_state_msg(self._now(), self.joint_names, command))
+
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()
         events, rejection = learn_sample(self.learner, stamp, actions, observations)
@@ -363,6 +383,8 @@ class SchemeNode(Node):
             return
         self.last_learn_time = self._now()
         self.latency.append(time.perf_counter() - start)
+        if self.explorer is not None:
+            self._suggest(actions)
         for event in events:
             self.event_counts[event.kind] += 1
             self.pub_events.publish(conversions.event_msg(stamp, event))

@@ -48,7 +48,8 @@ def parameter_defaults(n_joints=1):
         "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
         "queue_depth": 1000, "max_inbox": 2000, "max_pending_samples": 500, "max_sample_age": 5.0,
-        "tf_prefix": "", "view_period": 0.1,
+        "tf_prefix": "", "view_period": 0.1, "exploration": False, "exploration_candidates": 256,
+        "exploration_travel_weight": 0.0,
         "max_message_bytes": MessageLimits().max_bytes, "max_joint_names": MessageLimits().max_joint_names,
         "max_markers": MessageLimits().max_markers, "service_queue_depth": 100, "max_requests_per_take": 20,
     }
@@ -120,6 +121,9 @@ class SchemeSettings:
     max_markers: int = MessageLimits().max_markers
     service_queue_depth: int = 100
     max_requests_per_take: int = 20
+    exploration: bool = False
+    exploration_candidates: int = 256
+    exploration_travel_weight: float = 0.0
 
     #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
     UNSTAMPED_POLICIES = ("receipt_time", "reject")
@@ -163,6 +167,16 @@ class SchemeSettings:
             problem = _special_path_problem(getattr(self, name))
             if problem:
                 raise InvalidInputError(f"{name} {getattr(self, name)!r}: {problem}")
+        if not isinstance(self.exploration, bool):
+            raise InvalidInputError(f"exploration must be true or false, got {self.exploration!r}")
+        if isinstance(self.exploration_candidates, bool) or not isinstance(self.exploration_candidates, int) or \
+                not 1 <= self.exploration_candidates <= 100_000:
+            raise InvalidInputError(f"exploration_candidates must be an integer from 1 to 100,000, got "
+                                    f"{self.exploration_candidates!r}")
+        if not (isinstance(self.exploration_travel_weight, (int, float))
+                and math.isfinite(self.exploration_travel_weight) and self.exploration_travel_weight >= 0):
+            raise InvalidInputError(f"exploration_travel_weight must be a number >= 0, got "
+                                    f"{self.exploration_travel_weight!r}")
         if self.unstamped_policy not in self.UNSTAMPED_POLICIES:
             raise InvalidInputError(f"unstamped_policy must be one of {self.UNSTAMPED_POLICIES}, got "
                                     f"{self.unstamped_policy!r}")
