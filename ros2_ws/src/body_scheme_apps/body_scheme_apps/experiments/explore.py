@@ -9,6 +9,8 @@ cost). Observations: the paper's noise (44 mm / 15 deg 3D RMS), every marker
 seen. Bodies: the 2-DOF arm of Fig. 7 (``2dof``), the paper's 6-DOF arm (``6dof``) and a 7-joint arm
 (``arm7``, :func:`~body_scheme_core.world.arm_7dof`).
 
+*First true tree*: commands until the body scheme is first the true one (:func:`~body_scheme_core.world.is_true_tree`);
+*bootstrapped*: until the learner leaves its bootstrapping phase; the budget if never.
 *Samples*: commands until the end effector's predicted position relative to the root part, averaged over 50 random
 postures (the same for both), is first within :data:`THRESHOLD_FRACTION` of the per-axis noise (44 / sqrt 3 = 25 mm)
 of the truth; checked every :data:`EVAL_EVERY` commands; the budget if never. *Travel*: joint-space distance (rad)
@@ -29,6 +31,7 @@ from body_scheme_core.world import (
     Body,
     ObservationModel,
     arm_7dof,
+    is_true_tree,
     planar_2dof,
     powercube_6dof,
 )
@@ -55,6 +58,9 @@ for _body in BODIES:
         f"explore_samples_active_{_body}": f"{_body}: mean samples until then, active exploration",
         f"explore_travel_ratio_{_body}": f"{_body}: mean joint-space distance commanded until then, active over "
                                          f"random",
+        **{f"explore_{kind}_{policy}_{_body}": f"{_body}: mean commands until {what}, {policy}"
+           for kind, what in (("tree", "the first true tree"), ("bootstrapped", "bootstrapping ended"))
+           for policy in ("random", "active")},
     })
 PAPER = {}
 TARGETS = {"explore_samples_ratio_6dof": 0.5}
@@ -62,7 +68,8 @@ SANITY = {key: (0.0, 100.0) for key in FIGURES if "ratio" in key}
 
 
 def _first_below(tree, policy, seed, budget):
-    """``(samples, travel)`` of one learner from scratch with ``policy`` (see the module docstring)."""
+    """``(samples, travel, first true tree, bootstrapped)`` of one learner from scratch with ``policy`` (see the
+    module docstring)."""
     rng_commands, rng_noise, rng_test = np.random.default_rng(seed).spawn(3)
     observer = ObservationModel(PAPER_SIGMA_TRANS, PAPER_SIGMA_ROT, 1.0, rng_noise)
     body = Body(tree)
@@ -74,6 +81,7 @@ def _first_below(tree, policy, seed, budget):
     true = body.true_marker_array(test)
     index = {p: k for k, p in enumerate(tree.marker_ids)}
     current, travel = np.zeros(tree.n_actions), 0.0
+    true_tree = bootstrapped = budget
     for t in range(budget):
         if policy == "active":
             a = explorer.suggest(learner.body_scheme if learner.phase == "steady" else None, current)
@@ -83,6 +91,10 @@ def _first_below(tree, policy, seed, budget):
         current = a
         learner.update(a, observer.observe_array(body.true_marker_array(a[None]), tree.marker_ids)[0])
         scheme = learner.body_scheme
+        if true_tree == budget and is_true_tree(tree, scheme):
+            true_tree = t + 1
+        if bootstrapped == budget and learner.phase != "bootstrapping":
+            bootstrapped = t + 1
         if (t + 1) % EVAL_EVERY or scheme is None or effector not in scheme:
             continue
         predicted = scheme.predict_batch(test)
@@ -90,8 +102,8 @@ def _first_below(tree, policy, seed, budget):
         relative = np.linalg.inv(predicted[:, k_root]) @ predicted[:, k_eff]
         truth = np.linalg.inv(true[:, index[scheme.root]]) @ true[:, index[effector]]
         if np.mean(np.linalg.norm(relative[:, :3, 3] - truth[:, :3, 3], axis=1)) < threshold:
-            return t + 1, travel
-    return budget, travel
+            return t + 1, travel, true_tree, bootstrapped
+    return budget, travel, true_tree, bootstrapped
 
 
 def run(seed, perception="6dof", quick=False):
@@ -102,9 +114,11 @@ def run(seed, perception="6dof", quick=False):
     tree = builder()
     out = {"curves": {}, "events": []}
     for policy in POLICIES:
-        samples, travel = _first_below(tree, policy, seed, QUICK_BUDGET if quick else budget)
+        samples, travel, true_tree, bootstrapped = _first_below(tree, policy, seed, QUICK_BUDGET if quick else budget)
         out[f"explore_{policy}_samples_{perception}"] = float(samples)
         out[f"explore_{policy}_travel_{perception}"] = travel
+        out[f"explore_{policy}_tree_{perception}"] = float(true_tree)
+        out[f"explore_{policy}_bootstrapped_{perception}"] = float(bootstrapped)
     return out
 
 
@@ -116,13 +130,16 @@ def summarize(runs):
         if not mine:
             continue
         means = {f"{p}_{kind}": float(np.mean([r[f"explore_{p}_{kind}_{body}"] for r in mine]))
-                 for p in POLICIES for kind in ("samples", "travel")}
+                 for p in POLICIES for kind in ("samples", "travel", "tree", "bootstrapped")}
         for policy in POLICIES:
             summary[f"explore_samples_{policy}_{body}"] = means[f"{policy}_samples"]
             summary[f"explore_samples_{policy}_{body}_std"] = float(np.std(
                 [r[f"explore_{policy}_samples_{body}"] for r in mine]))
         summary[f"explore_samples_ratio_{body}"] = means["active_samples"] / means["random_samples"]
         summary[f"explore_travel_ratio_{body}"] = means["active_travel"] / means["random_travel"]
+        for kind in ("tree", "bootstrapped"):
+            for policy in POLICIES:
+                summary[f"explore_{kind}_{policy}_{body}"] = means[f"{policy}_{kind}"]
     return summary
 
 
