@@ -77,11 +77,11 @@ demo: build
 	$(RUN) python -m body_scheme_apps.live_demo --out out/demo
 
 # Your robot (docs/your-robot.md): markers planned on any URDF, learned from rendered images, calibrated.
-# make your-robot URDF=path/to/robot.urdf [PACKAGE_PATH=dir] (default: pybullet's Franka Panda).
+# make your-robot URDF=path/to/robot.urdf [PACKAGE_PATH=dir] (default: pybullet's KUKA iiwa).
 URDF ?=
 PACKAGE_PATH ?=
 your-robot: build
-	$(RUN) urdf="$(URDF)"; [ -n "$$urdf" ] || urdf=$$(python -c "import pybullet_data; print(pybullet_data.getDataPath())")/franka_panda/panda.urdf; \
+	$(RUN) urdf="$(URDF)"; [ -n "$$urdf" ] || urdf=$$(python -c "import pybullet_data; print(pybullet_data.getDataPath())")/kuka_iiwa/model.urdf; \
 	  python -m body_scheme_apps.calibrate --simulate "$$urdf" --camera auto $(if $(PACKAGE_PATH),--package-path $(PACKAGE_PATH)) --out out/your-robot
 
 # The same story without ROS: body_scheme_core alone on a synthetic session.

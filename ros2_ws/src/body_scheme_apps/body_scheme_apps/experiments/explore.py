@@ -81,8 +81,11 @@ def _first_below(tree, policy, seed, budget):
     true = body.true_marker_array(test)
     index = {p: k for k, p in enumerate(tree.marker_ids)}
     current, travel = np.zeros(tree.n_actions), 0.0
-    true_tree = bootstrapped = budget
+    samples = true_tree = bootstrapped = budget
+    travel_then = math.nan
     for t in range(budget):
+        if max(samples, true_tree, bootstrapped) < budget:
+            break  # all three seen
         if policy == "active":
             a = explorer.suggest(learner.body_scheme if learner.phase == "steady" else None, current)
         else:
@@ -95,15 +98,15 @@ def _first_below(tree, policy, seed, budget):
             true_tree = t + 1
         if bootstrapped == budget and learner.phase != "bootstrapping":
             bootstrapped = t + 1
-        if (t + 1) % EVAL_EVERY or scheme is None or effector not in scheme:
+        if samples < budget or (t + 1) % EVAL_EVERY or scheme is None or effector not in scheme:
             continue
         predicted = scheme.predict_batch(test)
         k_root, k_eff = scheme.parts.index(scheme.root), scheme.parts.index(effector)
         relative = np.linalg.inv(predicted[:, k_root]) @ predicted[:, k_eff]
         truth = np.linalg.inv(true[:, index[scheme.root]]) @ true[:, index[effector]]
         if np.mean(np.linalg.norm(relative[:, :3, 3] - truth[:, :3, 3], axis=1)) < threshold:
-            return t + 1, travel, true_tree, bootstrapped
-    return budget, travel, true_tree, bootstrapped
+            samples, travel_then = t + 1, travel
+    return samples, travel_then if samples < budget else travel, true_tree, bootstrapped
 
 
 def run(seed, perception="6dof", quick=False):
