@@ -27,8 +27,10 @@ __all__ = ["IKResult", "solve_ik", "trained_bounds"]
 #: Stop an attempt when the residual improved by less than this fraction over ``_STALL_WINDOW`` iterations.
 _STALL_FRACTION = 1e-3
 _STALL_WINDOW = 8
-#: With ``confidence > 0`` the search stops at this fraction of the tolerance (the residual is part of the bound).
+#: With ``confidence > 0`` the search stops at this fraction of the tolerance, or at this residual (m) if smaller: the
+#: residual is part of the bound, and a loose tolerance should not leave the part centimetres off in the model.
 _MODEL_FRACTION = 0.1
+_MODEL_STOP = 1e-3
 #: Relative step size below which an attempt counts as stuck.
 _XTOL = 1e-10
 #: Damping above which the local linear model is useless: the attempt is stuck.
@@ -354,7 +356,7 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
     x0 = start
     # With an uncertainty to add, the model's own residual is driven well below the tolerance (it is part of the
     # bound); without, reaching the tolerance is enough.
-    stop = tol if confidence == 0 else _MODEL_FRACTION * tol
+    stop = tol if confidence == 0 else min(_MODEL_FRACTION * tol, _MODEL_STOP)
     while True:
         x, e, it, status = _attempt(residual, x0, lo, hi, stop, max_iterations, damping)
         iterations += it
