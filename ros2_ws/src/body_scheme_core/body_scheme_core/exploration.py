@@ -42,7 +42,8 @@ class ExplorationPolicy:
         ``feasible(C) -> bool array (k,)`` for candidates ``C`` (k, m): which may be commanded (e.g. no collision,
         markers of interest in view). ``None``: all.
     travel_weight : float
-        Cost per unit of joint-space distance from the current posture, ranges scaled to one (0: none).
+        Cost per unit of joint-space distance from the current posture, ranges scaled to one (0: none); only with a
+        body scheme (without one the draw stays uniform).
     rng : numpy.random.Generator, int or None
 
     Raises
@@ -85,7 +86,7 @@ class ExplorationPolicy:
                 self.n_infeasible += 1
                 return None
         score = self.information(C, scheme)
-        if current is not None and self.travel_weight > 0:
+        if scheme is not None and current is not None and self.travel_weight > 0:
             travel = np.linalg.norm((C - np.asarray(current, dtype=float)) / self._scale, axis=1)
             score = score - self.travel_weight * travel
         return C[int(np.argmax(score))]

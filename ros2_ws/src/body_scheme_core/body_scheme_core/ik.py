@@ -362,7 +362,7 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
         iterations += it
         if best_e is None or e @ e < best_e @ best_e:
             best_x, best_e, best_status = x, e, status
-        if status == "converged":
+        if status == "converged" or float(np.linalg.norm(e)) <= tol:
             reached.append((x, e))
         if (reached and not prefer_certain) or restarts >= n_restarts:
             break

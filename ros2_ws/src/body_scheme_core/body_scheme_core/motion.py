@@ -107,6 +107,13 @@ class SafetyLimits:
                 raise InvalidInputError("a workspace box needs the points to keep inside it")
             self.workspace = box
 
+    def outside_box(self, a):
+        """Whether command ``a`` puts a point outside the workspace box (False without a box)."""
+        if self.workspace is None:
+            return False
+        points = np.asarray(self.points(np.asarray(a, dtype=float)), dtype=float).reshape(-1, 3)
+        return bool(np.any(points < self.workspace[0]) or np.any(points > self.workspace[1]))
+
     def violation(self, a):
         """Why command ``a`` may not be sent, or None: ``"joint limit"`` or ``"workspace"``."""
         a = np.asarray(a, dtype=float)
@@ -114,11 +121,7 @@ class SafetyLimits:
             return "malformed"
         if np.any(a < self.lower - 1e-12) or np.any(a > self.upper + 1e-12):
             return "joint limit"
-        if self.workspace is not None:
-            points = np.asarray(self.points(a), dtype=float).reshape(-1, 3)
-            if np.any(points < self.workspace[0]) or np.any(points > self.workspace[1]):
-                return "workspace"
-        return None
+        return "workspace" if self.outside_box(a) else None
 
 
 class SettleDetector:

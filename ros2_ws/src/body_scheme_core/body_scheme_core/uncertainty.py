@@ -69,7 +69,10 @@ def position_covariance(scheme, a, part):
         else:
             _, std = scheme.edge_transform(model, inverted, A, return_std=True)
             s_t, s_r = np.asarray(std, dtype=float).reshape(-1)[:2]
-            lever = tip - prefix[i + 1][:3, 3]  # from the edge's child part to the tip
+            # The model's rotation error turns what follows about its own child: the traversal's child, or for an
+            # inverted edge (the model predicts child2parent) the traversal's parent.
+            pivot = prefix[i] if inverted else prefix[i + 1]
+            lever = tip - pivot[:3, 3]
             cov += s_t**2 * np.eye(3) + s_r**2 * (float(lever @ lever) * np.eye(3) - np.outer(lever, lever))
     if jacobian is not None:
         cov += jacobian @ joint @ jacobian.T

@@ -34,10 +34,10 @@ def test_never_outside_the_limits_nor_refused_by_the_feasibility_callback(joints
 
 
 def test_without_a_body_scheme_it_babbles_uniformly():
-    """Before the body scheme exists the suggestion is a uniform draw: over many, every tenth of each range gets
-    its share (within a factor 2)."""
-    policy = ExplorationPolicy([0.0, -1.0], [1.0, 1.0], n_candidates=8, rng=0)
-    draws = np.array([policy.suggest() for _ in range(2000)])
+    """Before the body scheme exists the suggestion is a uniform draw, a travel cost notwithstanding: over many,
+    every tenth of each range gets its share (within a factor 2)."""
+    policy = ExplorationPolicy([0.0, -1.0], [1.0, 1.0], n_candidates=8, travel_weight=10.0, rng=0)
+    draws = np.array([policy.suggest(current=[0.0, -1.0]) for _ in range(2000)])
     for k, (lo, hi) in enumerate(([0.0, 1.0], [-1.0, 1.0])):
         counts, _ = np.histogram(draws[:, k], bins=10, range=(lo, hi))
         assert counts.min() > 100 and counts.max() < 400

@@ -288,15 +288,19 @@ def test_the_error_bound_covers_where_the_true_arm_goes():
 
 
 def test_prefer_certain_returns_the_least_uncertain_solution():
-    """With every restart used, the solution returned is at most as uncertain as the first one found."""
+    """With every restart used, the solution returned is never more uncertain than the first one found, and for
+    some targets (the 2-DOF arm's elbow-up and elbow-down solutions) it is the other, surer one."""
     rng = np.random.default_rng(2)
     tree, scheme = learned_planar_arm(rng)
+    better = 0
     for a in rng.uniform(tree.action_lower, tree.action_upper, size=(10, 2)):
         target = scheme.predict(a)[3][:3, 3]
         first = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, rng=1)
         certain = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, rng=1,
-                           prefer_certain=True)
+                           prefer_certain=True, n_restarts=8)
         assert certain.converged and certain.position_std <= first.position_std + 1e-12
+        better += certain.position_std < first.position_std - 1e-4
+    assert better >= 1
 
 
 def test_ik_on_learned_arm_reports_unreachable_target():

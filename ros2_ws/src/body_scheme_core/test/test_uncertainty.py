@@ -79,3 +79,23 @@ def test_the_joint_covariance_survives_a_round_trip_and_bad_ones_are_refused(lea
         BodyScheme.from_dict(data)
     with pytest.raises(InvalidInputError, match="param_covariance"):
         BodyScheme(scheme.parts, scheme.root, scheme.models, ([0, 0], np.eye(2)))
+
+
+def test_a_models_rotation_error_turns_what_follows_about_its_own_child_also_when_inverted():
+    """A GP edge seen from its parent moves its child by its translation error only (the rotation turns the child
+    about itself); seen from its child (inverted), its rotation error swings the parent on the whole link."""
+    from body_scheme_core.models.gp import GPModel
+    from body_scheme_core.world import planar_2dof
+
+    tree = planar_2dof()
+    A = np.random.default_rng(0).uniform(tree.action_lower, tree.action_upper, size=(30, tree.n_actions))
+    parent, child = tree.marker_tree_edges()[0]
+    gp = GPModel(parent, child, tree.path_actions(parent, child)).fit(A, tree.relative_transform(parent, child, A))
+    a = np.array([0.3, -0.2])
+    _, std = gp.predict(a[None], return_std=True)
+    s_t, s_r = std[0]
+    forward = BodyScheme([parent, child], parent, [gp])
+    inverted = BodyScheme([parent, child], child, [gp])
+    lever = np.linalg.norm(inverted.predict(a)[parent][:3, 3])
+    assert np.trace(position_covariance(forward, a, child)) == pytest.approx(3 * s_t**2)
+    assert np.trace(position_covariance(inverted, a, parent)) == pytest.approx(3 * s_t**2 + 2 * s_r**2 * lever**2)

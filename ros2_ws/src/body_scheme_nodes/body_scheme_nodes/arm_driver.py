@@ -174,8 +174,8 @@ class ArmDriver:
             return why
         start = self.positions if start is None else np.asarray(start, dtype=float)
         path = path_samples(goal if start is None else start, goal, PATH_STEP)
-        if start is not None and self.safety.violation(start) != "workspace":
-            if any(self.safety.violation(a) == "workspace" for a in path[:-1]):
+        if start is not None and not self.safety.outside_box(start):
+            if any(self.safety.outside_box(a) for a in path[:-1]):
                 return "workspace"
         if self.screen is not None and self.screen.collides([self.posture(a) for a in path]):
             return "collision"
@@ -220,14 +220,14 @@ class ArmDriver:
         return goal
 
     def halt(self):
-        """Stop the arm where it is: a one-point trajectory to its last reported position, at rest within the time
-        the acceleration limit needs to stop from full speed (a ``JointTrajectoryController`` rejects an empty
-        trajectory)."""
+        """Stop the arm where it is: a one-point trajectory to its last reported position (a
+        ``JointTrajectoryController`` rejects an empty trajectory), over ``4 v / a``: the controller's cubic from full
+        speed back to rest there starts with a deceleration of ``4 v / T``, within the acceleration limit."""
         positions = self.positions
         self.goal = None
         self._count("halted")
         if positions is not None:
-            self.pub_trajectory.publish(self._trajectory(positions, max(0.1, 1.5 * self.max_velocity /
+            self.pub_trajectory.publish(self._trajectory(positions, max(0.1, 4.0 * self.max_velocity /
                                                                          self.max_acceleration)))
 
     def close(self):

@@ -60,6 +60,8 @@ from .spin import run_node
 
 #: Random draws per step before the step is skipped (counted) because every draw was refused.
 MAX_DRAWS = 100
+#: s to wait for a camera frame stamped after the action when the camera watchdog is off (camera_timeout 0).
+FRAME_WAIT = 3.0
 
 
 class BabbleNode(Node):
@@ -202,7 +204,10 @@ class BabbleNode(Node):
         if self.state != "idle" or now < self.next_at:
             return
         if self.wait_for_frame and self.last_frame_stamp < self.settled_stamp:
-            return  # the camera has not yet seen the arm at the last action
+            if now - self.next_at < (self.camera_timeout or FRAME_WAIT):
+                return  # the camera has not yet seen the arm at the last action
+            self.counts["frames_missed"] += 1  # frames keep coming but none after it (stamps of another clock?)
+            self.settled_stamp = -np.inf
         if self.steps and self.counts["actions"] >= self.steps:
             self.state = "done"
             self.get_logger().info(f"babbled {self.counts['actions']} commands: done")

@@ -367,13 +367,14 @@ class SchemeNode(Node):
             return False
         return True
 
-    def _suggest(self, actions):
-        """Publish the next command to babble, after the sample at ``actions`` was learnt."""
+    def _suggest(self, stamp, actions):
+        """Publish the next command to babble after the sample at ``actions`` was learnt, stamped with the sample's
+        stamp (babble_node takes it only if it is not older than its last action)."""
         learner = self.learner
-        scheme = learner.body_scheme if learner.phase == "steady" else None
+        scheme = learner.body_scheme if learner.phase != "bootstrapping" else None
         command = self.explorer.suggest(scheme, current=actions)
         if command is not None:
-            self.pub_exploration.publish(conversions.joint_state_msg(self._now(), self.joint_names, command))
+            self.pub_exploration.publish(conversions.joint_state_msg(stamp, self.joint_names, command))
 
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()
@@ -384,7 +385,7 @@ class SchemeNode(Node):
         self.last_learn_time = self._now()
         self.latency.append(time.perf_counter() - start)
         if self.explorer is not None:
-            self._suggest(actions)
+            self._suggest(stamp, actions)
         for event in events:
             self.event_counts[event.kind] += 1
             self.pub_events.publish(conversions.event_msg(stamp, event))

@@ -316,7 +316,9 @@ class SimNode(Node):
         if self._motion is None:
             start, start_speed = self.world.joint_positions(), np.zeros(len(names))
         else:
-            start, start_speed = self._position(now), self._motion[2](now - self._motion[0], 1)
+            t0, duration, path = self._motion
+            start = self._position(now)
+            start_speed = path(now - t0, 1) if now - t0 < duration else np.zeros(len(names))
         positions = np.repeat(start[None], len(times) + 1, axis=0)
         positions[1:, index] = goals
         times = np.concatenate([[0.0], times])
