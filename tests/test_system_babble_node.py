@@ -82,6 +82,7 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     babble = start_node("body_scheme_nodes", "babble_node", {
         "robot": ROBOT, "max_velocity": 20.0, "max_acceleration": 100.0, "limit_margin": MARGIN, "dwell": 0.1,
         "settle_window": 0.05, "camera_timeout": 4.0, "error_hold": 0.5, "start_paused": True,
+        "joint_state_timeout": 10.0,  # sim_node renders on the same 2 cores: its joint states paused for 3 s in CI
         "watch_diagnostics": "/alarm: body scheme"})  # the test's stand-in for scheme_node's status
     # Resumed once the test sees babble_node's publishers (else the first goal can go out before discovery).
     assert spin_until(lambda: ros_node.count_publishers("joint_trajectory_controller/joint_trajectory") >= 1
@@ -173,7 +174,8 @@ def test_active_babbling_follows_the_scheme_nodes_suggestions_and_learns_the_tru
                                                        "camera_period": 0.1})
     babble = start_node("body_scheme_nodes", "babble_node", {
         "robot": ROBOT, "max_velocity": 20.0, "max_acceleration": 100.0, "limit_margin": MARGIN, "dwell": 0.1,
-        "settle_window": 0.05, "mode": "active", "camera_timeout": 10.0})  # the watchdog is tested above
+        "settle_window": 0.05, "mode": "active", "camera_timeout": 10.0,  # the watchdogs are tested elsewhere
+        "joint_state_timeout": 10.0})
     true_edges = {frozenset(e) for e in tree.marker_tree_edges()}
     assert spin_until(lambda: watcher.edges() == true_edges, timeout=240), (
         watcher.edges(), babble.output()[-2000:], sim.output()[-1500:], tracker.output()[-1500:])
