@@ -84,11 +84,6 @@ class CollisionScreen:
                 "give their packages' parent directories in package_path, or switch the screen off "
                 "(collision_check: false)")
 
-    @property
-    def joint_names(self):
-        """Joint name per action."""
-        return self.world.action_joint_names
-
     def collides(self, postures):
         """Whether the robot hits itself or the ground in any of ``postures`` (shape (k, m) or (m,): joint positions,
         e.g. :func:`~body_scheme_core.motion.path_samples` of a move)."""

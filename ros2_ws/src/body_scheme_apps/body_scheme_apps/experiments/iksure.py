@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from body_scheme_apps.experiments.runner import aggregate
 from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.ik import solve_ik, trained_bounds
 from body_scheme_core.learner import BodySchemeLearner
@@ -117,11 +118,9 @@ def run(seed, perception="paper", quick=False):
 def summarize(runs):
     """Mean and std over the runs of each noise level (a run holds the keys of its level only)."""
     summary = {}
-    for key in FIGURES:
-        values = np.array([r[key] for r in runs if key in r], dtype=float)
-        finite = values[np.isfinite(values)]
-        summary[key] = float(np.mean(finite)) if finite.size else math.nan
-        summary[key + "_std"] = float(np.std(finite)) if finite.size else math.nan
+    for level in LEVELS:
+        key = "ik_uncertainty_coverage" + ("" if level == "paper" else f"_{level}")
+        summary.update(aggregate([r for r in runs if key in r]))
     return summary
 
 
