@@ -155,7 +155,8 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
 
 def test_active_babbling_follows_the_scheme_nodes_suggestions_and_learns_the_true_tree(start_node, ros_node,
                                                                                         spin_until):
-    """mode active with scheme_node's exploration on: the graph learns the true tree from scratch, commands are
+    """mode active with scheme_node's exploration on (markers kept in the camera's view): the graph learns the true
+    tree from scratch, commands are
     scheme_node's suggestions, or counted fallbacks and refusals (suggestions past babble_node's margin: random
     draws instead), after the first, random one, and every goal stays within the
     limits less the margin."""
@@ -167,7 +168,7 @@ def test_active_babbling_follows_the_scheme_nodes_suggestions_and_learns_the_tru
     start_node("body_scheme_nodes", "scheme_node", {
         "part_ids": ids, "joint_names": names, "action_lower": tree.action_lower.tolist(),
         "action_upper": tree.action_upper.tolist(), "learner.sigma_trans": RENDERED_SIGMA_TRANS,
-        "learner.sigma_rot": RENDERED_SIGMA_ROT, "exploration": True})
+        "learner.sigma_rot": RENDERED_SIGMA_ROT, "exploration": True, "exploration_camera_info": "camera/camera_info"})
     tracker = start_node("body_scheme_nodes", "tracker_node", {
         "markers_path": str(ROBOTS_DIR / f"{ROBOT}.markers.yaml"), "image_reliability": "reliable"})
     sim = start_node("body_scheme_nodes", "sim_node", {"robot": ROBOT, "perception_mode": "rendered",

@@ -13,7 +13,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import CameraInfo, JointState
 from std_msgs.msg import String, UInt64
 from tf2_msgs.msg import TFMessage
 from urdf_parser_py.urdf import URDF
@@ -599,3 +599,37 @@ def test_markers_poses_tf_and_urdf_show_the_learned_body(start_node, ros_node, s
     assert spin_until(future.done, timeout=10)
     reply = future.result()
     assert reply.success and URDF.from_xml_string(reply.urdf).name == "learned_body_scheme", reply.message
+
+
+def test_exploration_suggests_only_postures_the_camera_would_see(start_node, ros_node, spin_until):
+    """With ``exploration_camera_info``: suggestions flow while no CameraInfo arrived; a camera whose image lies far
+    off its axis (it would see no marker) stops them once a body scheme exists; an uncalibrated CameraInfo is counted
+    and ignored."""
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=600, seed=2, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
+    process = start_node("body_scheme_nodes", "scheme_node", {
+        **scheme_parameters(tree), "exploration": True, "exploration_candidates": 16,
+        "exploration_camera_info": "test_camera_info"})
+    collector = Collector(ros_node)
+    suggestions = []
+    ros_node.create_subscription(JointState, "body_scheme/exploration_command", suggestions.append, 100)
+    info = ros_node.create_publisher(CameraInfo, "test_camera_info", 10)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    babbler = Babbler(ros_node, session)
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert suggestions, "no suggestion without a camera constraint"
+    blind = conversions.camera_info_msg(0.0, "camera", 640, 480, np.array([[500.0, 0, -1e6], [0, 500.0, 240.0],
+                                                                            [0, 0, 1.0]]))
+    uncalibrated = conversions.camera_info_msg(0.0, "camera", 640, 480, np.eye(3))
+    uncalibrated.k = [0.0] * 9
+    for _ in range(5):  # best effort: repeat
+        info.publish(blind)
+        spin_until(lambda: False, timeout=0.1, during=babbler)
+    info.publish(uncalibrated)
+    assert spin_until(lambda: _values(collector).get("rejected.bad_camera_info") == "1", timeout=15, during=babbler), (
+        {k: v for k, v in _values(collector).items() if "." in k}, process.output())
+    step = int(_values(collector)["step"])
+    suggestions.clear()
+    assert spin_until(lambda: int(_values(collector)["step"]) >= step + 20, timeout=30, during=babbler)
+    assert suggestions == [], f"{len(suggestions)} suggestions for a camera that sees nothing"

@@ -866,6 +866,15 @@ class BodySchemeLearner:
                               f"the body scheme does not explain part {part}: its residuals depend on the commands "
                               f"(F = {t.F:.1f}, p = {t.p:.1g}, {100 * t.explained:.0f} % of their variance)")
 
+    def recalibrate(self):
+        """Run the joint fit of the current tree now, on the whole history window, instead of when it is next due
+        (after samples taken on purpose, e.g. :func:`~body_scheme_core.exploration.explore_near`). Returns the
+        events it raised (none before the first tree)."""
+        events = []
+        if self._tree is not None and self.step > 0:
+            self._calibrate(self.step - 1, events)
+        return events
+
     # ------------------------------------------------------------------ state (body_scheme_core.learner_state)
     def to_state(self):
         """Everything needed to continue bit-identically, as a JSON-serialisable dict (:func:`learner_to_state`)."""

@@ -20,8 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InvalidInputError
+from .scheme import BodyScheme
 
-__all__ = ["position_covariance", "position_std"]
+__all__ = ["parameter_jacobian", "position_covariance", "position_std"]
 
 #: Step of the forward differences in a parameter increment (its units: m, rad).
 _STEP = 1e-6
@@ -82,3 +83,28 @@ def position_covariance(scheme, a, part):
 def position_std(scheme, a, part):
     """RMS over the three axes of the std of ``part``'s predicted position: ``sqrt(trace(cov))`` (m)."""
     return float(np.sqrt(max(np.trace(position_covariance(scheme, a, part)), 0.0)))
+
+
+def parameter_jacobian(scheme, A):
+    """Derivatives (n, n_parts, 3, P) of every part's position in the root frame, at each action vector of ``A``
+    (n, m), with respect to the joint fit's parameter increments (the order of ``scheme.param_covariance``); ``None``
+    when the scheme has no joint covariance. Forward differences of :meth:`BodyScheme.predict_batch` (one batch per
+    parameter)."""
+    if scheme.param_covariance is None:
+        return None
+    A = np.asarray(A, dtype=float)
+    base = scheme.predict_batch(A)[:, :, :3, 3]
+    indices, matrix = scheme.param_covariance
+    J = np.empty(base.shape + (matrix.shape[0],))
+    column = 0
+    for k in indices:
+        model = scheme.models[k]
+        for d in range(model.n_params):
+            delta = np.zeros(model.n_params)
+            delta[d] = _STEP
+            models = list(scheme.models)
+            models[k] = model.with_params(model.retract(delta))
+            moved = BodyScheme(scheme.parts, scheme.root, models).predict_batch(A)[:, :, :3, 3]
+            J[..., column] = (moved - base) / _STEP
+            column += 1
+    return J

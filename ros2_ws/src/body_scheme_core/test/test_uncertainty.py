@@ -7,7 +7,7 @@ from body_scheme_core.errors import InvalidInputError, ModelFileError
 from body_scheme_core.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.uncertainty import position_covariance, position_std
+from body_scheme_core.uncertainty import parameter_jacobian, position_covariance, position_std
 from body_scheme_core.world import make_session, powercube_6dof
 
 
@@ -56,6 +56,20 @@ def test_first_order_propagation_matches_sampling_the_joint_covariance(learned):
     np.testing.assert_allclose(np.diag(V.T @ sampled @ V), w, rtol=0.15)
     independent = BodyScheme(scheme.parts, scheme.root, scheme.models)
     assert position_std(independent, a, tip) > 1.2 * position_std(scheme, a, tip)
+
+
+def test_the_parameter_jacobian_carries_the_joint_covariance_to_every_part(learned):
+    """Through the parameter Jacobian the joint covariance gives each part's position covariance (every model of the
+    learned tree is in the joint fit); a scheme without one has none."""
+    tree, scheme = learned
+    A = np.random.default_rng(1).uniform(tree.action_lower, tree.action_upper, size=(3, tree.n_actions))
+    J = parameter_jacobian(scheme, A)
+    assert J.shape == (3, len(scheme.parts), 3, scheme.param_covariance[1].shape[0])
+    for n, a in enumerate(A):
+        for k, part in enumerate(scheme.parts):
+            np.testing.assert_allclose(J[n, k] @ scheme.param_covariance[1] @ J[n, k].T,
+                                       position_covariance(scheme, a, part), rtol=1e-3, atol=1e-12)
+    assert parameter_jacobian(BodyScheme(scheme.parts, scheme.root, scheme.models), A) is None
 
 
 def test_exact_models_are_certain_and_the_root_is_its_own_origin(learned):

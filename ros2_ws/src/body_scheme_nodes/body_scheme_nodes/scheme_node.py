@@ -23,7 +23,8 @@ body_scheme/robot_description : std_msgs/String  (transient local)
     The learned body scheme as URDF (body_scheme_core.learned_body), republished when it changes.
 body_scheme/exploration_command : sensor_msgs/JointState  (``exploration`` true)
     After each learnt sample, the next command to babble (body_scheme_core.exploration: a uniform draw while
-    bootstrapping, then the posture whose prediction is most uncertain); babble_node's ``mode: active`` follows it.
+    bootstrapping, then the posture expected to make the body scheme surest); babble_node's ``mode: active``
+    follows it.
 
 Services
 --------
@@ -54,6 +55,8 @@ tf_prefix : string ""                 prefix of the TF frames and URDF links; jo
 view_period : double 0.1 s            markers, poses and /tf at most this often
 exploration : bool false, exploration_candidates : int 256, exploration_travel_weight : double 0.0
                                       suggest the next command (see body_scheme/exploration_command)
+exploration_camera_info : string ""   CameraInfo topic: suggest only postures whose markers are predicted inside
+                                      the image, 10 % in from each border ("" = no view constraint)
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else
                                       $ROS_HOME/body_scheme)
 max_state_bytes : int 67108864        largest state file ~/load reads
@@ -83,15 +86,15 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, JointState
 from std_msgs.msg import String, UInt64
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import BodySchemeError, ModelFileError
-from body_scheme_core.exploration import ExplorationPolicy
+from body_scheme_core.exploration import ExplorationPolicy, in_camera_view
 from body_scheme_core.learned_body import learned_tree, learned_urdf
 from body_scheme_core.persistence import encode_state, load_state, write_state_text
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -104,6 +107,8 @@ from .message_feed import feed_message, learn_sample
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
 
+#: Fraction of the image's width and height kept clear at each border by the exploration's view constraint.
+VIEW_MARGIN = 0.1
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -156,8 +161,13 @@ class SchemeNode(Node):
         if self.settings.exploration:
             self.explorer = ExplorationPolicy(self.settings.action_lower, self.settings.action_upper,
                                               self.settings.exploration_candidates,
-                                              travel_weight=self.settings.exploration_travel_weight)
+                                              travel_weight=self.settings.exploration_travel_weight,
+                                              noise=self.learner.config.prior_sigma_trans / math.sqrt(3.0))
             self.pub_exploration = self.create_publisher(JointState, "body_scheme/exploration_command", 10)
+            self.camera = None  # (K, width, height) of the last valid CameraInfo
+            if self.settings.exploration_camera_info:
+                self.create_subscription(CameraInfo, self.settings.exploration_camera_info, self._on_camera_info,
+                                         qos_profile_sensor_data)  # best effort: matches either publisher
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", 10)
         self.pub_markers = self.create_publisher(MarkerArray, "body_scheme/markers", 10)
@@ -372,9 +382,20 @@ class SchemeNode(Node):
         stamp (babble_node takes it only if it is not older than its last action)."""
         learner = self.learner
         scheme = learner.body_scheme if learner.phase != "bootstrapping" else None
-        command = self.explorer.suggest(scheme, current=actions)
+        in_view = None
+        camera = self.camera
+        if camera is not None and learner.body_scheme is not None:
+            in_view = in_camera_view(learner.body_scheme, learner.root_pose, *camera, margin=VIEW_MARGIN)
+        command = self.explorer.suggest(scheme, current=actions, feasible=in_view)
         if command is not None:
             self.pub_exploration.publish(conversions.joint_state_msg(stamp, self.joint_names, command))
+
+    def _on_camera_info(self, msg):
+        """Keep the camera's intrinsics for the view constraint; an uncalibrated one is counted and ignored."""
+        try:
+            self.camera = (conversions.camera_matrix_from_info(msg), int(msg.width), int(msg.height))
+        except BodySchemeError as exc:
+            self._reject("bad_camera_info", str(exc))
 
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()

@@ -49,7 +49,7 @@ def parameter_defaults(n_joints=1):
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
         "queue_depth": 1000, "max_inbox": 2000, "max_pending_samples": 500, "max_sample_age": 5.0,
         "tf_prefix": "", "view_period": 0.1, "exploration": False, "exploration_candidates": 256,
-        "exploration_travel_weight": 0.0,
+        "exploration_travel_weight": 0.0, "exploration_camera_info": "",
         "max_message_bytes": MessageLimits().max_bytes, "max_joint_names": MessageLimits().max_joint_names,
         "max_markers": MessageLimits().max_markers, "service_queue_depth": 100, "max_requests_per_take": 20,
     }
@@ -124,6 +124,7 @@ class SchemeSettings:
     exploration: bool = False
     exploration_candidates: int = 256
     exploration_travel_weight: float = 0.0
+    exploration_camera_info: str = ""
 
     #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
     UNSTAMPED_POLICIES = ("receipt_time", "reject")
@@ -177,6 +178,9 @@ class SchemeSettings:
                 and math.isfinite(self.exploration_travel_weight) and self.exploration_travel_weight >= 0):
             raise InvalidInputError(f"exploration_travel_weight must be a number >= 0, got "
                                     f"{self.exploration_travel_weight!r}")
+        if not isinstance(self.exploration_camera_info, str):
+            raise InvalidInputError(f"exploration_camera_info must be a topic name or \"\", got "
+                                    f"{self.exploration_camera_info!r}")
         if self.unstamped_policy not in self.UNSTAMPED_POLICIES:
             raise InvalidInputError(f"unstamped_policy must be one of {self.UNSTAMPED_POLICIES}, got "
                                     f"{self.unstamped_policy!r}")

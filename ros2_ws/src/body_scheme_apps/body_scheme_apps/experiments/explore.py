@@ -4,8 +4,8 @@ better than the camera sees it?
 Protocol (one run per body, everything from ``seed``): the body learns from scratch twice, with the same noise
 stream, once from commands drawn uniformly within its joint limits (``random``, what every other experiment does)
 and once from :class:`~body_scheme_core.exploration.ExplorationPolicy` (``active``: uniform while the learner is
-bootstrapping, then of 256 uniform candidates per step the one whose predicted position is most uncertain, no travel
-cost). Observations: the paper's noise (44 mm / 15 deg 3D RMS), every marker
+bootstrapping, then of 256 uniform candidates per step the one expected to reduce the parts' positional variance
+most, no travel cost). Observations: the paper's noise (44 mm / 15 deg 3D RMS), every marker
 seen. Bodies: the 2-DOF arm of Fig. 7 (``2dof``), the paper's 6-DOF arm (``6dof``) and a 7-joint arm
 (``arm7``, :func:`~body_scheme_core.world.arm_7dof`).
 
@@ -15,6 +15,8 @@ seen. Bodies: the 2-DOF arm of Fig. 7 (``2dof``), the paper's 6-DOF arm (``6dof`
 postures (the same for both), is first within :data:`THRESHOLD_FRACTION` of the per-axis noise (44 / sqrt 3 = 25 mm)
 of the truth; checked every :data:`EVAL_EVERY` commands; the budget if never. *Travel*: joint-space distance (rad)
 commanded until then. A ratio is the mean over runs of ``active`` over the mean of ``random``.
+*Information spread*: at the first step after bootstrapping, the 90th over the 10th percentile of the 256 candidates'
+expected variance reduction (how much it matters which posture comes next; 1: not at all).
 """
 
 from __future__ import annotations
@@ -58,6 +60,8 @@ for _body in BODIES:
         f"explore_samples_active_{_body}": f"{_body}: mean samples until then, active exploration",
         f"explore_travel_ratio_{_body}": f"{_body}: mean joint-space distance commanded until then, active over "
                                          f"random",
+        f"explore_information_spread_{_body}": f"{_body}: 90th over 10th percentile of the candidates' expected "
+                                               f"variance reduction after bootstrapping (mean)",
         **{f"explore_{kind}_{policy}_{_body}": f"{_body}: mean commands until {what}, {policy}"
            for kind, what in (("tree", "the first true tree"), ("bootstrapped", "bootstrapping ended"))
            for policy in ("random", "active")},
@@ -68,8 +72,8 @@ SANITY = {key: (0.0, 100.0) for key in FIGURES if "ratio" in key}
 
 
 def _first_below(tree, policy, seed, budget):
-    """``(samples, travel, first true tree, bootstrapped)`` of one learner from scratch with ``policy`` (see the
-    module docstring)."""
+    """``(samples, travel, first true tree, bootstrapped, information spread)`` of one learner from scratch with
+    ``policy`` (see the module docstring)."""
     rng_commands, rng_noise, rng_test = np.random.default_rng(seed).spawn(3)
     observer = ObservationModel(PAPER_SIGMA_TRANS, PAPER_SIGMA_ROT, 1.0, rng_noise)
     body = Body(tree)
@@ -82,12 +86,17 @@ def _first_below(tree, policy, seed, budget):
     index = {p: k for k, p in enumerate(tree.marker_ids)}
     current, travel = np.zeros(tree.n_actions), 0.0
     samples = true_tree = bootstrapped = budget
-    travel_then = math.nan
+    travel_then = spread = math.nan
     for t in range(budget):
         if max(samples, true_tree, bootstrapped) < budget:
             break  # all three seen
         if policy == "active":
-            a = explorer.suggest(learner.body_scheme if learner.phase == "steady" else None, current)
+            scheme = learner.body_scheme if learner.phase == "steady" else None
+            if scheme is not None and math.isnan(spread):
+                scores = explorer.information(rng_test.uniform(tree.action_lower, tree.action_upper,
+                                                               (256, tree.n_actions)), scheme)
+                spread = float(np.percentile(scores, 90) / np.percentile(scores, 10))
+            a = explorer.suggest(scheme, current)
         else:
             a = rng_commands.uniform(tree.action_lower, tree.action_upper)
         travel += float(np.linalg.norm(a - current))
@@ -106,7 +115,7 @@ def _first_below(tree, policy, seed, budget):
         truth = np.linalg.inv(true[:, index[scheme.root]]) @ true[:, index[effector]]
         if np.mean(np.linalg.norm(relative[:, :3, 3] - truth[:, :3, 3], axis=1)) < threshold:
             samples, travel_then = t + 1, travel
-    return samples, travel_then if samples < budget else travel, true_tree, bootstrapped
+    return samples, travel_then if samples < budget else travel, true_tree, bootstrapped, spread
 
 
 def run(seed, perception="6dof", quick=False):
@@ -117,11 +126,14 @@ def run(seed, perception="6dof", quick=False):
     tree = builder()
     out = {"curves": {}, "events": []}
     for policy in POLICIES:
-        samples, travel, true_tree, bootstrapped = _first_below(tree, policy, seed, QUICK_BUDGET if quick else budget)
+        samples, travel, true_tree, bootstrapped, spread = _first_below(tree, policy, seed,
+                                                                        QUICK_BUDGET if quick else budget)
         out[f"explore_{policy}_samples_{perception}"] = float(samples)
         out[f"explore_{policy}_travel_{perception}"] = travel
         out[f"explore_{policy}_tree_{perception}"] = float(true_tree)
         out[f"explore_{policy}_bootstrapped_{perception}"] = float(bootstrapped)
+        if policy == "active":
+            out[f"explore_information_spread_{perception}"] = spread
     return out
 
 
@@ -140,6 +152,9 @@ def summarize(runs):
                 [r[f"explore_{policy}_samples_{body}"] for r in mine]))
         summary[f"explore_samples_ratio_{body}"] = means["active_samples"] / means["random_samples"]
         summary[f"explore_travel_ratio_{body}"] = means["active_travel"] / means["random_travel"]
+        spreads = [r[f"explore_information_spread_{body}"] for r in mine]
+        spreads = [x for x in spreads if not math.isnan(x)]
+        summary[f"explore_information_spread_{body}"] = float(np.mean(spreads)) if spreads else math.nan
         for kind in ("tree", "bootstrapped"):
             for policy in POLICIES:
                 summary[f"explore_{kind}_{policy}_{body}"] = means[f"{policy}_{kind}"]

@@ -16,6 +16,11 @@ answer is the distance from the target to where the true arm's end effector is a
 - *success rate*: successes over targets (a solver that never claims success is of no use, however safe);
 - *model-only false success rate*: the same as the false success rate for the model's word alone (``converged``,
   what ``success`` meant before the uncertainty): the figure the issue started from.
+- *after exploring*: for the first :data:`N_REFINE` answers the model reaches but is not sure of, a copy of the
+  learner takes :data:`REFINE_SAMPLES` more observed commands, either chosen near the answer
+  (:func:`~body_scheme_core.exploration.explore_near`) or uniform within the limits (the control), runs its joint
+  fit and solves again from the answer: the fraction then reported as successes, the fraction of those whose true
+  error exceeds 10 mm, and the reported std over the std before (median).
 """
 
 from __future__ import annotations
@@ -26,9 +31,17 @@ import numpy as np
 
 from body_scheme_apps.experiments.runner import aggregate
 from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.exploration import ExplorationPolicy, explore_near
 from body_scheme_core.ik import solve_ik, trained_bounds
 from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, make_session, powercube_6dof
+from body_scheme_core.world import (
+    PAPER_SIGMA_ROT,
+    PAPER_SIGMA_TRANS,
+    Body,
+    ObservationModel,
+    make_session,
+    powercube_6dof,
+)
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERCEPTIONS", "NOISE_LEVELS", "run",
            "summarize", "plot"]
@@ -41,6 +54,8 @@ NOISE_LEVELS = tuple(LEVELS)
 N_STEPS, QUICK_STEPS = 300, 120
 N_TARGETS, QUICK_TARGETS = 100, 20
 TOLERANCE = 0.010
+N_REFINE, QUICK_REFINE = 5, 2
+REFINE_SAMPLES = 5
 CONFIDENCE = 2.0
 _FIGURES = {
     "ik_uncertainty_coverage": "fraction of the answers the model reaches whose true error is within the reported "
@@ -52,6 +67,12 @@ _FIGURES = {
                                         "uncertainty): what success meant before",
     "ik_position_std_mm_median": "median reported std of the end effector's predicted position at the answers (mm)",
     "ik_true_err_mm_median": "median true error of the answers the model reaches (mm)",
+    **{f"ik_{kind}_after_{how}": f"{text} after {REFINE_SAMPLES} commands {where}, of {N_REFINE} unsure answers "
+                                 f"per run"
+       for how, where in (("near", "chosen near the answer"), ("random", "drawn uniformly (control)"))
+       for kind, text in (("success_rate", "fraction reported as successes"),
+                          ("false_success_rate", "fraction of those successes off by more than 10 mm"),
+                          ("std_ratio", "median reported std over the std before"))},
 }
 FIGURES = {f"{key}{'' if level == 'paper' else '_' + level}": f"{text} ({level} noise)"
            for level in LEVELS for key, text in _FIGURES.items()}
@@ -91,13 +112,17 @@ def run(seed, perception="paper", quick=False):
 
     lower, upper = trained_bounds(scheme, *learner.trained_range())
     rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[1])
-    rows = []  # converged, success, true error, error bound, std
+    rows, answers = [], []  # converged, success, true error, error bound, std; (target's command, answer)
     for a in rng.uniform(lower, upper, size=(QUICK_TARGETS if quick else N_TARGETS, tree.n_actions)):
         target = truth(a)
         result = solve_ik(scheme, effector, target, 0.5 * (lower + upper), lower, upper, tol=TOLERANCE, rng=rng,
                           confidence=CONFIDENCE)
         error = float(np.linalg.norm(truth(result.actions) - target))
         rows.append((result.converged, result.success, error, result.error_bound, result.position_std))
+        answers.append((a, result))
+    unsure = [(a, r) for a, r in answers if r.converged and not r.success][:QUICK_REFINE if quick else N_REFINE]
+    out.update(_after_exploring(learner, tree, unsure, truth, (lower, upper), (sigma_trans, sigma_rot), seed,
+                                suffix))
     converged, success, error, bound, std = (np.array(column) for column in zip(*rows, strict=True))
     converged, success = converged.astype(bool), success.astype(bool)
 
@@ -112,6 +137,43 @@ def run(seed, perception="paper", quick=False):
         f"ik_position_std_mm_median{suffix}": 1e3 * float(np.median(std[converged])) if converged.any() else math.nan,
         f"ik_true_err_mm_median{suffix}": 1e3 * float(np.median(error[converged])) if converged.any() else math.nan,
     })
+    return out
+
+
+def _after_exploring(learner, tree, unsure, truth, bounds, noise, seed, suffix):
+    """The *after exploring* figures (see the module docstring) for the ``(target's command, answer)`` pairs."""
+    if not unsure:
+        return {}
+    body, effector, (lower, upper) = Body(tree), tree.marker_ids[-1], bounds
+    rng_observe, rng_random, rng_ik = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)[2:])
+    observer = ObservationModel(*noise, 1.0, rng_observe)
+
+    def observe(a):
+        return observer.observe_array(body.true_marker_array(np.asarray(a)[None]), tree.marker_ids)[0]
+
+    out = {}
+    for how in ("near", "random"):
+        rows = []
+        for a, before in unsure:
+            copy = BodySchemeLearner.from_state(learner.to_state())
+            if how == "near":
+                policy = ExplorationPolicy(tree.action_lower, tree.action_upper, rng=rng_random,
+                                           noise=noise[0] / math.sqrt(3.0))
+                explore_near(copy, policy, before.actions, observe, REFINE_SAMPLES)
+            else:
+                for b in rng_random.uniform(tree.action_lower, tree.action_upper, (REFINE_SAMPLES, tree.n_actions)):
+                    copy.update(b, observe(b))
+                copy.recalibrate()
+            target = truth(a)
+            after = solve_ik(copy.body_scheme, effector, target, before.actions, lower, upper, tol=TOLERANCE,
+                             rng=rng_ik, confidence=CONFIDENCE)
+            rows.append((after.success, float(np.linalg.norm(truth(after.actions) - target)),
+                         after.position_std / before.position_std))
+        success, error, ratio = (np.array(column, dtype=float) for column in zip(*rows, strict=True))
+        out[f"ik_success_rate_after_{how}{suffix}"] = float(np.mean(success))
+        out[f"ik_false_success_rate_after_{how}{suffix}"] = (float(np.mean(error[success > 0] > TOLERANCE))
+                                                             if success.any() else 0.0)
+        out[f"ik_std_ratio_after_{how}{suffix}"] = float(np.median(ratio))
     return out
 
 
