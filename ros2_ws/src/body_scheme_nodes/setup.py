@@ -26,8 +26,6 @@ setup(
             "bag_replay = body_scheme_nodes.bag_replay:main",
             "sim_node = body_scheme_nodes.sim_node:main",
             "babble_node = body_scheme_nodes.babble_node:main",
-            # Alias: replay_offline lives in body_scheme_apps (docs/architecture.md).
-            "replay_offline = body_scheme_nodes.replay_offline:main",
         ],
     },
 )

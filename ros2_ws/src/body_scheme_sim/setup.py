@@ -20,13 +20,4 @@ setup(
     ],
     install_requires=["setuptools"],
     zip_safe=True,
-    entry_points={
-        "console_scripts": [
-            # Aliases of commands that moved (docs/architecture.md): sim_node to body_scheme_nodes, the rest to
-            # body_scheme_apps.
-            "sim_node = body_scheme_sim.sim_node:main",
-            "record_session = body_scheme_sim.record:main",
-            "live_demo = body_scheme_sim.live_demo:main",
-        ],
-    },
 )
