@@ -7,6 +7,7 @@ checked against the package's allowed dependencies, so neither a library nor a t
 from __future__ import annotations
 
 import ast
+import importlib
 import pathlib
 import xml.etree.ElementTree as ET
 
@@ -60,3 +61,112 @@ def test_the_checker_sees_imports_inside_functions(tmp_path):
     path = tmp_path / "lazy.py"
     path.write_text("def f():\n    from body_scheme_apps.experiments import runner\n    import body_scheme_sim.world\n")
     assert imported_packages(path) == {"body_scheme_apps", "body_scheme_sim"}
+
+
+# ---------------------------------------------------------------------------------------------- inside the core
+CORE = SRC / "body_scheme_core" / "body_scheme_core"
+#: The core's units (a top-level module or a subpackage) by layer: a unit imports only units of lower layers, so the
+#: paper's concepts stack as docs/architecture.md draws them.
+CORE_LAYERS = {
+    "errors": 0, "limits": 0,  # named exceptions, the sizes every input check shares
+    "transforms": 1, "state_values": 1, "events": 1,  # rigid-transform maths, saved-value readers, the learner's events
+    "models": 2, "perception": 2, "pairing": 2,  # local models (Sec. III-A/B); the camera and the commands
+    "world": 3,  # kinematic trees, robots, faults and sessions: the bodies we learn
+    "prediction": 4,  # the body scheme and its predictions (Sec. III-C/D, Eq. 8)
+    "calibration": 5, "control": 5,  # the joint fit; IK and exploration (Sec. III-D)
+    "learning": 6,  # structure search, learning and adaptation (Sec. III-A-C, III-E)
+}
+SUBPACKAGES = sorted(unit for unit in CORE_LAYERS if (CORE / unit).is_dir())
+
+
+def core_imports(path):
+    """``[(unit, module path inside the core, names)]`` of every import of the core in a file (see
+    :func:`imports_of`)."""
+    package = None
+    if path.is_relative_to(CORE.parent):
+        package = path.relative_to(CORE.parent).parts[:-1]
+    return imports_of(path.read_text(encoding="utf-8"), package)
+
+
+def imports_of(source, package):
+    """``[(unit, module path inside the core, names)]`` of every import of the core in ``source``, relative imports
+    resolved from ``package`` (a core package's dotted parts, or None outside the core); module paths like
+    ``learning.pool``, names None for ``import x``."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                if package is None:
+                    continue  # a relative import in another package stays in that package
+                target = list(package[:len(package) - node.level + 1]) + (node.module.split(".") if node.module else [])
+            else:
+                target = (node.module or "").split(".")
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                target = alias.name.split(".")
+                if target[0] == "body_scheme_core" and len(target) > 1:
+                    found.append((target[1], ".".join(target[1:]), None))
+            continue
+        else:
+            continue
+        if target[0] != "body_scheme_core":
+            continue
+        if len(target) == 1:  # from body_scheme_core import x / from .. import x
+            found.extend((name, name, None) for name in names if name in CORE_LAYERS)
+        else:
+            found.append((target[1], ".".join(target[1:]), names))
+    return found
+
+
+def unit_of(path):
+    """The core unit a core file belongs to."""
+    return path.relative_to(CORE).with_suffix("").parts[0]
+
+
+def test_every_core_module_belongs_to_a_layer():
+    units = {unit_of(path) for path in CORE.rglob("*.py") if path.name != "__init__.py" or path.parent != CORE}
+    assert units == set(CORE_LAYERS)
+
+
+def test_core_units_import_only_lower_layers():
+    wrong = []
+    for path in sorted(CORE.rglob("*.py")):
+        if path.parent == CORE and path.name == "__init__.py":
+            continue
+        mine = unit_of(path)
+        for unit, module, _ in core_imports(path):
+            if unit != mine and CORE_LAYERS[unit] >= CORE_LAYERS[mine]:
+                wrong.append(f"{path.relative_to(CORE)} imports {module} (layer {CORE_LAYERS[unit]} >= "
+                             f"{CORE_LAYERS[mine]})")
+    assert wrong == []
+
+
+def _library_files():
+    """Every library module of our Python packages (tests excluded: a test may import the module it tests)."""
+    for package in ALLOWED:
+        yield from sorted((SRC / package / package).rglob("*.py"))
+
+
+def test_subpackages_are_imported_only_through_their_public_names():
+    """Outside a subpackage of the core (in the core or in another package), its modules are not imported: only the
+    names its ``__init__`` exports."""
+    wrong = []
+    for path in _library_files():
+        mine = unit_of(path) if path.is_relative_to(CORE) else None
+        for unit, module, names in core_imports(path):
+            if unit in SUBPACKAGES and unit != mine:
+                public = set(importlib.import_module(f"body_scheme_core.{unit}").__all__)
+                if module != unit or not set(names or ()) <= public:
+                    wrong.append(f"{path.relative_to(SRC)}: {module} {names}")
+    assert wrong == []
+
+
+def test_the_layer_checker_resolves_relative_imports():
+    """``from ..learning.pool import x`` in a module of control/ is an import of learning (a higher layer); a relative
+    import in another package is that package's own."""
+    source = "from ..learning.pool import Targets\nfrom .ik import solve_ik\nfrom ..errors import X\n"
+    assert imports_of(source, ("body_scheme_core", "control")) == [("learning", "learning.pool", ["Targets"]),
+                                                                  ("control", "control.ik", ["solve_ik"]),
+                                                                  ("errors", "errors", ["X"])]
+    assert imports_of(source, None) == []

@@ -12,7 +12,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from body_scheme_core.motion import path_samples
+from body_scheme_core.control.motion import path_samples
 from body_scheme_msgs.msg import BodySchemeStructure
 from body_scheme_sim.babbling import CollisionScreen
 from body_scheme_sim.robots import ROBOTS_DIR, load_robot

@@ -8,7 +8,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.world import default_world2root, planar_2dof
 from body_scheme_msgs.msg import IKResult, IKTarget, ModelSnapshot
 from body_scheme_nodes import conversions

@@ -302,8 +302,8 @@ def _bad_checkpoints(valid_text):
 def test_a_bad_checkpoint_is_moved_aside_never_overwritten(case, start_node, ros_node, spin_until, tmp_path):
     """scheme_node does not use a bad checkpoint: it moves it to <path>.corrupt-<time> unchanged, starts afresh, and
     its own checkpoints then go to the configured path."""
-    from body_scheme_core.learner import BodySchemeLearner
-    from body_scheme_core.persistence import save_state
+    from body_scheme_core.learning.learner import BodySchemeLearner
+    from body_scheme_core.learning.persistence import save_state
 
     tree = planar_2dof()
     valid = tmp_path / "valid.json"
@@ -329,8 +329,8 @@ def test_save_and_load_services_touch_only_files_inside_the_state_directory(star
     not overwritten, another robot's state is not loaded, and a name inside the state directory round-trips."""
     import os
 
-    from body_scheme_core.learner import BodySchemeLearner
-    from body_scheme_core.persistence import save_state
+    from body_scheme_core.learning.learner import BodySchemeLearner
+    from body_scheme_core.learning.persistence import save_state
     from body_scheme_msgs.srv import StatePath
 
     tree = planar_2dof()

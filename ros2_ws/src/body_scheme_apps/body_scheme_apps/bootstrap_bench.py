@@ -59,8 +59,7 @@ def bootstrap_body(name, eager, seed=0, max_steps=600):
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     from body_scheme_core import world
-    from body_scheme_core.config import BodySchemeConfig
-    from body_scheme_core.learner import BodySchemeLearner
+    from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 
     constructor, kwargs = BODIES[name]
     body = getattr(world, constructor)(**kwargs)
@@ -119,8 +118,7 @@ def compare_trees(n_zoo=20, n_random=6, n_branching=4, flip_rate=0.02, n_steps=3
     bodies, random branching trees of 6 joints, branching bodies with a second torso marker and a dummy action, with
     camera-like flips. Returns ``{"bodies", "same_tree", "lazy_true", "eager_true", "differences"}``."""
     from body_scheme_core import world
-    from body_scheme_core.config import BodySchemeConfig
-    from body_scheme_core.learner import BodySchemeLearner
+    from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 
     def learn(body, config, seed):
         session = world.make_session(body, n_steps, seed=seed, flip_rate=flip_rate)

@@ -13,7 +13,7 @@ The camera is ``--camera`` (default: the simulator's camera for a shipped robot,
 marker). ``rendered`` perception (the default) runs our ArUco tracker on the simulator's images; ``noise`` draws
 observations at the rendered tracker's accuracy (10 mm, 5 deg). Writes to ``DIR``:
 
-- ``learned.urdf``: :func:`body_scheme_core.learned_body.learned_urdf` (limits: the trained range);
+- ``learned.urdf``: :func:`body_scheme_core.prediction.learned_body.learned_urdf` (limits: the trained range);
 - with a nominal robot: ``report.txt``, ``report.json`` (per joint ``axis_deg``, ``origin_mm``, ``marker_mm``,
   ``marker_deg``; ``max_*``) and ``report.png`` (the learned body against the nominal one at zero actions, and the
   deviations per joint).
@@ -30,9 +30,9 @@ import numpy as np
 from tqdm import tqdm
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.learned_body import calibration_report, format_report, learned_tree, learned_urdf
-from body_scheme_core.persistence import load_state
-from body_scheme_core.world.robot_files import load_markers_yaml, tree_from_urdf
+from body_scheme_core.learning import load_state
+from body_scheme_core.prediction import calibration_report, format_report, learned_tree, learned_urdf
+from body_scheme_core.world import load_markers_yaml, tree_from_urdf
 
 from .robot_option import add_camera_arguments, resolve_robot
 
@@ -111,8 +111,7 @@ def plot_report(body, nominal, report, path):
 def _simulated(choice, steps, seed, perception="rendered"):
     """A learner taught by a babbling session in the simulator (:class:`~body_scheme_apps.robot_option.RobotChoice`),
     and the robot's nominal tree."""
-    from body_scheme_core.config import BodySchemeConfig
-    from body_scheme_core.learner import BodySchemeLearner
+    from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
     from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
 
     nominal = choice.tree

@@ -16,9 +16,8 @@ import time
 
 import numpy as np
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 from body_scheme_core.world import REPAIR, Fault, make_session, powercube_6dof
 
 from .robot_option import add_robot_arguments, resolve_robot

@@ -21,7 +21,7 @@ paper's noise and with every marker visible so that every candidate is evaluated
     the rate is one over the mean step time. It leaves out everything else a learner step does (and the rigid
     candidates), so the speed-up is conservative.
 ``ik_ms_median``, ``ik_success_rate``
-    :func:`~body_scheme_core.ik.solve_ik` on the learned scheme for random reachable end-effector targets (the
+    :func:`~body_scheme_core.control.ik.solve_ik` on the learned scheme for random reachable end-effector targets (the
     scheme's own prediction at random actions), from random starts.
 ``parametrisation``
     Accuracy of the paper's GP parametrisation (12 independent components of ``[R | t]``, then the SVD projection
@@ -54,12 +54,17 @@ import numpy as np  # noqa: E402
 from body_scheme_apps import bootstrap_bench  # noqa: E402
 from body_scheme_apps.bench_output import report  # noqa: E402
 from body_scheme_core import __version__  # noqa: E402
-from body_scheme_core.config import BodySchemeConfig  # noqa: E402
-from body_scheme_core.ik import solve_ik  # noqa: E402
-from body_scheme_core.learner import BodySchemeLearner  # noqa: E402
-from body_scheme_core.models.gp import GPModel  # noqa: E402
-from body_scheme_core.models.gp_kernel import GPHyperparameters, squared_exponential  # noqa: E402
-from body_scheme_core.structure import enumerate_candidates  # noqa: E402
+from body_scheme_core.control import solve_ik  # noqa: E402
+from body_scheme_core.learning import (  # noqa: E402
+    BodySchemeConfig,
+    BodySchemeLearner,
+    enumerate_candidates,
+)
+from body_scheme_core.models import (  # noqa: E402
+    GPHyperparameters,
+    GPModel,
+    squared_exponential,
+)
 from body_scheme_core.transforms import (  # noqa: E402
     concat,
     project_to_rotation,

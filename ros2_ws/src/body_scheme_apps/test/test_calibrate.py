@@ -6,8 +6,8 @@ import math
 from body_scheme_apps.calibrate import main
 from urdf_parser_py.urdf import URDF
 
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.persistence import save_state
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.persistence import save_state
 from body_scheme_core.world import make_session
 from body_scheme_sim.robots import load_robot, robot_files
 

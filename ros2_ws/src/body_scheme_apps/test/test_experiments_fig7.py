@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from body_scheme_apps.experiments import fig7
 
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.transforms import invert_transform
 from body_scheme_core.world import make_session, planar_2dof

@@ -12,19 +12,19 @@ from collections import deque
 import numpy as np
 import pytest
 
-from body_scheme_core.adaptation import (
+from body_scheme_core.errors import ModelFileError
+from body_scheme_core.learning.adaptation import (
     Adaptation,
     Mismatch,
     bridge_relative_complexity,
     least_recently_used,
     tree_halves,
 )
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.errors import ModelFileError
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.tracked import MEMORY, TrackedModel
 from body_scheme_core.models import RevoluteModel
 from body_scheme_core.models.engineered import EngineeredModel, engineered_models
-from body_scheme_core.tracked import MEMORY, TrackedModel
 from body_scheme_core.world import REPAIR, Fault, arm_4dof, make_session, planar_2dof
 
 BLOCK = Fault("block_joint", action_index=1, angle=0.8)

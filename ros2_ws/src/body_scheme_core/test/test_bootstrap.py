@@ -3,16 +3,16 @@
 import numpy as np
 import pytest
 
-from body_scheme_core.bootstrap import Bootstrap
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.noise_model import NoiseModel
-from body_scheme_core.pool import ModelPool
-from body_scheme_core.relative import PartPairs
-from body_scheme_core.structure import n_candidates
-from body_scheme_core.tracked import CANDIDATE, TREE
+from body_scheme_core.calibration.noise_model import NoiseModel
+from body_scheme_core.learning.bootstrap import Bootstrap
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.pool import ModelPool
+from body_scheme_core.learning.relative import PartPairs
+from body_scheme_core.learning.structure import n_candidates
+from body_scheme_core.learning.tracked import CANDIDATE, TREE
+from body_scheme_core.learning.validity import ValidityMonitor
 from body_scheme_core.transforms import transform_from_rotvec
-from body_scheme_core.validity import ValidityMonitor
 from body_scheme_core.world import (
     Fault,
     KinematicTree,

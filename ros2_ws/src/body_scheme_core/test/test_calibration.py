@@ -7,13 +7,13 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.optimize import least_squares
 
-from body_scheme_core.calibration import _Problem, calibrate, chain_targets
+from body_scheme_core.calibration.joint_fit import _Problem, calibrate, chain_targets
 from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.learning.root_pose import RootPoseEstimator
 from body_scheme_core.models import GPModel, RevoluteModel
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.models.rigid_fit import robust_cost
-from body_scheme_core.root_pose import RootPoseEstimator
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
 from body_scheme_core.world import Body, arm_4dof, make_session, planar_2dof
 

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from body_scheme_core.chain import ChainTargets
-from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.calibration.noise_model import NoiseModel
+from body_scheme_core.learning.chain import ChainTargets
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.quality import prediction_errors
+from body_scheme_core.learning.tracked import TrackedModel
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.noise_model import NoiseModel
-from body_scheme_core.quality import prediction_errors
-from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.tracked import TrackedModel
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.transforms import invert_transform
 from body_scheme_core.world import arm_4dof, make_session
 

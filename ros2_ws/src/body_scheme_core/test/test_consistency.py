@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from body_scheme_core.consistency import action_features, lack_of_fit, part_consistency
+from body_scheme_core.calibration.consistency import action_features, lack_of_fit, part_consistency
 
 
 def test_noise_passes():

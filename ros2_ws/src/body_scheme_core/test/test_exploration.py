@@ -5,10 +5,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from body_scheme_core.control.exploration import ExplorationPolicy, explore_near, in_camera_view
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.exploration import ExplorationPolicy, explore_near, in_camera_view
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.uncertainty import parameter_jacobian
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.prediction.uncertainty import parameter_jacobian
 from body_scheme_core.world import Body, ObservationModel, make_session, planar_2dof
 
 

@@ -11,8 +11,8 @@ from scipy.spatial.transform import Rotation
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import BodySchemeError, InvalidInputError, ModelFileError, NotFittedError
+from body_scheme_core.learning.config import BodySchemeConfig
 from body_scheme_core.models import GPModel, model_from_dict
 from body_scheme_core.models.gp_kernel import (
     GPHyperparameters,

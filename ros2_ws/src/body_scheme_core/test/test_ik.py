@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
+from body_scheme_core.control.ik import IKResult, solve_ik, trained_bounds
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.ik import IKResult, solve_ik, trained_bounds
 from body_scheme_core.models.base import LocalModel
 from body_scheme_core.models.gp import GPModel
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
 from body_scheme_core.world import planar_2dof
 

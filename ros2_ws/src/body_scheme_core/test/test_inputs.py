@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError
-from body_scheme_core.inputs import (
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.inputs import (
     MAX_ACTION,
     OBSERVATION_TOLERANCE,
     check_action_bounds,
@@ -180,7 +180,7 @@ def test_an_action_no_joint_can_have_is_out_of_range_even_without_limits():
     assert check_action_vector([0.0, MAX_ACTION], 2).tolist() == [0.0, MAX_ACTION]
     with pytest.raises(ActionOutOfRangeError, match="units"):
         check_action_vector([0.0, 1e300], 2)
-    from body_scheme_core.learner import BodySchemeLearner
+    from body_scheme_core.learning.learner import BodySchemeLearner
     learner = BodySchemeLearner([1, 2], 2)
     with pytest.raises(ActionOutOfRangeError):
         learner.update([-1e300, 0.0], {})
@@ -189,8 +189,8 @@ def test_an_action_no_joint_can_have_is_out_of_range_even_without_limits():
 
 def test_bodies_beyond_what_fits_in_memory_are_refused_with_the_reason():
     """200 parts or 300 joints ended in a MemoryError after 4-5 GB before issue 20; now one clear line, at once."""
-    from body_scheme_core.config import BodySchemeConfig
-    from body_scheme_core.inputs import MAX_CANDIDATES, check_body_size, check_n_actions, check_part_ids
+    from body_scheme_core.learning.config import BodySchemeConfig
+    from body_scheme_core.learning.inputs import MAX_CANDIDATES, check_body_size, check_n_actions, check_part_ids
 
     with pytest.raises(InvalidInputError, match="200 parts"):
         check_part_ids(range(200))

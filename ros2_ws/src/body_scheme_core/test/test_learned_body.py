@@ -1,15 +1,15 @@
-"""The learned body scheme as a kinematic tree and URDF (body_scheme_core.learned_body)."""
+"""The learned body scheme as a kinematic tree and URDF (body_scheme_core.prediction.learned_body)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.learned_body import calibration_report, format_report, learned_tree, learned_urdf
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.prediction.learned_body import calibration_report, format_report, learned_tree, learned_urdf
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.world import make_session, planar_2dof, random_tree
 
 

@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError, ModelFileError, NotFittedError
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.models import GPModel, StaticModel
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.transforms import invert_transform, mirror_about_ray, rotational_error, transform_from_rotvec

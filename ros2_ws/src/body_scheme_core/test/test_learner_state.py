@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import LearnerStepError, ModelFileError, StampOrderError
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.learner_state import structural_problems
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.learner_state import structural_problems
 from body_scheme_core.world import make_session, planar_2dof, powercube_6dof
 
 

@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from body_scheme_core.control.motion import SafetyLimits, SettleDetector, path_samples, trajectory_duration
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.motion import SafetyLimits, SettleDetector, path_samples, trajectory_duration
 
 
 def test_duration_keeps_the_controllers_cubic_within_both_limits():

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
+from body_scheme_core.calibration.noise_model import NoiseModel, ray_components, robust_variance
 from body_scheme_core.errors import ModelFileError
-from body_scheme_core.noise_model import NoiseModel, ray_components, robust_variance
 
 
 @pytest.mark.parametrize("dof", [1, 2, 3])
@@ -87,7 +87,7 @@ def test_a_marker_seen_from_one_viewpoint_is_left_out_of_the_pooled_estimate():
     """Three of five markers never move (spread under STILL_SPREAD) and their residuals are larger (a still
     marker's errors repeat): the pooled estimate follows the two that move, although a median over all five would
     follow the still majority; with nothing moving, the still markers are all there is."""
-    from body_scheme_core.noise_model import STILL_SPREAD
+    from body_scheme_core.calibration.noise_model import STILL_SPREAD
 
     rng = np.random.default_rng(6)
     still = [np.tile([0.1 * k, 0.3, 2.0], (100, 1)) + rng.normal(scale=STILL_SPREAD / 10, size=(100, 3))

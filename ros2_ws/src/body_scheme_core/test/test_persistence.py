@@ -8,8 +8,8 @@ import pytest
 
 from body_scheme_core import __version__
 from body_scheme_core.errors import ModelFileError
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.persistence import (
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.persistence import (
     STATE_FILE_VERSION,
     STATE_FORMAT,
     encode_state,

@@ -5,14 +5,14 @@ import json
 import numpy as np
 import pytest
 
-from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.calibration.noise_model import NoiseModel
 from body_scheme_core.errors import ModelFileError
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.pool import ModelPool, Targets
+from body_scheme_core.learning.quality import prediction_errors
+from body_scheme_core.learning.relative import PartPairs
+from body_scheme_core.learning.tracked import MEMORY, TREE, TrackedModel, nested_models
 from body_scheme_core.models import GPModel, RevoluteModel, StaticModel
-from body_scheme_core.noise_model import NoiseModel
-from body_scheme_core.pool import ModelPool, Targets
-from body_scheme_core.quality import prediction_errors
-from body_scheme_core.relative import PartPairs
-from body_scheme_core.tracked import MEMORY, TREE, TrackedModel, nested_models
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
 
 CONFIG = BodySchemeConfig()

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from body_scheme_core.quality import (
+from body_scheme_core.learning.quality import (
     RANK_PENALTY,
     class_rank,
     model_cost,

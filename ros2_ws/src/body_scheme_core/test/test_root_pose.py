@@ -3,10 +3,10 @@ the root's change detector."""
 
 import numpy as np
 
-from body_scheme_core.config import BodySchemeConfig
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.root_pose import OFFSET_SAMPLES, RootPoseEstimator, RootWatch, register_points
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.root_pose import OFFSET_SAMPLES, RootPoseEstimator, RootWatch, register_points
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.transforms import rotational_error, transform_from_rotvec, translational_error
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, make_session, powercube_6dof
 

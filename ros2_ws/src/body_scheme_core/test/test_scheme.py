@@ -11,7 +11,7 @@ from body_scheme_core.models.base import LocalModel
 from body_scheme_core.models.engineered import EngineeredModel, engineered_models
 from body_scheme_core.models.gp import GPModel
 from body_scheme_core.models.static import StaticModel
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
 from body_scheme_core.world import branching_tree, powercube_6dof
 

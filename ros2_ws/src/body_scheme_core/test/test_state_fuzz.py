@@ -42,11 +42,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError, ModelFileError
-from body_scheme_core.learned_body import learned_tree, learned_urdf
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.persistence import encode_state, load_state, save_state
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.persistence import encode_state, load_state, save_state
+from body_scheme_core.prediction.learned_body import learned_tree, learned_urdf
 from body_scheme_core.world import Fault, make_session, planar_2dof
 
 N_MUTATIONS = int(os.environ.get("BODY_SCHEME_FUZZ_MUTATIONS", "1000"))

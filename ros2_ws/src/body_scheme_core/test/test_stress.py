@@ -5,8 +5,8 @@ joints, links with two markers or none, dummy actions, shuffled ids), a camera's
 orientations), dropout, misdetections, malformed observations, stamps (some missing, some going back in time) and a
 change of the body, and feeds the session to a learner from scratch. After every step: no exception, the step counter
 equals the accepted calls, the learner's structure is sound
-(:func:`~body_scheme_core.learner_state.structural_problems`), and at the end every malformed observation was counted
-under its reason.
+(:func:`~body_scheme_core.learning.learner_state.structural_problems`), and at the end every malformed observation was
+counted under its reason.
 
 ``make test`` runs a small deterministic set (profile ``ci``: bodies of up to 6 joints, a few thousand steps);
 ``make stress`` runs the full space (profile ``stress``: up to 14 joints, at least 100,000 steps, random examples; a
@@ -24,8 +24,8 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from body_scheme_core.errors import InvalidInputError, StampOrderError
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.learner_state import structural_problems
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.learner_state import structural_problems
 from body_scheme_core.world import RANDOM_FAULTS, make_session, random_fault, random_tree
 
 STRESS = bool(os.environ.get("BODY_SCHEME_STRESS"))

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.quality import class_rank
-from body_scheme_core.structure import (
+from body_scheme_core.learning.quality import class_rank
+from body_scheme_core.learning.structure import (
     action_subsets,
     enumerate_candidates,
     n_candidates,

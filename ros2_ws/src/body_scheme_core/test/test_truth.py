@@ -4,7 +4,7 @@ import numpy as np
 
 from body_scheme_core.models import GPModel, RevoluteModel, StaticModel
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.world import (
     Joint,
     KinematicTree,

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError, ModelFileError
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.scheme import BodyScheme
-from body_scheme_core.uncertainty import parameter_jacobian, position_covariance, position_std
+from body_scheme_core.prediction.scheme import BodyScheme
+from body_scheme_core.prediction.uncertainty import parameter_jacobian, position_covariance, position_std
 from body_scheme_core.world import make_session, powercube_6dof
 
 

@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError, ModelFileError
-from body_scheme_core.validity import RATIO_CLIP, ValidityMonitor, translation_threshold
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.validity import RATIO_CLIP, ValidityMonitor, translation_threshold
 
 THETA_T, THETA_R = 0.15, math.radians(45.0)
 

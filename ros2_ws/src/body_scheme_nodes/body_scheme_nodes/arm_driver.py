@@ -3,9 +3,9 @@ first, and watched on ``/joint_states`` until it settles. Shared by babble_node 
 
 The arm may be a real one or sim_node (which accepts the same topic). What is checked before a goal is sent
 (:meth:`ArmDriver.refusal`): the joint limits shrunk by a margin and the workspace box
-(:class:`~body_scheme_core.motion.SafetyLimits`), and self-collision and ground contact along the straight joint-space
-path from the arm's position (:class:`~body_scheme_sim.babbling.CollisionScreen`, pybullet from the URDF). Refused
-goals are counted by reason and never sent.
+(:class:`~body_scheme_core.control.motion.SafetyLimits`), and self-collision and ground contact along the straight
+joint-space path from the arm's position (:class:`~body_scheme_sim.babbling.CollisionScreen`, pybullet from the URDF).
+Refused goals are counted by reason and never sent.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from builtin_interfaces.msg import Duration
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from body_scheme_core.control import SafetyLimits, SettleDetector, path_samples, trajectory_duration
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.motion import SafetyLimits, SettleDetector, path_samples, trajectory_duration
 
 from . import conversions
 
@@ -77,12 +77,12 @@ class ArmDriver:
         The joints this driver commands, a subset of the robot's (e.g. an arm's without its gripper's). The others
         are read from the joint states when they are there (else held at 0) and are never sent.
     limit_margin : float
-        rad (m) kept from every joint limit (:class:`~body_scheme_core.motion.SafetyLimits`).
+        rad (m) kept from every joint limit (:class:`~body_scheme_core.control.motion.SafetyLimits`).
     workspace : array-like, shape (2, 3) or None
         Box in the root link's frame that every link origin stays in, at every checked posture of a move.
     screen : CollisionScreen or None
     max_velocity, max_acceleration : float
-        Per-joint limits of the moves (rad/s, rad/s^2; :func:`~body_scheme_core.motion.trajectory_duration`).
+        Per-joint limits of the moves (rad/s, rad/s^2; :func:`~body_scheme_core.control.motion.trajectory_duration`).
     settle : SettleDetector
     controller : str
         The ``JointTrajectoryController``'s name: goals go to ``<controller>/joint_trajectory``.

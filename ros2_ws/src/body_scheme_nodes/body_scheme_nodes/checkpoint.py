@@ -23,7 +23,7 @@ import stat
 import time
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.persistence import write_state_text
+from body_scheme_core.learning import write_state_text
 
 from .state_files import SIGNATURE, check_loadable
 

@@ -3,7 +3,7 @@
 Subscriptions
 -------------
 body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
-    The current body scheme from scheme_node; rebuilt into a :class:`~body_scheme_core.scheme.BodyScheme`.
+    The current body scheme from scheme_node; rebuilt into a :class:`~body_scheme_core.prediction.scheme.BodyScheme`.
 ik_target : body_scheme_msgs/IKTarget
     Target position of a part (``part_id`` -1: the ``part_id`` parameter), in ``header.frame_id``.
 ik_target/point : geometry_msgs/PointStamped
@@ -41,7 +41,7 @@ max_snapshot_age : double 0.0 s      refuse to act on an older model (0: never s
 trajectory_steps : int 1             commands per solution (1: jump to it)
 trajectory_period : double 0.05 s    time between interpolated commands
 stay_in_training_range : bool true   search only actions the learned local models were trained on
-                                     (:func:`~body_scheme_core.ik.trained_bounds`); false: the full joint limits
+                                     (:func:`~body_scheme_core.control.ik.trained_bounds`); false: the full joint limits
 execute : bool false                 move the arm through its JointTrajectoryController (arm_driver)
 observe_timeout : double 1.0 s       execute: how long to wait for the camera to see the part after the move
 robot, controller, joint_states_topic, max_velocity, max_acceleration, limit_margin, workspace, collision_check,
@@ -62,8 +62,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from body_scheme_core.control import solve_ik, trained_bounds
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.ik import solve_ik, trained_bounds
 from body_scheme_msgs.msg import IKResult, IKTarget, MarkerPoses, ModelSnapshot
 
 from . import conversions
@@ -74,7 +74,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 
 
 class ControlNode(Node):
-    """ROS wrapper of :func:`body_scheme_core.ik.solve_ik` (see the module docstring)."""
+    """ROS wrapper of :func:`body_scheme_core.control.ik.solve_ik` (see the module docstring)."""
 
     def __init__(self):
         super().__init__("control_node")

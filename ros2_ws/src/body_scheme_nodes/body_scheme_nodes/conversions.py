@@ -212,7 +212,7 @@ def event_msg(stamp, event):
 
 
 def snapshot_msg(stamp, frame_id, step, scheme, action_names, lower, upper, world2root):
-    """``ModelSnapshot`` carrying a :class:`~body_scheme_core.scheme.BodyScheme` as JSON (empty if ``None``)."""
+    """``ModelSnapshot`` carrying a :class:`~body_scheme_core.prediction.BodyScheme` as JSON (empty if ``None``)."""
     msg = ModelSnapshot()
     msg.header.stamp = stamp_from_seconds(stamp)
     msg.header.frame_id = frame_id
@@ -236,7 +236,7 @@ def scheme_from_snapshot(msg):
         If the format tag or version is not one this code reads, or the JSON is corrupt.
     """
     from body_scheme_core.models import model_from_dict
-    from body_scheme_core.scheme import BodyScheme
+    from body_scheme_core.prediction import BodyScheme
 
     if msg.format != SNAPSHOT_FORMAT or msg.format_version != SNAPSHOT_FORMAT_VERSION:
         raise InvalidInputError(

@@ -20,9 +20,9 @@ body_scheme/progress : std_msgs/UInt64
 body_scheme/markers : visualization_msgs/MarkerArray, body_scheme/poses : geometry_msgs/PoseArray, /tf
     The latest prediction for RViz, Foxglove and tf2 (at most every ``view_period``; see body_scheme_nodes.view).
 body_scheme/robot_description : std_msgs/String  (transient local)
-    The learned body scheme as URDF (body_scheme_core.learned_body), republished when it changes.
+    The learned body scheme as URDF (body_scheme_core.prediction.learned_body), republished when it changes.
 body_scheme/exploration_command : sensor_msgs/JointState  (``exploration`` true)
-    After each learnt sample, the next command to babble (body_scheme_core.exploration: a uniform draw while
+    After each learnt sample, the next command to babble (body_scheme_core.control.exploration: a uniform draw while
     bootstrapping, then the posture expected to make the body scheme surest); babble_node's ``mode: active``
     follows it.
 
@@ -93,10 +93,10 @@ from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
+from body_scheme_core.control import ExplorationPolicy, in_camera_view
 from body_scheme_core.errors import BodySchemeError, ModelFileError
-from body_scheme_core.exploration import ExplorationPolicy, in_camera_view
-from body_scheme_core.learned_body import learned_tree, learned_urdf
-from body_scheme_core.persistence import encode_state, load_state, write_state_text
+from body_scheme_core.learning import encode_state, load_state, write_state_text
+from body_scheme_core.prediction import learned_tree, learned_urdf
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
@@ -113,7 +113,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 
 
 class SchemeNode(Node):
-    """ROS wrapper of :class:`body_scheme_core.learner.BodySchemeLearner` (see the module docstring)."""
+    """ROS wrapper of :class:`body_scheme_core.learning.learner.BodySchemeLearner` (see the module docstring)."""
 
     def __init__(self):
         super().__init__("scheme_node")
@@ -433,7 +433,7 @@ class SchemeNode(Node):
         self.pub_tf.publish(view.tf_msg(stamp, self.frame_id, poses, self.settings.tf_prefix))
 
     def _learned_body(self):
-        """The body scheme as a kinematic tree (body_scheme_core.learned_body), or None while there is none."""
+        """The body scheme as a kinematic tree (body_scheme_core.prediction.learned_body), or None if there is none."""
         scheme = self.learner.body_scheme
         if scheme is None:
             return None

@@ -17,10 +17,9 @@ from dataclasses import dataclass
 
 import yaml
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.models.engineered import engineered_models
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
+from body_scheme_core.models import engineered_models
 from body_scheme_core.pairing import CommandObservationPairer
 from body_scheme_core.world import KinematicTree, load_markers_yaml
 

@@ -14,7 +14,7 @@ import pathlib
 import stat
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.persistence import STATE_FORMAT
+from body_scheme_core.learning import STATE_FORMAT
 
 __all__ = ["StateFileError", "resolve", "check_loadable", "check_overwritable", "DEFAULT_MAX_BYTES", "SIGNATURE"]
 

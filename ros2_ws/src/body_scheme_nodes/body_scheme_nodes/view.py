@@ -10,7 +10,7 @@ scheme_node publishes, for its latest prediction:
 - ``body_scheme/poses`` (geometry_msgs/PoseArray): the predicted poses in part-id order;
 - ``/tf`` (tf2_msgs/TFMessage): ``<frame_id>`` -> ``<tf_prefix>marker_<id>`` for every predicted part;
 - ``body_scheme/robot_description`` (std_msgs/String, transient local): the learned URDF
-  (:func:`body_scheme_core.learned_body.learned_urdf`).
+  (:func:`body_scheme_core.prediction.learned_body.learned_urdf`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from std_msgs.msg import ColorRGBA, Header
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
-from body_scheme_core.learned_body import marker_link
+from body_scheme_core.prediction import marker_link
 
 from . import conversions
 

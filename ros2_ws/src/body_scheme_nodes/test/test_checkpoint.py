@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.persistence import encode_state, load_state
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.persistence import encode_state, load_state
 from body_scheme_nodes.checkpoint import ORPHAN_AGE, Checkpoint, CheckpointError, remove_orphans
 
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
-from body_scheme_core.config import BodySchemeConfig
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.world import markers_to_yaml, powercube_6dof
 from body_scheme_nodes.settings import (
     AUTO_SENTINELS,

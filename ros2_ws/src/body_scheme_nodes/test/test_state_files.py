@@ -6,8 +6,8 @@ import os
 
 import pytest
 
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.persistence import load_state, save_state
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.persistence import load_state, save_state
 from body_scheme_nodes.state_files import StateFileError, check_loadable, check_overwritable, resolve
 
 

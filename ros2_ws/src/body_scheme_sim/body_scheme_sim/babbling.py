@@ -86,7 +86,7 @@ class CollisionScreen:
 
     def collides(self, postures):
         """Whether the robot hits itself or the ground in any of ``postures`` (shape (k, m) or (m,): joint positions,
-        e.g. :func:`~body_scheme_core.motion.path_samples` of a move)."""
+        e.g. :func:`~body_scheme_core.control.motion.path_samples` of a move)."""
         for posture in np.atleast_2d(np.asarray(postures, dtype=float)):
             self.world.execute(posture)
             if self.world.in_collision():

@@ -37,8 +37,8 @@ from body_scheme_core.world import (
     Fault,
     KinematicTree,
     ObservationModel,
+    resolve_meshes,
 )
-from body_scheme_core.world.robot_files import resolve_meshes
 
 from .camera import Camera
 from .markers import PLATE_THICKNESS, marker_corners, marker_texture, plate_side, write_plate_obj

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from urdf_parser_py.urdf import URDF
 
-from body_scheme_core.learned_body import calibration_report, learned_tree, learned_urdf
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.prediction.learned_body import calibration_report, learned_tree, learned_urdf
 from body_scheme_core.transforms import transform_from_pose
 from body_scheme_core.world.robot_files import tree_to_urdf
 from body_scheme_core.world.tree import KinematicTree

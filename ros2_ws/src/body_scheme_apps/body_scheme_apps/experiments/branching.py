@@ -5,7 +5,7 @@ second_torso_marker=True, dummy_action=True)``: a torso on a yaw joint with two 
 from the seed), two markers on the torso (2 and 7) and a sixth action that turns a link carrying no marker (it moves
 nothing observed). :func:`~body_scheme_core.world.make_session` babbles :data:`N_STEPS` commands at the paper's
 noise (44 mm / 15 deg) with every marker dropped independently in 20 % of the steps; the body never changes. A
-:class:`~body_scheme_core.learner.BodySchemeLearner` with the default configuration learns from scratch.
+:class:`~body_scheme_core.learning.learner.BodySchemeLearner` with the default configuration learns from scratch.
 
 *True tree*: :func:`~body_scheme_core.world.is_true_tree`: the learned tree, with the markers of one link merged,
 connects the same links as the robot's marker tree, every edge between two links depends on exactly the actions on
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning import BodySchemeLearner
 from body_scheme_core.world import Body, branching_tree, is_correct_model, is_true_tree, make_session
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERCEPTIONS", "N_STEPS", "robot", "run",

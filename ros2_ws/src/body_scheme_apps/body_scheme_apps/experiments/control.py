@@ -14,8 +14,8 @@ Protocol (one run, everything from ``seed``):
   i.e. the origin of joint3, its only child joint, rotated about link2's origin; sim fault entry
   ``deform_limb:joint3:0:0:0.785...:0``). Only the local model ``3 -> 4`` (upper-arm marker to forearm marker)
   changes.
-- Following: waypoint by waypoint, :func:`~body_scheme_core.ik.solve_ik` (tolerance 1 mm, 3 restarts) starts from
-  the previous waypoint's solution (the first from the zero posture). The error of a waypoint is the distance
+- Following: waypoint by waypoint, :func:`~body_scheme_core.control.ik.solve_ik` (tolerance 1 mm, 3 restarts) starts
+  from the previous waypoint's solution (the first from the zero posture). The error of a waypoint is the distance
   between the target and where the end-effector marker truly is at the solution (ground-truth kinematics of the
   arm as it is: :class:`~body_scheme_core.world.Body` in noise mode, ``SimWorld.world_marker_poses`` in
   rendered mode).
@@ -25,13 +25,14 @@ Three conditions:
 1. ``undamaged``: the engineered body scheme (:func:`~body_scheme_core.models.engineered.engineered_models` of the
    robot's specification) on the healthy arm.
 2. ``static``: the same scheme, never adapted, on the bent arm (the same IK solutions, so the error is the bend's).
-3. ``adaptive``: a :class:`~body_scheme_core.learner.BodySchemeLearner` started from the engineered models babbles
+3. ``adaptive``: a :class:`~body_scheme_core.learning.learner.BodySchemeLearner` started from the engineered models
+babbles
    :data:`N_BEFORE` = 100 samples on the healthy arm (Table I's first block), then :data:`N_AFTER` = 150 samples (the
    fixed budget, the same for every run: detection and replacement take ~5 of them, the replacement then keeps
    learning through the joint fit of the body scheme) on the bent arm; then the trajectory is followed with its
-   current body scheme, IK within :func:`~body_scheme_core.ik.trained_bounds`. Noise mode: the paper's noise (44 mm /
-   15 deg), every marker seen (the paper gives no visibility for its simulation); rendered mode: the simulator's images
-   through the ArUco tracker, the learner with the tracker's sigmas, babbling that keeps markers 3 and 4 (the
+   current body scheme, IK within :func:`~body_scheme_core.control.ik.trained_bounds`. Noise mode: the paper's noise (44
+   mm / 15 deg), every marker seen (the paper gives no visibility for its simulation); rendered mode: the simulator's
+   images through the ArUco tracker, the learner with the tracker's sigmas, babbling that keeps markers 3 and 4 (the
    changed pair) in view of the healthy arm.
    ``quick``: 30 + 60 samples, the same trajectory and figures.
 
@@ -46,11 +47,10 @@ import math
 
 import numpy as np
 
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.ik import solve_ik, trained_bounds
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.models.engineered import engineered_models
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.control import solve_ik, trained_bounds
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
+from body_scheme_core.models import engineered_models
+from body_scheme_core.prediction import BodyScheme
 from body_scheme_core.transforms import invert_transform
 from body_scheme_core.world import Body, Fault, arm_4dof, make_session
 

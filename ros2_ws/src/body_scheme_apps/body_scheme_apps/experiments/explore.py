@@ -3,7 +3,7 @@ better than the camera sees it?
 
 Protocol (one run per body, everything from ``seed``): the body learns from scratch twice, with the same noise
 stream, once from commands drawn uniformly within its joint limits (``random``, what every other experiment does)
-and once from :class:`~body_scheme_core.exploration.ExplorationPolicy` (``active``: uniform while the learner is
+and once from :class:`~body_scheme_core.control.exploration.ExplorationPolicy` (``active``: uniform while the learner is
 bootstrapping, then of 256 uniform candidates per step the one expected to reduce the parts' positional variance
 most, no travel cost). Observations: the paper's noise (44 mm / 15 deg 3D RMS), every marker
 seen. Bodies: the 2-DOF arm of Fig. 7 (``2dof``), the paper's 6-DOF arm (``6dof``) and a 7-joint arm
@@ -25,8 +25,8 @@ import math
 
 import numpy as np
 
-from body_scheme_core.exploration import ExplorationPolicy
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.control import ExplorationPolicy
+from body_scheme_core.learning import BodySchemeLearner
 from body_scheme_core.world import (
     PAPER_SIGMA_ROT,
     PAPER_SIGMA_TRANS,

@@ -4,7 +4,7 @@ Protocol (one run, everything from ``seed``):
 
 - Robot :func:`~body_scheme_core.world.planar_2dof` (sim robot ``"planar_2dof"``): two revolute joints with
   parallel axes, limits +-90 deg, markers 1 (base, the root), 2 (on joint 2), 3 (end effector, the part farthest from
-  the root). A :class:`~body_scheme_core.learner.BodySchemeLearner` with no initial models (bootstrapping from
+  the root). A :class:`~body_scheme_core.learning.learner.BodySchemeLearner` with no initial models (bootstrapping from
   scratch, the paper's configuration: thresholds 3 sigma, test window 15, training 30) gets one babbling sample per
   update: uniformly random commands within the limits and the markers seen after them, every marker visible.
 - Noise mode: :func:`~body_scheme_core.world.make_session` with the paper's marker noise, 44 mm / 15 deg RMS (the
@@ -18,8 +18,8 @@ Protocol (one run, everything from ``seed``):
     babbled), the mean distance between the end effector's position predicted by ``learner.predict(a)`` (the
     camera-frame root pose estimate times the learned chain) and its true position in the camera frame;
   - control error: for :data:`N_TARGETS` targets drawn once per run (the true camera-frame end-effector positions of
-    uniformly random configurations, so every target is reachable), :func:`~body_scheme_core.ik.solve_ik` on the
-    learned body scheme within :func:`~body_scheme_core.ik.trained_bounds`, with ``control_node``'s defaults
+    uniformly random configurations, so every target is reachable), :func:`~body_scheme_core.control.ik.solve_ik` on the
+    learned body scheme within :func:`~body_scheme_core.control.ik.trained_bounds`, with ``control_node``'s defaults
     (tolerance 5 mm, 100 iterations, 3 restarts, start at the current command, the camera-frame target converted
     with the learner's root pose); the error is the true distance of the end effector from the target at the
     returned actions (the arm's ground-truth kinematics), mean over the targets.
@@ -42,12 +42,10 @@ import math
 import numpy as np
 
 from body_scheme_core.calibration import calibrate
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.ik import solve_ik, trained_bounds
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.control import solve_ik, trained_bounds
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner, RootPoseEstimator
 from body_scheme_core.models import RevoluteModel
-from body_scheme_core.root_pose import RootPoseEstimator
-from body_scheme_core.scheme import BodyScheme
+from body_scheme_core.prediction import BodyScheme
 from body_scheme_core.transforms import invert_transform
 from body_scheme_core.world import PAPER_SIGMA_TRANS, Body, make_session, planar_2dof
 
@@ -222,8 +220,8 @@ def true_structure_error_mm(tree, actions, observations, A, truth, config):
     """Reference: end-effector error of the joint fit of revolute joints on the true structure, same samples.
 
     Each true edge's revolute joint is fitted to its relative observations, then the root pose and the joints are
-    fitted jointly to all observations (:func:`~body_scheme_core.calibration.calibrate`), exactly as the learner does
-    once it has found the tree. NaN while an edge has fewer than 3 samples.
+    fitted jointly to all observations (:func:`~body_scheme_core.calibration.joint_fit.calibrate`), exactly as the
+    learner does once it has found the tree. NaN while an edge has fewer than 3 samples.
 
     Parameters
     ----------

@@ -3,11 +3,12 @@
 Protocol (one run per noise level, everything from ``seed``): the paper's 6-DOF arm
 (:func:`~body_scheme_core.world.powercube_6dof`) babbles :data:`N_STEPS` random commands, every marker seen, at
 the noise level of the run: ``paper`` (44 mm / 15 deg, 3D RMS) or ``tracker`` (our tracker's 10 mm / 5 deg); a
-:class:`~body_scheme_core.learner.BodySchemeLearner` (noise priors of that level) learns from scratch. Then
+:class:`~body_scheme_core.learning.learner.BodySchemeLearner` (noise priors of that level) learns from scratch. Then
 :data:`N_TARGETS` targets, each the end effector's true position (marker 7, in the root marker's frame) at a random
-command within :func:`~body_scheme_core.ik.trained_bounds`, are solved by :func:`~body_scheme_core.ik.solve_ik` on
-the learned body scheme with a tolerance of :data:`TOLERANCE` (10 mm) and ``confidence`` 2. The *true error* of an
-answer is the distance from the target to where the true arm's end effector is at the answer's command.
+command within :func:`~body_scheme_core.control.ik.trained_bounds`, are solved by
+:func:`~body_scheme_core.control.ik.solve_ik` on the learned body scheme with a tolerance of :data:`TOLERANCE` (10 mm)
+and ``confidence`` 2. The *true error* of an answer is the distance from the target to where the true arm's end effector
+is at the answer's command.
 
 - *coverage*: over the answers the model reaches (``converged``), the fraction whose true error is within the
   reported bound (``error_bound`` = residual + 2 sigma);
@@ -18,8 +19,8 @@ answer is the distance from the target to where the true arm's end effector is a
   what ``success`` meant before the uncertainty): the figure the issue started from.
 - *after exploring*: for the first :data:`N_REFINE` answers the model reaches but is not sure of, a copy of the
   learner takes :data:`REFINE_SAMPLES` more observed commands, either chosen near the answer
-  (:func:`~body_scheme_core.exploration.explore_near`) or uniform within the limits (the control), runs its joint
-  fit and solves again from the answer: the fraction then reported as successes, the fraction of those whose true
+  (:func:`~body_scheme_core.control.exploration.explore_near`) or uniform within the limits (the control), runs its
+  joint fit and solves again from the answer: the fraction then reported as successes, the fraction of those whose true
   error exceeds 10 mm, and the reported std over the std before (median).
 """
 
@@ -30,10 +31,8 @@ import math
 import numpy as np
 
 from body_scheme_apps.experiments.runner import aggregate
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.exploration import ExplorationPolicy, explore_near
-from body_scheme_core.ik import solve_ik, trained_bounds
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.control import ExplorationPolicy, explore_near, solve_ik, trained_bounds
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 from body_scheme_core.world import (
     PAPER_SIGMA_ROT,
     PAPER_SIGMA_TRANS,

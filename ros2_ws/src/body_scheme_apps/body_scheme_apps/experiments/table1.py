@@ -24,9 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.learner import BodySchemeLearner
-from body_scheme_core.models.engineered import engineered_models
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
+from body_scheme_core.models import engineered_models
 from body_scheme_core.world import joint_blocked_protocol, limb_deformed_protocol, powercube_6dof
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "NOTES", "PROTOCOLS", "run", "run_protocol", "recovery_times", "plot"]

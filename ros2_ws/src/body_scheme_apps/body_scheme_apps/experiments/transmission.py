@@ -20,8 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from body_scheme_core.config import BodySchemeConfig
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 from body_scheme_core.world import Body, make_session, planar_2dof
 
 __all__ = ["FIGURES", "PAPER", "TARGETS", "SANITY", "PERCEPTIONS", "N_STEPS", "GEAR", "VARIANTS", "run", "plot"]

@@ -10,7 +10,7 @@ arm, :func:`~body_scheme_sim.planning.hd_camera`); the arm babbles :data:`N_STEP
 its whole joint range; our ArUco tracker reads the simulator's rendered images; the learner (the tracker's noise
 priors, 10 mm / 5 deg, as every rendered experiment) learns from scratch. Then:
 
-- the learned body scheme as a URDF is compared with the robot's (:func:`~body_scheme_core.learned_body.
+- the learned body scheme as a URDF is compared with the robot's (:func:`~body_scheme_core.prediction.learned_body.
   calibration_report`): joint axes and origins in the parent marker's frame;
 - IK on the learned body scheme (within the trained range) sends the end-effector marker to 30 positions it reached
   at random commands; each solution is executed on the true robot and the distance from the target measured.
@@ -72,10 +72,9 @@ def _urdf(robot):
 
 def run(seed, perception="iiwa", quick=False):
     """One robot's run (``perception``: a key of :data:`ROBOTS`); see the module docstring."""
-    from body_scheme_core.config import BodySchemeConfig
-    from body_scheme_core.ik import solve_ik, trained_bounds
-    from body_scheme_core.learned_body import calibration_report, learned_tree
-    from body_scheme_core.learner import BodySchemeLearner
+    from body_scheme_core.control import solve_ik, trained_bounds
+    from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
+    from body_scheme_core.prediction import calibration_report, learned_tree
     from body_scheme_core.world import is_true_tree
     from body_scheme_sim.planning import plan_markers, write_markers
     from body_scheme_sim.robots import load_robot

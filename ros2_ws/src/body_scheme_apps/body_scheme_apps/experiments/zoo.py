@@ -6,7 +6,7 @@ marker, links with two, dummy actions and shuffled marker ids. :func:`~body_sche
 :data:`N_HEALTHY` commands on the healthy body, then :data:`N_CHANGED` after one change of its physiology
 (:func:`~body_scheme_core.world.random_fault`, by seed in turn: a joint blocked in the middle of its range, a limb bent
 by 20 deg, a marker moved by 3 noise RMS, a tool lengthening a last limb by 3 noise RMS), every marker dropped in 15 %
-of the steps. A :class:`~body_scheme_core.learner.BodySchemeLearner` learns from scratch with the default
+of the steps. A :class:`~body_scheme_core.learning.learner.BodySchemeLearner` learns from scratch with the default
 configuration: it is given no noise value. The noise levels (position as the RMS of the 3D error, orientation as the
 RMS angle, see :class:`~body_scheme_core.world.ObservationModel`):
 
@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from body_scheme_core.learner import BodySchemeLearner
+from body_scheme_core.learning import BodySchemeLearner
 from body_scheme_core.world import RANDOM_FAULTS, Body, is_correct_model, is_true_tree, make_session, random_fault
 from body_scheme_core.world import zoo_robot as _zoo_robot
 

@@ -10,13 +10,23 @@ from __future__ import annotations
 
 from ..errors import ModelFileError
 from .base import LocalModel, check_action_batch, check_observations
-from .engineered import EngineeredModel
+from .engineered import EngineeredModel, engineered_models
 from .gp import GPModel
 from .gp_batch import GPBatch
+from .gp_kernel import (
+    DEFAULT_LENGTH_SCALE,
+    DEFAULT_SIGMA_ROT,
+    DEFAULT_SIGMA_TRANS,
+    DEFAULT_SIGNAL_STD_ROT,
+    DEFAULT_SIGNAL_STD_TRANS,
+    GPHyperparameters,
+    squared_exponential,
+)
 from .prismatic import PrismaticModel
 from .revolute import RevoluteModel
 from .rigid import RigidJointModel
-from .rigid_batch import RigidBatch
+from .rigid_batch import RIGID_CLASSES, RigidBatch
+from .rigid_fit import DEFAULT_F_SCALE, huber_weights, robust_cost
 from .static import StaticModel
 
 __all__ = [
@@ -28,9 +38,21 @@ __all__ = [
     "RevoluteModel",
     "RigidJointModel",
     "RigidBatch",
+    "RIGID_CLASSES",
+    "DEFAULT_F_SCALE",
+    "huber_weights",
+    "robust_cost",
     "EngineeredModel",
+    "engineered_models",
     "GPModel",
     "GPBatch",
+    "GPHyperparameters",
+    "squared_exponential",
+    "DEFAULT_LENGTH_SCALE",
+    "DEFAULT_SIGMA_ROT",
+    "DEFAULT_SIGMA_TRANS",
+    "DEFAULT_SIGNAL_STD_ROT",
+    "DEFAULT_SIGNAL_STD_TRANS",
     "MODEL_CLASSES",
     "model_from_dict",
 ]

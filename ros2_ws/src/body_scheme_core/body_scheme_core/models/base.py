@@ -31,8 +31,8 @@ __all__ = ["LocalModel", "check_action_batch", "check_observations"]
 def check_action_batch(A, n_actions=None, name="A"):
     """Validate a stack of full action vectors for the models; one vector (m,) becomes a stack of one.
 
-    Not to be confused with :func:`~body_scheme_core.inputs.check_action_vector`, which checks the one action vector a
-    caller hands the learner per step (exact length, never a stack).
+    Not to be confused with :func:`~body_scheme_core.learning.inputs.check_action_vector`, which checks the one action
+    vector a caller hands the learner per step (exact length, never a stack).
 
     Parameters
     ----------

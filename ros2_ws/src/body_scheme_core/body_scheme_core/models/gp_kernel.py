@@ -27,7 +27,8 @@ Uncertainty: predictions with ``return_std=True`` give the latent (noise-free) p
 sample as a per-axis translational std (m) and a per-axis rotational std (rad); see :func:`summarise_std`.
 
 The defaults (``DEFAULT_*``) live here, not in the learner's configuration: models do not depend on
-:mod:`~body_scheme_core.config`, whose ``BodySchemeConfig`` takes its defaults of these values from this module.
+:mod:`~body_scheme_core.learning.config`, whose ``BodySchemeConfig`` takes its defaults of these values from this
+module.
 """
 
 from __future__ import annotations
@@ -180,8 +181,8 @@ class GPHyperparameters:
 
     @classmethod
     def from_config(cls, config):
-        """Derive the hyperparameters from a :class:`~body_scheme_core.config.BodySchemeConfig`: its marker noise
-        prior (``prior_sigma_trans``, ``prior_sigma_rot``) and its ``gp_length_scale``, ``gp_signal_std_trans``,
+        """Derive the hyperparameters from a :class:`~body_scheme_core.learning.config.BodySchemeConfig`: its marker
+        noise prior (``prior_sigma_trans``, ``prior_sigma_rot``) and its ``gp_length_scale``, ``gp_signal_std_trans``,
         ``gp_signal_std_rot`` (see :meth:`from_marker_noise`)."""
         return cls.from_marker_noise(config.prior_sigma_trans, config.prior_sigma_rot, config.gp_length_scale,
                                      config.gp_signal_std_trans, config.gp_signal_std_rot)

@@ -8,7 +8,7 @@ the stacked :func:`gauss_newton`) is :mod:`~body_scheme_core.models.rigid_fit`, 
 
 - :class:`RigidJointModel`, the scikit-learn-shaped base class (``fit``, ``predict(return_std)``, ``jacobian``,
   ``to_dict``/``from_dict``) and its parameter interface for the joint fit of the whole body scheme
-  (:mod:`body_scheme_core.calibration`): ``params_``, ``param_cov_``, ``retract(delta)``, ``twists(A)``.
+  (:mod:`body_scheme_core.calibration.joint_fit`): ``params_``, ``param_cov_``, ``retract(delta)``, ``twists(A)``.
 
 Each model class has a *form*: a class of static functions vectorised over a stack of k models (``params`` (k, q)
 in the form's storage layout, action values ``x`` (k, n)): ``transforms(params, x) -> (k, n, 4, 4)``,

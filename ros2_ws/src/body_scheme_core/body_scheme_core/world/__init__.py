@@ -35,7 +35,7 @@ from .faults import (
     random_fault,
 )
 from .noise import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
-from .robot_files import load_markers_yaml, markers_to_yaml, tree_from_urdf, tree_to_urdf
+from .robot_files import load_markers_yaml, markers_to_yaml, resolve_meshes, tree_from_urdf, tree_to_urdf
 from .robots import (
     arm_4dof,
     arm_7dof,
@@ -62,7 +62,7 @@ from .truth import is_correct_model, is_true_tree, least_actions, wrong_models
 
 __all__ = [
     "JOINT_TYPES", "MOVABLE_JOINT_TYPES", "Joint", "Marker", "KinematicTree",
-    "tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml",
+    "tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml", "resolve_meshes",
     "planar_2dof", "arm_4dof", "powercube_6dof", "arm_7dof", "upper_body", "branching_tree", "random_tree",
     "zoo_robot", "default_world2root",
     "Body", "block_joint", "deform_limb", "displace_marker",

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import InvalidInputError
-from ..models.base import check_action_batch
+from ..models import check_action_batch
 from ..transforms import check_transform
 from .tree import KinematicTree
 

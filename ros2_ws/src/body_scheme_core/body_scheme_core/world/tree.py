@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import InvalidInputError
-from ..models.base import check_action_batch
+from ..models import check_action_batch
 from ..transforms import check_transform, invert_transform, transform_from_xyz_rpy, xyz_rpy_from_transform
 
 __all__ = ["JOINT_TYPES", "MOVABLE_JOINT_TYPES", "CONTINUOUS_RANGE", "AXIS_NORM_TOLERANCE", "Joint", "Marker",

@@ -31,8 +31,8 @@ import math
 
 import numpy as np
 
+from ..transforms import invert_transform, rotational_error
 from .pool import Targets
-from .transforms import invert_transform, rotational_error
 
 __all__ = ["ChainTargets"]
 
@@ -49,7 +49,7 @@ class ChainTargets:
     observations : dict of int to ndarray, shape (4, 4)
         Accepted ``world2part`` of this step.
     noise : NoiseModel
-        The current noise sigmas and validity thresholds (:mod:`~body_scheme_core.noise_model`).
+        The current noise sigmas and validity thresholds (:mod:`~body_scheme_core.calibration.noise_model`).
     untrusted : iterable of int
         Parts whose predicted pose is not trusted (below an edge in mismatch).
     std : dict of int to array-like, shape (2,), optional

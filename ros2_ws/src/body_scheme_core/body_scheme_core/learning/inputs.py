@@ -18,10 +18,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
+from ..limits import MAX_ACTION, MAX_ACTIONS, MAX_PARTS
+from ..prediction import BodyScheme
 from .config import BodySchemeConfig
-from .errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
-from .limits import MAX_ACTION, MAX_ACTIONS, MAX_PARTS
-from .scheme import BodyScheme
 from .structure import n_candidates
 
 __all__ = [
@@ -122,7 +122,8 @@ def check_body_size(n_parts, n_actions, config):
     """Refuse a body whose bootstrapping would start with more than :data:`MAX_CANDIDATES` candidate models.
 
     The candidates are every pair of parts times every action subset of at most ``config.max_complexity`` actions and
-    model class (:func:`~body_scheme_core.structure.n_candidates`): quadratic in the parts, polynomial in the actions.
+    model class (:func:`~body_scheme_core.learning.structure.n_candidates`): quadratic in the parts, polynomial in the
+    actions.
     """
     count = n_candidates(n_parts, n_actions, config.max_complexity, config.candidate_kinds)
     if count > MAX_CANDIDATES:

@@ -3,8 +3,8 @@
 Local models are judged one by one against thresholds of three noise sigmas (paper Eq. 5-6). A model that is wrong
 by less than that, or whose error hides in a generous threshold (a wrongly static edge at a high noise), passes, and
 every part below it is then predicted wrongly with nothing to show for it. After a joint fit
-(:mod:`~body_scheme_core.calibration`) the question can be asked of the whole tree: are the residuals of each marker
-what the noise makes, or do they still depend on the commands?
+(:mod:`~body_scheme_core.calibration.joint_fit`) the question can be asked of the whole tree: are the residuals of each
+marker what the noise makes, or do they still depend on the commands?
 
 A residual that depends on the commands is the signature of a wrong model: a missing joint leaves residuals that
 follow that joint's action; a wrong form (rigid where a gear bends the relation) leaves a curve. Noise is independent
@@ -12,8 +12,8 @@ of the commands. :func:`lack_of_fit` regresses a marker's whitened residuals (6 
 action in turn (``sin a`` and ``cos a``: a revolute joint moves a marker along a circle, and over a prismatic joint's
 range ``sin a`` is nearly ``a``) and tests the explained variance with an F test, Bonferroni-corrected over the
 actions. The test does not depend on the noise level, so a noise estimate that
-grew with a wrong model's errors (:mod:`~body_scheme_core.noise_model`) cannot hide them, and a marker whose noise
-is larger than the others' (farther from the camera) does not fail it. Residuals are clipped at
+grew with a wrong model's errors (:mod:`~body_scheme_core.calibration.noise_model`) cannot hide them, and a marker whose
+noise is larger than the others' (farther from the camera) does not fail it. Residuals are clipped at
 :data:`CLIP` sigmas first, so a mirrored orientation is one outlier, not a structure.
 
 :func:`part_consistency` applies it to every part of a fit and gives each a :class:`PartConsistency`; the learner

@@ -11,9 +11,9 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from .errors import InvalidInputError
-from .limits import MAX_NOISE, MAX_WINDOW
-from .models.gp_kernel import (
+from ..errors import InvalidInputError
+from ..limits import MAX_NOISE, MAX_WINDOW
+from ..models import (
     DEFAULT_LENGTH_SCALE,
     DEFAULT_SIGMA_ROT,
     DEFAULT_SIGMA_TRANS,
@@ -50,9 +50,9 @@ class BodySchemeConfig:
     sigma_trans : float or "auto"
         Prior of the observation noise of one marker's position as the RMS of its 3D error, in m (the paper's "44 mm
         in 3D space"; per axis ``sigma_trans / sqrt(3)``). The learner estimates the noise from the joint fit's
-        residuals (:mod:`~body_scheme_core.noise_model`: per marker, across and along the camera's ray); a number is
-        where it starts and weighs like 50 observations, ``"auto"`` (default) starts from 50 mm and yields to the
-        first estimate.
+        residuals (:mod:`~body_scheme_core.calibration.noise_model`: per marker, across and along the camera's ray); a
+        number is where it starts and weighs like 50 observations, ``"auto"`` (default) starts from 50 mm and yields to
+        the first estimate.
     sigma_rot : float or "auto"
         The same for the orientation: the RMS of the rotation-vector error, in rad (``"auto"``: 15 deg).
     theta_trans, theta_rot : float or None
@@ -147,9 +147,9 @@ class BodySchemeConfig:
         Plausibility gate on commands, as a fraction of each joint's range: actions beyond the joint limits by more
         than this are refused (``update`` raises ``InvalidInputError``).
     consistency_alpha : float
-        Significance of the lack-of-fit test after every joint fit (:mod:`~body_scheme_core.consistency`), for all
-        parts together (Bonferroni): a part whose residuals depend on the commands at this level is not explained by
-        the body scheme, which is then not trusted and searched again.
+        Significance of the lack-of-fit test after every joint fit (:mod:`~body_scheme_core.calibration.consistency`),
+        for all parts together (Bonferroni): a part whose residuals depend on the commands at this level is not
+        explained by the body scheme, which is then not trusted and searched again.
     lazy_layers : bool
         Bootstrapping starts with the candidates of complexity <= 1 and instantiates layer ``k + 1`` only for the
         pairs across the parts that layers <= k cannot connect (paper Sec. III-D), trained at once from the history.
@@ -158,8 +158,8 @@ class BodySchemeConfig:
     race_samples, race_ratio, race_min_train : int, float, int
         Racing while bootstrapping: a candidate whose last ``race_samples`` errors all exceed ``race_ratio`` times
         the validity threshold, each predicted after at least ``race_min_train`` training samples, is dropped
-        (:meth:`~body_scheme_core.validity.ValidityMonitor.hopeless`; counted in ``raced``). 0 (the default): no
-        racing; 3 with lazy layers is what the bootstrap bench measures.
+        (:meth:`~body_scheme_core.learning.validity.ValidityMonitor.hopeless`; counted in ``raced``). 0 (the default):
+        no racing; 3 with lazy layers is what the bootstrap bench measures.
     """
 
     sigma_trans: float | str = "auto"

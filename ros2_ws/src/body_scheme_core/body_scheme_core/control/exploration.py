@@ -7,11 +7,11 @@ arm's posture:
 
 - with a body scheme that carries the joint fit's covariance ``S``: the expected fall of the parts' positional
   variance, averaged over reference postures, if the candidate were observed (a Kalman update of ``S`` through the
-  candidate's position Jacobian, :func:`~body_scheme_core.uncertainty.parameter_jacobian`). That is the A-optimal
-  design of Martinez-Cantin, Lopes and Montesano ("Body schema acquisition through active learning"), weighted by
-  where the body scheme is used (I-optimal), on every rigid-joint model of a learned tree rather than a known chain;
+  candidate's position Jacobian, :func:`~body_scheme_core.prediction.uncertainty.parameter_jacobian`). That is the
+  A-optimal design of Martinez-Cantin, Lopes and Montesano ("Body schema acquisition through active learning"), weighted
+  by where the body scheme is used (I-optimal), on every rigid-joint model of a learned tree rather than a known chain;
 - with a body scheme without it (GP or engineered edges only): the predicted positional variance summed over the
-  parts (:meth:`BodyScheme.predict_batch <body_scheme_core.scheme.BodyScheme.predict_batch>`);
+  parts (:meth:`BodyScheme.predict_batch <body_scheme_core.prediction.scheme.BodyScheme.predict_batch>`);
 - without one (pass None while the learner is bootstrapping): a uniform draw, random babbling. Measured, both the
   candidate farthest from every command seen so far and the most uncertain posture of the provisional body scheme
   made bootstrapping slower than random babbling (7-joint arm, 6 seeds: 180 and 97 commands until the end effector
@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InvalidInputError
-from .uncertainty import parameter_jacobian
+from ..errors import InvalidInputError
+from ..prediction import parameter_jacobian
 
 __all__ = ["ExplorationPolicy", "PAPER_NOISE", "explore_near", "in_camera_view"]
 
@@ -178,7 +178,7 @@ def in_camera_view(scheme, world2root, K, width, height, parts=None, margin=0.05
     scheme : BodyScheme
     world2root : array-like, shape (4, 4)
         The root part's pose in the camera's frame (the observations are ``camera2marker`` poses, so the learner's
-        :attr:`~body_scheme_core.learner.BodySchemeLearner.root_pose`).
+        :attr:`~body_scheme_core.learning.learner.BodySchemeLearner.root_pose`).
     K : array-like, shape (3, 3)
         The camera's intrinsic matrix (undistorted pinhole).
     width, height : int

@@ -1,21 +1,23 @@
 """The pool of local models a learner tracks, and their prequential (test-then-train) evaluation.
 
-A :class:`~body_scheme_core.tracked.TrackedModel` is a local model in one of three roles: ``tree`` (an edge of the
-body scheme), ``memory`` (retired, remembered for reuse) or ``candidate`` (still learning: a bootstrap candidate or a
-replacement for a failed tree model). :class:`ModelPool` holds all of them with their storage:
+A :class:`~body_scheme_core.learning.tracked.TrackedModel` is a local model in one of three roles: ``tree`` (an edge of
+the body scheme), ``memory`` (retired, remembered for reuse) or ``candidate`` (still learning: a bootstrap candidate or
+a replacement for a failed tree model). :class:`ModelPool` holds all of them with their storage:
 
 - candidates learn in one of two batches: GP candidates in a :class:`~body_scheme_core.models.gp_batch.GPBatch`,
   rigid-joint candidates (static, prismatic, revolute) in a :class:`~body_scheme_core.models.rigid_batch.RigidBatch`
   (one *slot* each); tree and memory models are fitted :class:`~body_scheme_core.models.base.LocalModel` objects (the
-  tree's are refined by the joint fit, :mod:`~body_scheme_core.calibration`);
-- every tracked model has one *row* in the :class:`~body_scheme_core.validity.ValidityMonitor` (test window and CUSUM).
+  tree's are refined by the joint fit, :mod:`~body_scheme_core.calibration.joint_fit`);
+- every tracked model has one *row* in the :class:`~body_scheme_core.learning.validity.ValidityMonitor` (test window and
+  CUSUM).
 
 Every step each tracked model whose *target* is available first predicts it, its error enters its test window, and
 only then may a learning model add the sample to its training set (:meth:`ModelPool.evaluate`,
 :meth:`ModelPool.train`). The targets come from the caller as a :class:`Targets`: the relative observations
-``Y_i^-1 Y_j`` while bootstrapping (:mod:`~body_scheme_core.relative`), the chain-consistent observations of the
-calibrated body scheme afterwards (:mod:`~body_scheme_core.chain`). The decisions built on top (structure search,
-change detection, repair) live in :mod:`~body_scheme_core.bootstrap` and :mod:`~body_scheme_core.adaptation`.
+``Y_i^-1 Y_j`` while bootstrapping (:mod:`~body_scheme_core.learning.relative`), the chain-consistent observations of
+the calibrated body scheme afterwards (:mod:`~body_scheme_core.learning.chain`). The decisions built on top (structure
+search, change detection, repair) live in :mod:`~body_scheme_core.learning.bootstrap` and
+:mod:`~body_scheme_core.learning.adaptation`.
 """
 
 from __future__ import annotations
@@ -24,13 +26,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .errors import ModelFileError
-from .models import GPBatch, GPModel
-from .models.rigid_batch import RIGID_CLASSES, RigidBatch
+from ..errors import ModelFileError
+from ..models import RIGID_CLASSES, GPBatch, GPModel, RigidBatch
+from ..state_values import integer, listing
+from ..transforms import invert_transform, transform_from_vector12
 from .quality import prediction_errors
-from .state_values import integer, listing
 from .tracked import CANDIDATE, MEMORY, TrackedModel, nested_models
-from .transforms import invert_transform, transform_from_vector12
 from .validity import ValidityMonitor
 
 __all__ = ["Targets", "LearningSlots", "ModelPool", "check_monitor_settings"]
@@ -85,7 +86,8 @@ class LearningSlots(NamedTuple):
     rigid : ndarray of bool
         Whether the slot is in the rigid batch (else the GP batch).
     nested : tuple (sub, sup) of ndarray of int
-        Positions of nested candidates for the dominance rule (:func:`~body_scheme_core.tracked.nested_models`).
+        Positions of nested candidates for the dominance rule
+        (:func:`~body_scheme_core.learning.tracked.nested_models`).
     layer : ndarray of float
         Complexity (number of actions).
     rank : ndarray of int
@@ -253,7 +255,7 @@ class ModelPool:
         rows, n_now : array-like of int, shape (k,)
             Monitor rows and training-set sizes of the models compared.
         sub, sup : ndarray of int
-            Nested positions (:func:`~body_scheme_core.tracked.nested_models`).
+            Nested positions (:func:`~body_scheme_core.learning.tracked.nested_models`).
         valid : array-like of bool, shape (k,), optional
             Only valid models are examined (the others are out of the tree search anyway).
 

@@ -4,7 +4,7 @@ Local models describe pairs of parts. :class:`PartPairs` numbers the unordered p
 *canonical* direction of pair ``(p_i, p_j)`` is ``i < j``), and turns the marker poses of one step into a
 :class:`RelativeObservations`: all relative transforms of observed pairs, formed in one vectorised pass, with the
 translational validity threshold of each (it grows with the parts' distance, see
-:func:`~body_scheme_core.validity.translation_threshold`). A model whose parent comes later in the part order
+:func:`~body_scheme_core.learning.validity.translation_threshold`). A model whose parent comes later in the part order
 predicts the inverse of the canonical transform (:meth:`PartPairs.flip`).
 """
 
@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .transforms import invert_transform
+from ..transforms import invert_transform
 from .validity import translation_threshold
 
 __all__ = ["PartPairs", "RelativeObservations"]
@@ -46,7 +46,8 @@ class RelativeObservations(NamedTuple):
     sigma: np.ndarray
 
     def targets(self, pair):
-        """:class:`~body_scheme_core.pool.Targets` of models in canonical direction with pair indices ``pair``."""
+        """:class:`~body_scheme_core.learning.pool.Targets` of models in canonical direction with pair indices
+        ``pair``."""
         from .pool import Targets
 
         rows = self.row[pair]
@@ -82,7 +83,7 @@ class PartPairs:
     noise : NoiseModel
         The current marker noise (``sigma_trans``, ``sigma_rot``: 3D RMS, m and rad) and validity thresholds
         (``theta_trans``, ``theta_rot``) behind :meth:`threshold`, read at every :meth:`observe`
-        (:mod:`~body_scheme_core.noise_model`).
+        (:mod:`~body_scheme_core.calibration.noise_model`).
 
     Attributes
     ----------

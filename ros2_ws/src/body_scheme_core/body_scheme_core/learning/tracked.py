@@ -2,7 +2,7 @@
 
 A :class:`TrackedModel` is a local model in one of three roles: ``tree`` (an edge of the body scheme), ``memory``
 (retired, remembered for reuse) or ``candidate`` (still learning: a bootstrap candidate or a replacement for a
-failed tree model). The :class:`~body_scheme_core.pool.ModelPool` holds all of them with their storage;
+failed tree model). The :class:`~body_scheme_core.learning.pool.ModelPool` holds all of them with their storage;
 :func:`nested_models` finds the pairs the dominance rule compares.
 """
 
@@ -12,10 +12,10 @@ import threading
 
 import numpy as np
 
-from .errors import ModelFileError
-from .models import MODEL_CLASSES, model_from_dict
+from ..errors import ModelFileError
+from ..models import MODEL_CLASSES, model_from_dict
+from ..state_values import finite_array, integer, listing, mapping, part_id
 from .quality import class_rank, nesting_matrix
-from .state_values import finite_array, integer, listing, mapping, part_id
 
 __all__ = ["TREE", "MEMORY", "CANDIDATE", "TrackedModel", "nested_models", "Journal"]
 
@@ -130,7 +130,7 @@ class TrackedModel:
 
     @property
     def rank(self):
-        """Rank of the model class within its complexity layer (:func:`~body_scheme_core.quality.class_rank`)."""
+        """Rank of the model class within its complexity layer (:func:`.quality.class_rank`)."""
         return class_rank(self.kind)
 
     def describe(self):
@@ -193,8 +193,9 @@ def _origin(value, name):
 def nested_models(models):
     """Positions ``(sub, sup)`` of models of the same pair (and target) where ``sup`` nests ``sub``.
 
-    ``sup`` nests ``sub`` when it can represent everything ``sub`` can (:func:`~body_scheme_core.quality.nests`): a
-    model class at least as flexible and a superset of the actions. These are the pairs the dominance rule compares.
+    ``sup`` nests ``sub`` when it can represent everything ``sub`` can
+    (:func:`~body_scheme_core.learning.quality.nests`): a model class at least as flexible and a superset of the
+    actions. These are the pairs the dominance rule compares.
 
     Parameters
     ----------

@@ -18,7 +18,7 @@ from collections import deque
 
 import numpy as np
 
-from .transforms import invert_transform, project_to_rotation
+from ..transforms import invert_transform, project_to_rotation
 from .validity import ValidityMonitor
 
 __all__ = ["RootPoseEstimator", "RootWatch", "register_points", "OUTLIER_SIGMAS", "OFFSET_SAMPLES"]
@@ -149,9 +149,9 @@ def _well_spread(P):
 class RootWatch:
     """The root's own observations against the calibrated root pose: a change detector for the part without an edge.
 
-    Every edge of the tree has a CUSUM on its child's errors (:mod:`~body_scheme_core.adaptation`); the root has no
-    edge, so a marker moved on the robot's base, or knocked, would go unnoticed while the joint fit slowly absorbed it.
-    One validity-monitor row, with the same thresholds, CUSUM and change point as the edges'.
+    Every edge of the tree has a CUSUM on its child's errors (:mod:`~body_scheme_core.learning.adaptation`); the root
+    has no edge, so a marker moved on the robot's base, or knocked, would go unnoticed while the joint fit slowly
+    absorbed it. One validity-monitor row, with the same thresholds, CUSUM and change point as the edges'.
 
     After an alarm it detects a *change* from what followed: the root's marker is then expected where it was seen
     relative to the root pose over the next :data:`OFFSET_SAMPLES` observations (its :attr:`offset`; identity until
@@ -193,7 +193,7 @@ class RootWatch:
 
     def check(self, errors, step, theta_trans, theta_rot):
         """Record the errors ``(trans, rot)`` of the root's observation against :meth:`expected` (or None when the
-        root was not seen; :meth:`~body_scheme_core.chain.ChainTargets.observed_errors`).
+        root was not seen; :meth:`~body_scheme_core.learning.chain.ChainTargets.observed_errors`).
 
         Returns
         -------

@@ -34,12 +34,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InvalidInputError
-from .models.gp import GPModel
-from .models.rigid import RigidJointModel
-from .models.rigid_fit import DEFAULT_F_SCALE, huber_weights, robust_cost
-from .scheme import BodyScheme
-from .transforms import rotation_log, rotvec_matrix, skew
+from ..errors import InvalidInputError
+from ..models import DEFAULT_F_SCALE, GPModel, RigidJointModel, huber_weights, robust_cost
+from ..prediction import BodyScheme
+from ..transforms import rotation_log, rotvec_matrix, skew
 
 __all__ = ["Calibration", "calibrate", "chain_targets", "edge_consistency"]
 
@@ -430,7 +428,8 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
     observations : sequence of dict of int to ndarray, shape (4, 4)
         ``world2part`` per step; parts not in the scheme are ignored.
     sigma_trans, sigma_rot : float
-        3D RMS noise of one marker observation (m, rad), as in :class:`~body_scheme_core.config.BodySchemeConfig`.
+        3D RMS noise of one marker observation (m, rad), as in
+        :class:`~body_scheme_core.learning.config.BodySchemeConfig`.
     since : sequence of int, optional
         Per model of ``scheme.models``: the first step index (into ``actions``) at which it describes the body; a
         part's observations are used from the largest ``since`` on its path. Default 0 for all.
@@ -447,7 +446,8 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
     axis_sigmas : callable, optional
         ``axis_sigmas(part) -> (lateral, depth, rotation)``: per-axis noise sigmas of a marker's position across
         and along the camera's ray (m) and of its orientation (rad), e.g.
-        :meth:`~body_scheme_core.noise_model.NoiseModel.axis_sigmas`. Default: isotropic, ``sigma / sqrt(3)``.
+        :meth:`~body_scheme_core.calibration.noise_model.NoiseModel.axis_sigmas`. Default: isotropic, ``sigma /
+        sqrt(3)``.
     root_since : int
         First step index at which the root's own observations are used (its marker moved before it); the other
         parts keep theirs.

@@ -2,15 +2,15 @@
 
 A candidate local model is instantiated for every pair of parts, every action subset of at most one action and
 every model class of ``candidate_kinds`` that fits it (static models for no action; prismatic, revolute and GP
-models for one: :func:`~body_scheme_core.structure.enumerate_candidates`). The next complexity layer (GP models on
-more actions) is instantiated lazily, only for the pairs across the parts the layers so far cannot connect
+models for one: :func:`~body_scheme_core.learning.structure.enumerate_candidates`). The next complexity layer (GP models
+on more actions) is instantiated lazily, only for the pairs across the parts the layers so far cannot connect
 (:meth:`Bootstrap.expand`, paper Sec. III-D), and learns the recorded history at once; with ``lazy_layers`` off
 every layer up to ``max_complexity`` starts at once (the fully connected network of Fig. 4). Each candidate is a
 *temporal* local model: it learns from the first ``train_window`` relative observations of its pair and is then
 frozen. After every step the candidates that are invalid with high confidence are dropped (racing,
 :meth:`Bootstrap.race`), and the minimum spanning tree over the valid candidates that no nesting candidate clearly
 beats (dominance rule) is searched layer by layer, with the classes of a layer ordered by their rank
-(:func:`~body_scheme_core.quality.model_cost`).
+(:func:`~body_scheme_core.learning.quality.model_cost`).
 
 Bootstrapping ends when a valid tree exists, its models are frozen and every candidate is frozen (or the tree has
 been stable for ``bootstrap_patience`` steps): all other candidates are dropped and the tree's models become fitted
@@ -25,7 +25,7 @@ import itertools
 import networkx as nx
 import numpy as np
 
-from .events import Event, format_errors
+from ..events import Event, format_errors
 from .quality import model_cost
 from .structure import enumerate_candidates, kinds_for, select_spanning_tree
 from .tracked import TREE
@@ -126,7 +126,8 @@ class Bootstrap:
 
     def race(self, tree):
         """Drop the candidates that are invalid with high confidence
-        (:meth:`~body_scheme_core.validity.ValidityMonitor.hopeless`), except those of the current tree (the search
+        (:meth:`~body_scheme_core.learning.validity.ValidityMonitor.hopeless`), except those of the current tree (the
+        search
         drops them first); counted in :attr:`raced`."""
         c = self.config
         if c.race_samples < 1:

@@ -4,7 +4,7 @@ A set of ``n - 1`` local models that connect all ``n`` parts without a cycle def
 because every local model is a rigid transform and can be inverted. The maximum-likelihood posture for an action
 vector is obtained by concatenating the models' predictions from the root outwards (Eq. 8): every part, observed or
 not, is predicted from the actions alone. The Jacobian of that forward model (Eq. 10) drives gradient-based control
-(:mod:`body_scheme_core.ik`).
+(:mod:`body_scheme_core.control.ik`).
 
 Frame convention (see :mod:`body_scheme_core.transforms`): ``root2part`` is the pose of ``part`` in the root frame.
 A model predicts ``model.parent2model.child``; when the tree traverses it from ``model.child`` to ``model.parent`` the
@@ -16,9 +16,9 @@ from __future__ import annotations
 import networkx as nx
 import numpy as np
 
-from .errors import InvalidInputError, ModelFileError, NotFittedError
-from .models.base import LocalModel, check_action_batch
-from .transforms import invert_transform
+from ..errors import InvalidInputError, ModelFileError, NotFittedError
+from ..models import LocalModel, check_action_batch
+from ..transforms import invert_transform
 
 __all__ = ["BodyScheme"]
 
@@ -71,8 +71,8 @@ class BodyScheme:
     param_covariance : tuple (model indices, ndarray) or None
         The joint fit's covariance of the parameters of several models together (their cross-covariances included):
         ``(k_1, ..., k_j)`` positions in ``models`` of rigid-joint models, and the matrix over their parameter
-        increments concatenated in that order. :func:`~body_scheme_core.uncertainty.position_covariance` uses it;
-        models not named contribute their own covariance alone.
+        increments concatenated in that order. :func:`~body_scheme_core.prediction.uncertainty.position_covariance` uses
+        it; models not named contribute their own covariance alone.
 
     Raises
     ------
@@ -522,7 +522,7 @@ class BodyScheme:
             If the dict is not a body scheme of a supported version or is missing keys.
         """
         if model_from_dict is None:
-            from .models import model_from_dict
+            from ..models import model_from_dict
         if not isinstance(data, dict) or data.get("kind") != "body_scheme":
             raise ModelFileError("not a body scheme dict (expected kind 'body_scheme')")
         if data.get("version") != SCHEME_FORMAT_VERSION:

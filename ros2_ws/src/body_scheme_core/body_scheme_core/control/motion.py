@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InvalidInputError
+from ..errors import InvalidInputError
 
 __all__ = ["trajectory_duration", "path_samples", "SafetyLimits", "SettleDetector"]
 

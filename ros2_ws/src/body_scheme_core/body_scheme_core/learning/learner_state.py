@@ -1,9 +1,9 @@
 """The learner's state: as a JSON dict and back (saved state), and in memory (the snapshot that makes a step atomic).
 
-Files (atomic writes, strict JSON reading) are :mod:`body_scheme_core.persistence`; the layout is documented in
+Files (atomic writes, strict JSON reading) are :mod:`body_scheme_core.learning.persistence`; the layout is documented in
 docs/core/state-file-format.md. Reading validates every value: a bad dict raises ``ModelFileError``, never a crash
 later on. :func:`snapshot` and :func:`restore` copy what one time step may change and put it back, so that
-:meth:`~body_scheme_core.learner.BodySchemeLearner.update` either applies a whole step or none of it.
+:meth:`~body_scheme_core.learning.learner.BodySchemeLearner.update` either applies a whole step or none of it.
 """
 
 from __future__ import annotations
@@ -16,15 +16,15 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..calibration import PartConsistency
+from ..errors import BodySchemeError, InvalidInputError, ModelFileError
+from ..prediction import BodyScheme
+from ..state_values import boolean, finite_array, integer, listing, mapping, number, optional_number, part_id
 from .adaptation import Adaptation
 from .config import BodySchemeConfig
-from .consistency import PartConsistency
-from .errors import BodySchemeError, InvalidInputError, ModelFileError
 from .inputs import check_action_vector, check_n_actions, check_part_ids, rigidity_problem
 from .pool import ModelPool, check_monitor_settings
 from .root_pose import RootPoseEstimator, RootWatch
-from .scheme import BodyScheme
-from .state_values import boolean, finite_array, integer, listing, mapping, number, optional_number, part_id
 from .validity import ValidityMonitor
 
 __all__ = ["STATE_VERSION", "Calibrated", "learner_to_state", "learner_from_state", "snapshot", "restore",
@@ -38,7 +38,7 @@ STATE_VERSION = 4  # 4: the learned noise and the lack-of-fit test; 3: rigid-joi
 class Calibrated(NamedTuple):
     """The last joint fit: the calibrated body scheme, the root pose, what it was computed from, per part
     ``(n, trans ratio, rot ratio)`` of its observations (:meth:`Calibration.part_ratios`), its predicted std, and its
-    lack-of-fit test (:class:`~body_scheme_core.consistency.PartConsistency`)."""
+    lack-of-fit test (:class:`~body_scheme_core.calibration.consistency.PartConsistency`)."""
 
     scheme: BodyScheme
     world2root: np.ndarray
@@ -238,7 +238,7 @@ def _part_rows(rows, parts, name, read):
 
 
 def _actions(value, n_actions, name):
-    """An action vector as a learner takes it (:func:`~body_scheme_core.inputs.check_action_vector`), of JSON
+    """An action vector as a learner takes it (:func:`~body_scheme_core.learning.inputs.check_action_vector`), of JSON
     numbers only."""
     try:
         return check_action_vector(finite_array(value, (n_actions,), name), n_actions)
@@ -298,13 +298,13 @@ def _with_copied_arrays(obj):
 
 
 def snapshot(learner, journal):
-    """Everything one :meth:`~body_scheme_core.learner.BodySchemeLearner.update` may change, copied.
+    """Everything one :meth:`~body_scheme_core.learning.learner.BodySchemeLearner.update` may change, copied.
 
     Local models, the calibrated scheme and the recorded observations are never changed in place (a step replaces
     them), so they are shared, not copied; what is copied is the book-keeping around them: the set of tracked
     models, the batches' and the monitor's arrays, the phase objects' dicts, the history and the counters. Changes
-    to the tracked models' entries go into ``journal`` (an open :class:`~body_scheme_core.tracked.Journal`), which is
-    far cheaper than copying thousands of entries every step.
+    to the tracked models' entries go into ``journal`` (an open :class:`~body_scheme_core.learning.tracked.Journal`),
+    which is far cheaper than copying thousands of entries every step.
     """
     pool, boot, adapt = learner._pool, learner._bootstrap, learner._adaptation
     return {

@@ -19,8 +19,8 @@ import math
 import os
 import tempfile
 
-from . import __version__
-from .errors import ModelFileError
+from .. import __version__
+from ..errors import ModelFileError
 from .learner import BodySchemeLearner
 
 __all__ = ["save_state", "encode_state", "write_state_text", "load_state", "STATE_FORMAT", "STATE_FILE_VERSION"]

@@ -2,22 +2,22 @@
 
 A local model is judged by how well it predicts observations it has *not* been trained on. The learner evaluates
 prequentially (test-then-train): each new observation ``Z`` is first predicted, the error
-(:func:`~body_scheme_core.quality.prediction_errors`) enters the model's test window, and only then may the sample be
-added to the model's training set.
+(:func:`~body_scheme_core.learning.quality.prediction_errors`) enters the model's test window, and only then may the
+sample be added to the model's training set.
 
 Errors are split into a translational part (m) and a rotational part (rad), because the two have different units
 and noise levels; the paper's single norm ``||Z - Z'||`` (Eq. 6) mixes them. A model is *valid* (Eq. 5-6 with
 ``theta = 3 sigma``) when its mean errors over the test window are below both thresholds.
 
 Thresholds. ``theta_trans`` and ``theta_rot`` are ``validity_sigmas`` times the marker noise, which the learner
-estimates as it goes (:mod:`~body_scheme_core.noise_model`): :meth:`ValidityMonitor.set_thresholds` gives the monitor
-the current ones, and every stored error is judged against them, old samples too. The rotational threshold is
-``theta_rot`` for every sample. The translational threshold of a sample grows with the lever arm between its two parts,
-so it is computed per sample where the sample is formed and recorded with its errors: :func:`translation_threshold`
-for the relative observations of :mod:`~body_scheme_core.relative`,
-:meth:`~body_scheme_core.chain.ChainTargets.threshold` for chain-consistent targets; it travels to
-:meth:`ValidityMonitor.record` in :class:`~body_scheme_core.pool.Targets`, and the monitor keeps it as a multiple of
-the ``theta_trans`` of that moment (the lever-arm factor, at least 1), so it follows the noise estimate too.
+estimates as it goes (:mod:`~body_scheme_core.calibration.noise_model`): :meth:`ValidityMonitor.set_thresholds` gives
+the monitor the current ones, and every stored error is judged against them, old samples too. The rotational threshold
+is ``theta_rot`` for every sample. The translational threshold of a sample grows with the lever arm between its two
+parts, so it is computed per sample where the sample is formed and recorded with its errors:
+:func:`translation_threshold` for the relative observations of :mod:`~body_scheme_core.learning.relative`,
+:meth:`~body_scheme_core.learning.chain.ChainTargets.threshold` for chain-consistent targets; it travels to
+:meth:`ValidityMonitor.record` in :class:`~body_scheme_core.learning.pool.Targets`, and the monitor keeps it as a
+multiple of the ``theta_trans`` of that moment (the lever-arm factor, at least 1), so it follows the noise estimate too.
 
 The monitor is *batched*: one object holds the windows of hundreds of candidate models in ``(rows, W)`` arrays, with
 ``allocate``/``release`` row management like :class:`~body_scheme_core.models.gp_batch.GPBatch`, so one learner step
@@ -30,9 +30,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .errors import InvalidInputError, ModelFileError
-from .limits import MAX_WINDOW
-from .state_values import boolean, finite_array, integer, integer_array, listing, number
+from ..errors import InvalidInputError, ModelFileError
+from ..limits import MAX_WINDOW
+from ..state_values import boolean, finite_array, integer, integer_array, listing, number
 
 __all__ = ["RATIO_CLIP", "translation_threshold", "WindowStats", "ValidityMonitor"]
 

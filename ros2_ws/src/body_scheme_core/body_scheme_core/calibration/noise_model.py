@@ -4,7 +4,8 @@ The paper's validity thresholds are ``theta = 3 sigma`` (Sec. IV), with ``sigma`
 rarely knows it, and a real camera's is not isotropic: along the ray to a marker the position is several times worse
 than across it, and planar markers are now and then seen mirrored (the planar ambiguity). :class:`NoiseModel` starts
 from a prior (the configuration's ``sigma_trans``/``sigma_rot``, or a generous default for ``"auto"``) and, after
-every joint fit of the body scheme (:mod:`~body_scheme_core.calibration`), estimates per marker, in the camera frame:
+every joint fit of the body scheme (:mod:`~body_scheme_core.calibration.joint_fit`), estimates per marker, in the camera
+frame:
 
 - ``lateral``: the per-axis standard deviation of the position across the ray (two axes),
 - ``depth``: the same along the ray,
@@ -22,7 +23,7 @@ median over the markers (a minority of wrong markers cannot move it), leaving ou
 and a marker's own estimate is only used to
 weigh its observations in the joint fit, shrunk towards the pooled one and kept within a factor 2 of it. Whether the
 body scheme explains each marker is a separate test that does not depend on the noise level
-(:mod:`~body_scheme_core.consistency`).
+(:mod:`~body_scheme_core.calibration.consistency`).
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ import math
 import numpy as np
 from scipy import stats
 
-from .errors import InvalidInputError, ModelFileError
-from .limits import MAX_NOISE
-from .state_values import integer, listing, mapping, number, optional_number, part_id
+from ..errors import InvalidInputError, ModelFileError
+from ..limits import MAX_NOISE
+from ..state_values import integer, listing, mapping, number, optional_number, part_id
 
 __all__ = ["NoiseModel", "robust_variance", "ray_components"]
 
@@ -174,7 +175,7 @@ class NoiseModel:
 
     @classmethod
     def from_config(cls, part_ids, config):
-        """The noise model of a :class:`~body_scheme_core.config.BodySchemeConfig`: its priors (``"auto"`` or a
+        """The noise model of a :class:`~body_scheme_core.learning.config.BodySchemeConfig`: its priors (``"auto"`` or a
         number), ``validity_sigmas`` and fixed thresholds."""
         return cls(part_ids, config.prior_sigma_trans, config.prior_sigma_rot,
                    (config.sigma_trans == "auto", config.sigma_rot == "auto"), config.validity_sigmas,

@@ -3,14 +3,14 @@
 The joint fit estimates every rigid-joint model of the tree from the same absolute observations, so their errors are
 correlated: a model that is too long is followed by one that is too short, and the tip lands close to where it was
 seen. Summing the models' own uncertainties along the chain as if they were independent
-(:meth:`~body_scheme_core.scheme.BodyScheme.predict_batch`, what the learner's thresholds use) overstates the tip's
-uncertainty; measured on the paper's 6-DOF arm learned from scratch (300 steps, every marker seen), the end
+(:meth:`~body_scheme_core.prediction.scheme.BodyScheme.predict_batch`, what the learner's thresholds use) overstates the
+tip's uncertainty; measured on the paper's 6-DOF arm learned from scratch (300 steps, every marker seen), the end
 effector's true error was a third of that bound while each model's own covariance matched its own error
 (``python -m body_scheme_apps.experiments --only iksure``).
 
 :func:`position_covariance` propagates the joint fit's covariance with its cross terms
-(:attr:`BodyScheme.param_covariance <body_scheme_core.scheme.BodyScheme>`) to first order, by differentiating the
-chain with respect to each parameter increment; rigid models outside it add their own covariance, and models without
+(:attr:`BodyScheme.param_covariance <body_scheme_core.prediction.scheme.BodyScheme>`) to first order, by differentiating
+the chain with respect to each parameter increment; rigid models outside it add their own covariance, and models without
 parameters (GP, engineered) their predictive std, isotropically with the lever arm of a rotation error. The root's
 pose in the world is not included (the position is in the root part's frame).
 """
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InvalidInputError
+from ..errors import InvalidInputError
 from .scheme import BodyScheme
 
 __all__ = ["parameter_jacobian", "position_covariance", "position_std"]

@@ -3,7 +3,7 @@
 Errors are split into a translational part (m) and a rotational part (rad), because the two have different units
 and noise levels; the paper's single norm ``||Z - Z'||`` (Eq. 6) mixes them (:func:`prediction_errors`). How the
 errors of a model are collected over its test window, and when it counts as valid, is the job of the validity monitor
-(:mod:`~body_scheme_core.validity`).
+(:mod:`~body_scheme_core.learning.validity`).
 
 Costs for the minimum spanning tree (lower is better) keep the paper's key property that complexity layers never
 overlap (Eq. 7 and 12), and order the model classes within a layer by their own complexity (fewer parameters
@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from .transforms import rotational_error, translational_error
+from ..transforms import rotational_error, translational_error
 
 __all__ = [
     "CLASS_RANKS",

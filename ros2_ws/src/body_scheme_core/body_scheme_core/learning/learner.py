@@ -14,11 +14,11 @@ observed after it (paper Sec. III-C, III-E). The learner goes through three phas
     exists, its models are frozen and every candidate is frozen (or the tree has been stable for
     ``bootstrap_patience`` steps); the other candidates are dropped.
 ``steady``
-    The tree's models keep learning through the **joint fit** (:mod:`~body_scheme_core.calibration`): the root pose
-    and every rigid-joint model refined together against the absolute observations of the last ``history_length``
+    The tree's models keep learning through the **joint fit** (:mod:`~body_scheme_core.calibration.joint_fit`): the root
+    pose and every rigid-joint model refined together against the absolute observations of the last ``history_length``
     steps, after every change of the tree and every ``calibration_period`` steps; the predictions come from that
     calibrated body scheme. Every step, each tree model and each remembered model is tested against its
-    *chain-consistent* target (:mod:`~body_scheme_core.chain`: the child's observation relative to the parent's
+    *chain-consistent* target (:mod:`~body_scheme_core.learning.chain`: the child's observation relative to the parent's
     predicted pose). A tree model is in *mismatch* when its test window is invalid, its CUSUM alarms, or a
     remembered model of its pair clearly fits the samples since the CUSUM left zero better.
 ``adapting``
@@ -29,12 +29,13 @@ observed after it (paper Sec. III-C, III-E). The learner goes through three phas
     cheapest valid one replaces the failed model (``model_replaced``), which goes to memory (``model_retired``).
 
 Every decision is returned as an :class:`~body_scheme_core.events.Event` whose reason string carries the numbers.
-This module orchestrates the time step; the pieces live in :mod:`~body_scheme_core.inputs` (validation),
-:mod:`~body_scheme_core.relative` and :mod:`~body_scheme_core.chain` (targets), :mod:`~body_scheme_core.pool`
-(tracked models and their prequential evaluation), :mod:`~body_scheme_core.bootstrap`,
-:mod:`~body_scheme_core.adaptation` (change detection, memory, repair), :mod:`~body_scheme_core.calibration` (the
-joint fit) and :mod:`~body_scheme_core.root_pose` (the root pose before the first fit).
-``docs/core/learning-and-adaptation.md`` describes every rule and default and how they differ from the paper.
+This module orchestrates the time step; the pieces live in :mod:`~body_scheme_core.learning.inputs` (validation),
+:mod:`~body_scheme_core.learning.relative` and :mod:`~body_scheme_core.learning.chain` (targets),
+:mod:`~body_scheme_core.learning.pool` (tracked models and their prequential evaluation),
+:mod:`~body_scheme_core.learning.bootstrap`, :mod:`~body_scheme_core.learning.adaptation` (change detection, memory,
+repair), :mod:`~body_scheme_core.calibration.joint_fit` (the joint fit) and :mod:`~body_scheme_core.learning.root_pose`
+(the root pose before the first fit). ``docs/core/learning-and-adaptation.md`` describes every rule and default and how
+they differ from the paper.
 """
 
 from __future__ import annotations
@@ -44,14 +45,16 @@ from collections import Counter, deque
 
 import numpy as np
 
+from ..calibration import NoiseModel, calibrate, part_consistency
+from ..errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, NotFittedError
+from ..events import Event, format_errors
+from ..models import GPModel, RigidJointModel
+from ..prediction import BodyScheme
+from ..transforms import invert_transform, mirror_about_ray, project_to_rotation, rotational_error
 from .adaptation import Adaptation
 from .bootstrap import Bootstrap
-from .calibration import calibrate
 from .chain import ChainTargets
 from .config import BodySchemeConfig
-from .consistency import part_consistency
-from .errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, NotFittedError
-from .events import Event, format_errors
 from .inputs import (
     check_action_bounds,
     check_action_vector,
@@ -65,19 +68,14 @@ from .inputs import (
     filter_observations,
     root_part,
 )
-from .learner_state import STATE_VERSION, Calibrated, learner_from_state, learner_to_state, restore, snapshot
-from .models import GPModel
-from .models.rigid import RigidJointModel
-from .noise_model import NoiseModel
+from .learner_state import Calibrated, learner_from_state, learner_to_state, restore, snapshot
 from .pool import ModelPool
 from .relative import PartPairs
 from .root_pose import RootPoseEstimator, RootWatch
-from .scheme import BodyScheme
 from .tracked import MEMORY, TREE, Journal
-from .transforms import invert_transform, mirror_about_ray, project_to_rotation, rotational_error
 from .validity import RATIO_CLIP
 
-__all__ = ["BodySchemeLearner", "PHASES", "STATE_VERSION"]
+__all__ = ["BodySchemeLearner", "PHASES"]
 
 #: Phases reported by :attr:`BodySchemeLearner.phase`.
 PHASES = ("bootstrapping", "steady", "adapting")
@@ -161,7 +159,8 @@ class BodySchemeLearner:
         Rejected observations by reason: ``unknown_id``, ``bad_shape``, ``not_finite``, ``not_rigid``,
         ``out_of_workspace``, ``flipped``.
     noise : NoiseModel
-        The marker noise the learner works with: its prior, then its estimate (:mod:`~body_scheme_core.noise_model`).
+        The marker noise the learner works with: its prior, then its estimate
+        (:mod:`~body_scheme_core.calibration.noise_model`).
     """
 
     def __init__(self, part_ids, n_actions, config=None, initial_models=None, action_lower=None, action_upper=None):
@@ -256,7 +255,7 @@ class BodySchemeLearner:
 
     @property
     def root_pose(self):
-        """Estimated ``world2root`` (4, 4): from the last joint fit, else :mod:`~body_scheme_core.root_pose`.
+        """Estimated ``world2root`` (4, 4): from the last joint fit, else :mod:`~body_scheme_core.learning.root_pose`.
 
         Before a joint fit: the rigid transform that best maps the body scheme's predicted marker positions onto the
         observed ones, or the robust mean of the root's own observations; identity while nothing was seen.
@@ -309,7 +308,8 @@ class BodySchemeLearner:
 
     @property
     def consistency(self):
-        """Per part, the lack-of-fit test of the last joint fit (:class:`~body_scheme_core.consistency.PartConsistency`:
+        """Per part, the lack-of-fit test of the last joint fit
+        (:class:`~body_scheme_core.calibration.consistency.PartConsistency`:
         do its residuals depend on the commands?); empty before the first fit."""
         return {} if self._calibrated is None else dict(self._calibrated.consistency)
 
@@ -389,8 +389,8 @@ class BodySchemeLearner:
         Notes
         -----
         A step is all or nothing: the inputs are checked first, then everything the step may change is copied
-        (:func:`~body_scheme_core.learner_state.snapshot`: the candidates' arrays and the book-keeping, never the
-        models or the recorded observations) and put back if it fails.
+        (:func:`~body_scheme_core.learning.learner_state.snapshot`: the candidates' arrays and the book-keeping, never
+        the models or the recorded observations) and put back if it fails.
         """
         a = check_action_vector(actions, self.n_actions).copy()
         self._check_action_range(a)
@@ -747,7 +747,8 @@ class BodySchemeLearner:
 
     def _fit(self, tree, step, warm=True, max_iterations=20):
         """Joint fit of the root pose and the models of ``tree`` on the history (:func:`calibrate`), and the
-        lack-of-fit test of every part (:mod:`~body_scheme_core.consistency`): ``(Calibrated, Calibration)``, or None
+        lack-of-fit test of every part (:mod:`~body_scheme_core.calibration.consistency`): ``(Calibrated,
+        Calibration)``, or None
         if the fit failed. Changes nothing."""
         pool = self._pool
         entries = [pool.tracked[i] for i in tree]
@@ -868,14 +869,14 @@ class BodySchemeLearner:
 
     def recalibrate(self):
         """Run the joint fit of the current tree now, on the whole history window, instead of when it is next due
-        (after samples taken on purpose, e.g. :func:`~body_scheme_core.exploration.explore_near`). Returns the
+        (after samples taken on purpose, e.g. :func:`~body_scheme_core.control.exploration.explore_near`). Returns the
         events it raised (none before the first tree)."""
         events = []
         if self._tree is not None and self.step > 0:
             self._calibrate(self.step - 1, events)
         return events
 
-    # ------------------------------------------------------------------ state (body_scheme_core.learner_state)
+    # ------------------------------------------------------------------ state (body_scheme_core.learning.learner_state)
     def to_state(self):
         """Everything needed to continue bit-identically, as a JSON-serialisable dict (:func:`learner_to_state`)."""
         return learner_to_state(self)

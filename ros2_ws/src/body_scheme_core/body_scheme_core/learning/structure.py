@@ -1,9 +1,9 @@
 """Structure search: candidate local models and the minimum spanning tree over the valid ones (paper Sec. III-C).
 
 The body scheme is the spanning tree over all body parts whose local models maximise the overall quality, i.e.
-minimise the summed cost of :func:`~body_scheme_core.quality.model_cost`. Candidates are enumerated in complexity
-layers (number of actions a model depends on). Because costs of different layers never overlap (every valid model
-of layer ``k`` costs in ``[k, k + 1)``), Kruskal's algorithm consumes all edges of layer ``k`` before any edge of
+minimise the summed cost of :func:`~body_scheme_core.learning.quality.model_cost`. Candidates are enumerated in
+complexity layers (number of actions a model depends on). Because costs of different layers never overlap (every valid
+model of layer ``k`` costs in ``[k, k + 1)``), Kruskal's algorithm consumes all edges of layer ``k`` before any edge of
 layer ``k + 1``; so once the valid models of layers ``<= k`` connect all parts, the minimum spanning tree over them
 *is* the minimum spanning tree over all valid models. :func:`select_spanning_tree` therefore searches layer by
 layer and stops at the first layer that connects all parts, exactly as the paper prescribes, without ever looking
@@ -20,7 +20,7 @@ import math
 
 import networkx as nx
 
-from .errors import InvalidInputError
+from ..errors import InvalidInputError
 from .quality import class_rank, relative_complexity
 
 __all__ = [
@@ -149,7 +149,7 @@ def select_spanning_tree(part_ids, models, layered=True):
         All body parts; the tree must cover every one of them.
     models : iterable of tuple (parent, child, key, layer, cost)
         The *valid* models only. ``key`` identifies the model (any hashable), ``layer`` is its (relative)
-        complexity and ``cost`` its :func:`~body_scheme_core.quality.model_cost`, which must lie in
+        complexity and ``cost`` its :func:`~body_scheme_core.learning.quality.model_cost`, which must lie in
         ``[layer, layer + 1)``.
     layered : bool
         Search layer by layer and stop at the first layer whose models connect all parts (the paper's heuristic).

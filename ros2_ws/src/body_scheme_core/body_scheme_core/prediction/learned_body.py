@@ -1,6 +1,6 @@
 """The learned body scheme as a robot description, and how it differs from the robot's specification.
 
-:func:`learned_tree` turns a :class:`~body_scheme_core.scheme.BodyScheme` into a
+:func:`learned_tree` turns a :class:`~body_scheme_core.prediction.scheme.BodyScheme` into a
 :class:`~body_scheme_core.world.tree.KinematicTree` (and :func:`learned_urdf` that into URDF text for
 robot_state_publisher, MoveIt or pybullet):
 
@@ -27,11 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InvalidInputError
+from ..errors import InvalidInputError
+from ..transforms import invert_transform, rotation_log, rotational_error, translational_error
+from ..world import Joint, KinematicTree, Marker, tree_to_urdf
 from .scheme import BodyScheme
-from .transforms import invert_transform, rotation_log, rotational_error, translational_error
-from .world.robot_files import tree_to_urdf
-from .world.tree import Joint, KinematicTree, Marker
 
 __all__ = ["LearnedJoint", "LearnedBody", "marker_link", "learned_tree", "learned_urdf", "calibration_report",
            "format_report"]

@@ -1,11 +1,11 @@
 """Gradient-based control on a body scheme: inverse kinematics for the position of one part (paper Sec. III-D).
 
-The forward model of a :class:`~body_scheme_core.scheme.BodyScheme` is continuous, so its Jacobian (Eq. 10) drives a
-damped least-squares (Levenberg-Marquardt) search for actions that bring a part to a target position. The solver is
-honest: it reports ``success=False`` with a reason rather than returning a wrong answer labelled as success. A
+The forward model of a :class:`~body_scheme_core.prediction.scheme.BodyScheme` is continuous, so its Jacobian (Eq. 10)
+drives a damped least-squares (Levenberg-Marquardt) search for actions that bring a part to a target position. The
+solver is honest: it reports ``success=False`` with a reason rather than returning a wrong answer labelled as success. A
 solution the *model* reaches is not enough: the body scheme is learned, so the part's predicted position has an
-uncertainty (:func:`~body_scheme_core.uncertainty.position_std`: the joint fit's parameter covariance and the GPs'
-latent variances, propagated along the chain), and ``success`` also needs the residual plus ``confidence`` standard
+uncertainty (:func:`~body_scheme_core.prediction.uncertainty.position_std`: the joint fit's parameter covariance and the
+GPs' latent variances, propagated along the chain), and ``success`` also needs the residual plus ``confidence`` standard
 deviations within the tolerance.
 
 The residual is a separate small class so that a pose target (position and orientation) can be added later by
@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InvalidInputError
-from .transforms import check_transform, invert_transform
-from .uncertainty import position_std
+from ..errors import InvalidInputError
+from ..prediction import position_std
+from ..transforms import check_transform, invert_transform
 
 __all__ = ["IKResult", "solve_ik", "trained_bounds"]
 

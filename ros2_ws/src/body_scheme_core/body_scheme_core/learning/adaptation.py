@@ -1,13 +1,13 @@
 """Change detection, memory and repair of the body scheme's local models (paper Sec. III-E).
 
 After bootstrapping, every step, against the chain-consistent targets of the calibrated body scheme
-(:mod:`~body_scheme_core.chain`):
+(:mod:`~body_scheme_core.learning.chain`):
 
 **Detection.** Each tree model and each remembered model that has a target records its prequential error
-(:meth:`~body_scheme_core.pool.ModelPool.evaluate`). A tree model is in *mismatch* when a one-sided CUSUM on its
-normalised per-sample error crosses ``cusum_threshold``, its test window is invalid, or a remembered model of its pair
-clearly fits the samples since the CUSUM left zero better (the memory challenge). A chain-consistent error rises for
-every edge below a changed one (their parent's predicted pose is wrong too), so an alarm is attributed to the edge
+(:meth:`~body_scheme_core.learning.pool.ModelPool.evaluate`). A tree model is in *mismatch* when a one-sided CUSUM on
+its normalised per-sample error crosses ``cusum_threshold``, its test window is invalid, or a remembered model of its
+pair clearly fits the samples since the CUSUM left zero better (the memory challenge). A chain-consistent error rises
+for every edge below a changed one (their parent's predicted pose is wrong too), so an alarm is attributed to the edge
 nearest the root on its path whose CUSUM rose with it; the edges below wait (they get no targets while a part above
 them is in mismatch) and restart their detectors when it is repaired.
 
@@ -40,11 +40,11 @@ from typing import NamedTuple
 import networkx as nx
 import numpy as np
 
-from .errors import ModelFileError
-from .events import Event, finite_or_none, format_errors
-from .limits import MAX_INTEGER
+from ..errors import ModelFileError
+from ..events import Event, finite_or_none, format_errors
+from ..limits import MAX_INTEGER
+from ..state_values import integer, listing, mapping, part_id
 from .quality import model_cost, nests, relative_complexity
-from .state_values import integer, listing, mapping, part_id
 from .structure import action_subsets, kinds_for, replacement_candidates
 from .tracked import MEMORY, TREE, TrackedModel, nested_models
 

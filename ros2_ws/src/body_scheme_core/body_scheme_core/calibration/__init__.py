@@ -1,0 +1,38 @@
+"""The joint fit: the root pose and every local model of the tree against absolute observations.
+
+The paper fits each local model on its own (Sec. III-B); the joint fit refines the whole tree at once, as a kinematic
+calibration does (robot_calibration's chain optimisation), and leaves the parameters' covariance with the body scheme
+(:mod:`.joint_fit`). Its residuals test whether the scheme explains every marker (:mod:`.consistency`) and teach the
+learner the camera's noise (:mod:`.noise_model`).
+"""
+
+from __future__ import annotations
+
+from .consistency import (
+    CLIP,
+    MIN_EXPLAINED,
+    MIN_EXTRA_SAMPLES,
+    PartConsistency,
+    action_features,
+    lack_of_fit,
+    part_consistency,
+)
+from .joint_fit import Calibration, calibrate, chain_targets, edge_consistency
+from .noise_model import NoiseModel, ray_components, robust_variance
+
+__all__ = [
+    "Calibration",
+    "calibrate",
+    "chain_targets",
+    "edge_consistency",
+    "CLIP",
+    "MIN_EXTRA_SAMPLES",
+    "MIN_EXPLAINED",
+    "PartConsistency",
+    "action_features",
+    "lack_of_fit",
+    "part_consistency",
+    "NoiseModel",
+    "robust_variance",
+    "ray_components",
+]
