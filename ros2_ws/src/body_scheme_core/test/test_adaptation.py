@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import ModelFileError
-from body_scheme_core.learning.adaptation import (
+from body_scheme_core.learning import (
     Adaptation,
     Mismatch,
     bridge_relative_complexity,

@@ -5,8 +5,9 @@
   :mod:`.validity`, :mod:`.quality`; Eq. 4-7);
 - structure search: the minimum spanning tree over the valid models, layer by layer (:mod:`.structure`,
   :mod:`.bootstrap`; Sec. III-C);
-- adaptation: change detection, the memory of earlier models and the search for replacements (:mod:`.adaptation`;
-  Sec. III-E, Eq. 11);
+- adaptation (:mod:`.adaptation`; Sec. III-E, Eq. 11): change detection (:mod:`.detection`), the search for
+  replacements (:mod:`.repair`), GP challengers of rigid joints (:mod:`.challengers`) and the memory of earlier models
+  (:mod:`.memory`);
 - the root pose and the chain-consistent targets the tree's models are tested against (:mod:`.root_pose`,
   :mod:`.chain`);
 - the learner that runs them step by step (:mod:`.learner`), its configuration (:mod:`.config`) and input checks
@@ -15,10 +16,12 @@
 
 from __future__ import annotations
 
-from .adaptation import Adaptation, Change, Mismatch, least_recently_used, tree_halves, upstream_edges
+from .adaptation import Adaptation
 from .bootstrap import SUSPECT_RATIO, Bootstrap
 from .chain import ChainTargets
+from .challengers import Challengers
 from .config import BodySchemeConfig
+from .detection import Detection, Mismatch, upstream_edges
 from .inputs import (
     MAX_ACTION,
     MAX_ACTIONS,
@@ -49,6 +52,7 @@ from .learner_state import (
     snapshot,
     structural_problems,
 )
+from .memory import Memory, least_recently_used
 from .persistence import STATE_FILE_VERSION, STATE_FORMAT, encode_state, load_state, save_state, write_state_text
 from .pool import LearningSlots, ModelPool, Targets, check_monitor_settings
 from .quality import (
@@ -63,6 +67,7 @@ from .quality import (
     replacement_cost,
 )
 from .relative import PartPairs, RelativeObservations
+from .repair import Change, Repair, Replacement, bridge_relative_complexity, tree_halves
 from .root_pose import OFFSET_SAMPLES, OUTLIER_SIGMAS, RootPoseEstimator, RootWatch, register_points
 from .structure import (
     CANDIDATE_KINDS,
@@ -113,12 +118,18 @@ __all__ = [
     "select_spanning_tree",
     "Bootstrap",
     "SUSPECT_RATIO",
-    "Adaptation",
+    "Detection",
     "Mismatch",
-    "Change",
-    "least_recently_used",
-    "tree_halves",
     "upstream_edges",
+    "Repair",
+    "Change",
+    "Replacement",
+    "tree_halves",
+    "bridge_relative_complexity",
+    "Challengers",
+    "Memory",
+    "least_recently_used",
+    "Adaptation",
     "ChainTargets",
     "RootPoseEstimator",
     "RootWatch",
