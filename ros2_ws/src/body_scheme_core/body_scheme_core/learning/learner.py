@@ -45,7 +45,7 @@ from collections import Counter, deque
 
 import numpy as np
 
-from ..calibration import NoiseModel, calibrate, part_consistency
+from ..calibration import NoiseModel
 from ..errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, NotFittedError
 from ..events import Event, format_errors
 from ..models import GPModel, RigidJointModel
@@ -68,27 +68,17 @@ from .inputs import (
     filter_observations,
     root_part,
 )
-from .learner_state import Calibrated, learner_from_state, learner_to_state, restore, snapshot
+from .learner_fit import JointFitSteps
+from .learner_state import learner_from_state, learner_to_state, restore, snapshot
 from .pool import ModelPool
 from .relative import PartPairs
 from .root_pose import RootPoseEstimator, RootWatch
 from .tracked import MEMORY, TREE, Journal
-from .validity import RATIO_CLIP
 
 __all__ = ["BodySchemeLearner", "PHASES"]
 
 #: Phases reported by :attr:`BodySchemeLearner.phase`.
 PHASES = ("bootstrapping", "steady", "adapting")
-#: A joint fit also runs once the steps usable by the newest edge of the tree grew by this fraction since the last fit
-#: (every step early on and right after a change, every ``calibration_period`` steps at most), times the fit's free
-#: parameters per ``_GROWTH_PARAMS`` when more: a fit costs in proportion to its parameters, so larger trees are
-#: refitted after proportionally more new data (the 2-DOF arm every 10 %, the 6-DOF arm every 20 %).
-_CALIBRATION_GROWTH = 0.1
-_GROWTH_PARAMS = 30
-#: Edges tried when the calibrated scheme leaves a part unexplained while bootstrapping, and the iterations of each
-#: trial fit (:meth:`BodySchemeLearner._veto_inconsistent_edges`).
-_SUSPECTS = 3
-_TRIAL_ITERATIONS = 6
 #: Observations of a part before it can be chosen as the root (:func:`still_part`).
 _ROOT_SAMPLES = 3
 
@@ -127,7 +117,7 @@ def still_part(part_ids, observations, sigma_trans, sigma_rot):
     return min(motion, key=lambda p: (motion[p], p)) if motion else None
 
 
-class BodySchemeLearner:
+class BodySchemeLearner(JointFitSteps):
     """Learns a body scheme from scratch (or starts from a given one) and keeps it valid for a lifetime.
 
     Parameters
@@ -480,12 +470,6 @@ class BodySchemeLearner:
                     f"{math.degrees(theta):.1f} deg)")
                 for p, e, m, f in zip(parts, error, mirrored, flipped, strict=True) if f]
 
-    def _lacks_fit(self, cal, part):
-        """Whether the last joint fit's residuals of ``part`` depend on the commands (the lack-of-fit test at
-        ``config.consistency_alpha``, Bonferroni over the parts, and by a fraction that matters)."""
-        test = cal.consistency.get(part)
-        return test is not None and test.lacks_fit(self.config.consistency_alpha / len(self.part_ids))
-
     def _workspace(self):
         """``(root position, reach + workspace_margin)`` once a joint fit exists, else None (only ``max_distance``
         applies). The reach is the largest root-to-part distance the calibrated scheme predicts over the history's
@@ -660,221 +644,6 @@ class BodySchemeLearner:
                                       **model.hyperparameters.to_dict()).fit(np.array(A), np.array(Z))
         except (BodySchemeError, np.linalg.LinAlgError):
             pass  # keep the model as it was
-
-    def _veto_inconsistent_edges(self, step, events, rounds=3):
-        """While bootstrapping: when the calibrated body scheme does not explain a part's absolute observations,
-        one edge on that part's path is vetoed and the tree searched again (at most ``rounds`` times per step).
-
-        Relative observations carry the parent's orientation noise times the link length, so with few samples a
-        candidate that ignores an action (or has the wrong form) can pass the paper's validity test on them; the
-        child's chain-consistent errors after the joint fit have no such lever arm. A wrong edge can absorb its own
-        child's errors (it has parameters to spare) and push them onto the parts below, so the edges on the path of
-        the first unexplained part are tried, nearest it first (at most ``_SUSPECTS``): the tree without one is
-        searched and calibrated, and the edge whose removal explains the observations best (the first that explains
-        them all) is vetoed.
-        """
-        for _ in range(rounds):
-            cal = self._calibrated
-            if self._tree is None or cal is None or cal.tree != tuple(self._tree):
-                return
-            bad = self._inconsistent_edges(cal)
-            if not bad:
-                return
-            first = bad[0]
-            far = cal.scheme.models[first]
-            far_part = far.child if len(cal.scheme.path(far.child)) > len(cal.scheme.path(far.parent)) else far.parent
-            position = {id(m): k for k, m in enumerate(cal.scheme.models)}
-            # Nearest the unexplained part first (most often the culprit), at most _SUSPECTS of them.
-            path = cal.scheme.path(far_part)[1:]
-            suspects = [position[id(cal.scheme.edge_into(p)[2])] for p in reversed(path)][:_SUSPECTS]
-            best = None
-            for k in suspects:
-                trial = self._bootstrap.search(self._tree, step, None, exclude=[self._tree[k]])
-                if trial is None:
-                    continue
-                fitted = self._fit(trial, step, max_iterations=_TRIAL_ITERATIONS)
-                if fitted is None:
-                    continue
-                trial_cal = fitted[0]
-                score = (len(self._inconsistent_edges(trial_cal)), trial_cal.rms)
-                if best is None or score < best[0]:
-                    best = (score, k, trial_cal)
-                if score[0] == 0:
-                    break  # this tree explains every observation: no need to try the others
-            k = suspects[-1] if best is None else best[1]
-            entry = self._pool.tracked[self._tree[k]]
-            self._bootstrap.veto(entry.id)
-            why = (f" (vetoed {entry.describe()}: without it the calibrated body scheme explains the absolute "
-                   f"observations best)")
-            self._tree = self._bootstrap.search(self._tree, step, events, why)
-            if self._tree is None:
-                return
-            if best is not None and best[2].tree == tuple(self._tree):
-                self._calibrated = best[2]
-            else:
-                self._calibrate(step, events)
-
-    def _inconsistent_edges(self, cal):
-        """Positions (in ``cal.scheme.models``, breadth-first) of the edges whose child the calibrated scheme does
-        not explain: its observations' mean error of at least one threshold in either channel, or residuals that
-        depend on the commands (:meth:`_lacks_fit`)."""
-        position = {id(m): k for k, m in enumerate(cal.scheme.models)}
-        bad = []
-        for _, child, model, _ in cal.scheme.edges:
-            n, ratio_t, ratio_r = cal.part_ratios.get(child, (0, 0.0, 0.0))
-            if (n >= self.config.min_test_samples and max(ratio_t, ratio_r) >= 1.0) or self._lacks_fit(cal, child):
-                bad.append(position[id(model)])
-        return bad
-
-    # ------------------------------------------------------------------ the joint fit
-    def _calibration_due(self, step):
-        cal = self._calibrated
-        if cal is None or cal.tree != tuple(self._tree):
-            return True
-        if step - cal.step >= self.config.calibration_period:
-            return True
-        # Early on (and right after a change) the usable window grows: fit again once it grew by a tenth.
-        n_params = sum(m.n_params for m in cal.scheme.models if isinstance(m, RigidJointModel))
-        growth = _CALIBRATION_GROWTH * max(1.0, n_params / _GROWTH_PARAMS)
-        if step - cal.step < max(1, math.ceil(growth * cal.n_steps)):
-            return False
-        since = max((self._pool.tracked[i].since for i in self._tree), default=0)
-        if self._history[0][0] >= since:
-            usable = len(self._history)
-        else:
-            usable = next(k for k, (s, _, _) in enumerate(reversed(self._history)) if s < since)
-        return usable > cal.n_steps
-
-    def _fit(self, tree, step, warm=True, max_iterations=20):
-        """Joint fit of the root pose and the models of ``tree`` on the history (:func:`calibrate`), and the
-        lack-of-fit test of every part (:mod:`~body_scheme_core.calibration.consistency`): ``(Calibrated,
-        Calibration)``, or None
-        if the fit failed. Changes nothing."""
-        pool = self._pool
-        entries = [pool.tracked[i] for i in tree]
-        cal = self._calibrated
-        if warm and cal is not None and self._bootstrapping:
-            # Warm start: the last fit's version of every model that is still in the tree.
-            fitted = dict(zip(cal.tree, cal.scheme.models, strict=True))
-            models = [fitted[i] if i in fitted else pool.model_of(e) for i, e in zip(tree, entries, strict=True)]
-        else:
-            models = [pool.model_of(e) for e in entries]
-        scheme = BodyScheme(self.part_ids, self.root, models)
-        history = list(self._history)
-        steps = np.array([s for s, _, _ in history])
-        A = np.stack([a for _, a, _ in history])
-        observations = [obs for _, _, obs in history]
-        since = [int(np.searchsorted(steps, e.since)) for e in entries]
-        priors = {k: e.prior for k, e in enumerate(entries)
-                  if e.prior is not None and isinstance(models[k], RigidJointModel)}
-        world2root = cal.world2root if cal is not None else self._root_pose.pose(scheme)
-        noise = self.noise
-        try:
-            result = calibrate(scheme, world2root, A, observations, noise.sigma_trans, noise.sigma_rot,
-                               since=since, priors=priors, f_scale=self.config.f_scale,
-                               gp_optimize=self.config.gp_optimize, max_iterations=max_iterations,
-                               axis_sigmas=noise.axis_sigmas, root_since=int(np.searchsorted(steps, self._root_since)))
-        except (np.linalg.LinAlgError, BodySchemeError):
-            return None
-        # The parts' predictive std, averaged over (at most 10 of) the window's action vectors: the chain targets'
-        # thresholds use it every step without propagating every model's uncertainty each time.
-        pick = np.linspace(0, len(A) - 1, min(len(A), 10)).round().astype(int)
-        _, std = result.scheme.predict_batch(A[pick], return_std=True)
-        part_std = {p: std[:, k].mean(axis=0) for k, p in enumerate(result.scheme.parts)}
-        usable = int(np.sum(steps >= max((e.since for e in entries), default=0)))
-        consistency = part_consistency(result.parts, result.whitened, A[result.steps])
-        return Calibrated(result.scheme, result.world2root, step, usable, tuple(tree), result.rms,
-                          result.part_ratios(noise.theta_trans, noise.theta_rot, RATIO_CLIP), part_std,
-                          consistency), result
-
-    def _calibrate(self, step, events):
-        """Joint fit of the current tree; after bootstrapping its models replace the tree's models. Then the noise
-        estimate learns from the fit's residuals, and a change of what the scheme explains is reported."""
-        fitted = self._fit(self._tree, step)
-        if fitted is None:
-            return  # keep the previous estimate; the next step tries again
-        cal, result = fitted
-        self._calibrated = cal
-        self._learn_noise(cal, result)
-        if not self._bootstrapping:
-            pool = self._pool
-            entries = [pool.tracked[i] for i in self._tree]
-            for entry, model in zip(entries, cal.scheme.models, strict=True):
-                entry.model = model
-            history_full = len(self._history) == self._history.maxlen
-            oldest = self._history[0][0]
-            for entry in entries:
-                if entry.prior is not None and history_full and entry.since <= oldest:
-                    entry.prior = None  # every observation in the window is usable: the window alone decides
-        self._report_trust(cal, step, events)
-
-    def _learn_noise(self, cal, result):
-        """Estimate the noise from the fit's residuals and hand the thresholds on.
-
-        Only parts the fit explains speak: tested by the lack-of-fit test and passing it, with mean errors below the
-        thresholds, and not below a GP edge; a wrong model's residuals, or a GP's approximation error, would otherwise
-        make the noise look larger, the thresholds looser and a wrong model valid. While bootstrapping the tree is
-        provisional: the estimate may lower the prior, not exceed it (``cap``)."""
-        explained = [p for p, test in cal.consistency.items()
-                     if test.tested and not self._lacks_fit(cal, p) and max(cal.part_ratios[p][1:]) < 1.0]
-        use = np.isin(result.parts, explained) & result.coupled  # below a GP edge its approximation would count
-        fraction = 1.0 - result.n_params / max(6 * int(result.coupled.sum()), 1)
-        self.noise.update(result.parts[use], result.residual_t[use], result.residual_r[use], result.positions[use],
-                          fraction, cap=self._bootstrapping)
-        self._pool.monitor.set_thresholds(self.noise.theta_trans, self.noise.theta_rot)
-
-    def _report_trust(self, cal, step, events):
-        """A ``trust_changed`` event when the set of parts whose residuals lack fit changed."""
-        failing = tuple(sorted(p for p in cal.consistency if self._lacks_fit(cal, p)))
-        if failing == self._lack_of_fit:
-            return
-        if failing:
-            worst = max(failing, key=lambda p: cal.consistency[p].F)
-            t = cal.consistency[worst]
-            reason = (f"not trusted: the body scheme does not explain part(s) {list(failing)}: their residuals depend "
-                      f"on the commands (part {worst}: F = {t.F:.1f}, p = {t.p:.1g}, {100 * t.explained:.0f} % of "
-                      f"the variance over {t.n} observations)")
-        else:
-            reason = "trusted again: the residuals of every part are independent of the commands (noise)"
-        events.append(Event(step, "trust_changed", reason))
-        self._lack_of_fit = failing
-
-    def _flag_unexplained(self, step, events):
-        """After a joint fit in steady state: the root-most part the scheme does not explain puts the edge into it
-        in mismatch (once per ``history_length`` steps and part), so that the pair, other classes and other pairs
-        across the cut are searched for a model that explains it (:meth:`Adaptation.flag`). A root it does not explain
-        moves: the part that moves least becomes the root (:meth:`_choose_root`)."""
-        cal = self._calibrated
-        if cal is None or cal.tree != tuple(self._tree):
-            return
-        scheme = cal.scheme
-        if scheme.root in self._lack_of_fit and not self._adaptation.mismatch and self._choose_root():
-            return  # the root moves: the next step fits the tree from the part that moves least
-        untrusted = self._untrusted_parts(scheme)
-        failing = [p for p in self._lack_of_fit if p not in untrusted and p != scheme.root
-                   and step - self._unexplained.get(p, -math.inf) >= self.config.history_length]
-        if not failing:
-            return
-        part = min(failing, key=lambda p: len(scheme.path(p)))
-        parent, child, _, _ = scheme.edge_into(part)
-        entry = next(self._pool.tracked[i] for i in self._tree
-                     if {self._pool.tracked[i].parent, self._pool.tracked[i].child} == {parent, child})
-        if entry.id in self._adaptation.mismatch:
-            return
-        self._unexplained[part] = step
-        t = cal.consistency[part]
-        self._adaptation.flag(entry, step, events,
-                              f"the body scheme does not explain part {part}: its residuals depend on the commands "
-                              f"(F = {t.F:.1f}, p = {t.p:.1g}, {100 * t.explained:.0f} % of their variance)")
-
-    def recalibrate(self):
-        """Run the joint fit of the current tree now, on the whole history window, instead of when it is next due
-        (after samples taken on purpose, e.g. :func:`~body_scheme_core.control.exploration.explore_near`). Returns the
-        events it raised (none before the first tree)."""
-        events = []
-        if self._tree is not None and self.step > 0:
-            self._calibrate(self.step - 1, events)
-        return events
 
     # ------------------------------------------------------------------ state (body_scheme_core.learning.learner_state)
     def to_state(self):
