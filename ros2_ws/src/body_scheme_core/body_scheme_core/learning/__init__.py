@@ -17,72 +17,72 @@
 
 from __future__ import annotations
 
-from .relative import PartPairs, RelativeObservations
+from .adaptation import Adaptation
+from .bootstrap import SUSPECT_RATIO, Bootstrap
+from .chain import ChainTargets
+from .challengers import Challengers
+from .config import BodySchemeConfig
+from .detection import Detection, Mismatch, upstream_edges
+from .inputs import (
+    MAX_ACTION,
+    MAX_ACTIONS,
+    MAX_CANDIDATES,
+    MAX_PARTS,
+    OBSERVATION_TOLERANCE,
+    Rejection,
+    check_action_bounds,
+    check_action_vector,
+    check_body_size,
+    check_config,
+    check_initial_models,
+    check_n_actions,
+    check_observation_mapping,
+    check_part_ids,
+    check_stamp,
+    filter_observations,
+    rigidity_problem,
+    root_part,
+)
+from .learner import PHASES, BodySchemeLearner
+from .learner_fit import JointFitSteps
+from .learner_state import (
+    STATE_VERSION,
+    Calibrated,
+    learner_from_state,
+    learner_to_state,
+    restore,
+    snapshot,
+    structural_problems,
+)
+from .memory import Memory, least_recently_used
+from .persistence import STATE_FILE_VERSION, STATE_FORMAT, encode_state, load_state, save_state, write_state_text
+from .pool import LearningSlots, ModelPool, Targets, check_monitor_settings
 from .quality import (
     CLASS_RANKS,
     N_RANKS,
     RANK_PENALTY,
     class_rank,
+    model_cost,
     nests,
     prediction_errors,
-    model_cost,
     relative_complexity,
     replacement_cost,
 )
-from .validity import RATIO_CLIP, translation_threshold, WindowStats, ValidityMonitor
-from .tracked import TREE, MEMORY, CANDIDATE, TrackedModel, nested_models, Journal
-from .pool import Targets, LearningSlots, ModelPool, check_monitor_settings
+from .relative import PartPairs, RelativeObservations
+from .repair import Change, Repair, Replacement, bridge_relative_complexity, tree_halves
+from .root_pose import OFFSET_SAMPLES, OUTLIER_SIGMAS, RootPoseEstimator, RootWatch, register_points
 from .structure import (
     CANDIDATE_KINDS,
     action_subsets,
-    kinds_for,
     enumerate_candidates,
+    kinds_for,
     n_candidates,
     replacement_action_sets,
     replacement_candidates,
     select_spanning_tree,
 )
-from .bootstrap import Bootstrap, SUSPECT_RATIO
-from .detection import Detection, Mismatch, upstream_edges
-from .repair import Repair, Change, Replacement, tree_halves, bridge_relative_complexity
-from .challengers import Challengers
-from .memory import Memory, least_recently_used
-from .adaptation import Adaptation
-from .chain import ChainTargets
-from .root_pose import RootPoseEstimator, RootWatch, register_points, OUTLIER_SIGMAS, OFFSET_SAMPLES
-from .config import BodySchemeConfig
-from .inputs import (
-    OBSERVATION_TOLERANCE,
-    MAX_ACTION,
-    MAX_PARTS,
-    MAX_ACTIONS,
-    MAX_CANDIDATES,
-    check_body_size,
-    Rejection,
-    check_config,
-    check_part_ids,
-    check_n_actions,
-    root_part,
-    check_action_bounds,
-    check_initial_models,
-    check_action_vector,
-    check_stamp,
-    check_observation_mapping,
-    filter_observations,
-    rigidity_problem,
-)
-from .learner_state import (
-    STATE_VERSION,
-    Calibrated,
-    learner_to_state,
-    learner_from_state,
-    snapshot,
-    restore,
-    structural_problems,
-)
-from .learner_fit import JointFitSteps
-from .learner import BodySchemeLearner, PHASES
-from .persistence import save_state, encode_state, write_state_text, load_state, STATE_FORMAT, STATE_FILE_VERSION
+from .tracked import CANDIDATE, MEMORY, TREE, Journal, TrackedModel, nested_models
+from .validity import RATIO_CLIP, ValidityMonitor, WindowStats, translation_threshold
 
 __all__ = [
     "PartPairs",
