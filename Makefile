@@ -5,6 +5,7 @@
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make your-robot URDF=robot.urdf   plan markers on any URDF, learn it in the simulator, write learned URDF + report
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
+#   make docs    the API reference of body_scheme_core, HTML from its numpydoc docstrings (out/docs/html; warnings fail)
 #   make stress  the learner's property-based stress test on random bodies, >= 100,000 steps (out/stress/stress.json)
 #   make fuzz    scheme_node under 10,000+ hostile and valid messages over DDS (writes out/fuzz/fuzz.json)
 #   make bags    regenerate the sample babbling sessions in bags/ (see bags/README.md)
@@ -26,7 +27,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test test-fast unit lint demo your-robot bench stress fuzz bags replay experiments experiments-quick clean distclean
+.PHONY: all setup build test test-fast unit lint docs demo your-robot bench stress fuzz bags replay experiments experiments-quick clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -62,9 +63,9 @@ test: build
 	$(RUN) python -m pytest
 	$(MAKE) --no-print-directory lint
 
-# The inner loop: every test but the DDS system tests and the ones marked slow (target: under 90 s).
+# The inner loop: every test but the DDS system tests and the ones marked slow, on every core (target: under 90 s).
 test-fast: build
-	$(RUN) python -m pytest -q -m "not system and not slow"
+	$(RUN) python -m pytest -q -m "not system and not slow" -n auto
 
 unit: build
 	$(RUN) python -m pytest ros2_ws/src
@@ -123,6 +124,14 @@ experiments: build
 experiments-quick: build
 	$(RUN) python -m body_scheme_apps.experiments --quick --runs 2 --rendered-runs 1 --out out/experiments-quick \
 		--md out/experiments-quick/RESULTS.md --check --quiet
+
+# The API reference: sphinx-apidoc lists every module of the core, Sphinx renders docs/api/ with it; -W: warnings fail.
+docs: build
+	rm -rf out/docs
+	$(RUN) sphinx-apidoc -q -f -e -M -o out/docs/src ros2_ws/src/body_scheme_core/body_scheme_core
+	cp docs/api/conf.py docs/api/index.rst out/docs/src/
+	$(RUN) sphinx-build -q -W --keep-going -b html out/docs/src out/docs/html
+	@echo "API reference: out/docs/html/index.html"
 
 clean:
 	rm -rf $(WS)/build $(WS)/install $(WS)/log $(STAMPS)/build out

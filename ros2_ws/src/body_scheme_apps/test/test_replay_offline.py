@@ -98,6 +98,7 @@ def test_shipped_bag_finds_the_true_structure_detects_the_block_and_recovers(shi
     assert first("model_reinstated", 300, 400) is not None, "the second block recalls the model of the first"
 
 
+@pytest.mark.slow
 def test_report_files_are_well_formed(shipped_report):
     """report.json is strict JSON with one record per step, events.txt lists faults and events, errors.png a PNG."""
     code, out, printed = shipped_report

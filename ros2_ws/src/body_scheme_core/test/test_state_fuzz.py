@@ -628,6 +628,7 @@ def test_the_real_states_load_and_work(states, tmp_path):
         use(load_state(path), robot, base.start, tmp_path / "resaved.json", [""])
 
 
+@pytest.mark.slow
 def test_every_mutation_of_a_state_file_is_refused_or_loads_into_a_learner_that_works(states, tmp_path):
     """1,000 mutations (:func:`mutations`): each is refused with ModelFileError, or the learner it loads into answers
     scheme_node's queries, learns 50 steps and saves a state that loads again, without an exception."""

@@ -62,9 +62,9 @@ class BodySchemeConfig:
     validity_sigmas : float
         Multiple of sigma used when a threshold is ``None``.
     test_window : int
-        |D_test|: number of latest samples a local model's prediction error is averaged over.
+        ``|D_test|``: number of latest samples a local model's prediction error is averaged over.
     train_window : int
-        |D_train|: number of samples a candidate local model is trained on after it is instantiated; then it is
+        ``|D_train|``: number of samples a candidate local model is trained on after it is instantiated; then it is
         frozen. The models of the body scheme keep learning from every observation through the joint fit.
     candidate_kinds : tuple of str
         Local-model classes instantiated as candidates (bootstrapping and replacements): any of ``"static"``,

@@ -104,7 +104,7 @@ class ValidityMonitor:
     Parameters
     ----------
     window : int
-        |D_test|, the ring buffer length (>= 1).
+        ``|D_test|``, the ring buffer length (>= 1).
     capacity : int
         Initial number of rows; grows on demand.
     theta_trans, theta_rot : float

@@ -35,7 +35,7 @@ class GPBatch(SlotArrays):
     n_actions : int
         Length m of the full action vectors.
     capacity : int
-        Largest number of training samples per slot (the paper's |D_train|).
+        Largest number of training samples per slot (the paper's ``|D_train|``).
     max_dim : int
         Largest number of actions a slot may depend on.
     length_scale, signal_std_trans, signal_std_rot, noise_std_trans, noise_std_rot : float

@@ -1,7 +1,7 @@
 """Many rigid-joint candidates (static, prismatic, revolute) learning incrementally in stacked arrays.
 
 The rigid counterpart of :class:`~body_scheme_core.models.gp_batch.GPBatch`: each *slot* is one candidate local model of
-one form on one action, holding at most ``capacity`` samples (|D_train|). Every :meth:`RigidBatch.add_samples` call
+one form on one action, holding at most ``capacity`` samples (``|D_train|``). Every :meth:`RigidBatch.add_samples` call
 appends a sample to each given slot and refits those slots together with :func:`~.rigid_fit.gauss_newton`, grouped by
 form, warm-started from their previous estimate. A revolute slot is (re)started from its closed-form estimate when it
 reaches :data:`RESTART_SIZES` samples and keeps whichever of the warm and the fresh fit has the lower robust cost, so
