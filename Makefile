@@ -98,7 +98,7 @@ bench: build
 stress: build
 	mkdir -p out/stress
 	$(RUN) BODY_SCHEME_STRESS=stress BODY_SCHEME_STRESS_OUT=out/stress/stress.json \
-	  python -m pytest -q -p no:cacheprovider --timeout=0 ros2_ws/src/body_scheme_core/test/test_stress.py
+	  python -m pytest -q -p no:cacheprovider --timeout=0 ros2_ws/src/body_scheme_core/test/learning/test_stress.py
 
 # Hostile input over DDS: every refusal counted exactly, the same tree as without it (tests run a 3,000-message one).
 fuzz: build

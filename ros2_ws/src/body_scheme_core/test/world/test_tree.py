@@ -1,4 +1,4 @@
-"""Tests of body_scheme_core.world: forward kinematics, tree validation, URDF and marker files."""
+"""Tests of world/tree.py: forward kinematics and tree validation, and the URDF and marker files of a tree."""
 
 import os
 

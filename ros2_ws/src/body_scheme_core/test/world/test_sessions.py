@@ -1,4 +1,4 @@
-"""Tests of body_scheme_core.world: robots, observation noise, faults, babbling and sessions."""
+"""Tests of world/sessions.py and what a session draws on: robots, observation noise, faults and babbling."""
 
 import math
 
