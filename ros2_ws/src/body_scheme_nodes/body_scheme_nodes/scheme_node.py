@@ -82,7 +82,7 @@ import threading
 import time
 from collections import Counter, deque
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -100,7 +100,7 @@ from body_scheme_core.prediction import learned_tree, learned_urdf
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
-from . import conversions, state_files, view
+from . import conversions, scheme_diagnostics, state_files, view
 from .checkpoint import Checkpoint
 from .intake import BatchIntake, RequestIntake
 from .message_feed import feed_message, learn_sample
@@ -479,60 +479,26 @@ class SchemeNode(Node):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         edges = learner.edge_status()
-        n_invalid = sum(not e["valid"] for e in edges)
-        if learner.body_scheme is None:
-            level, message = DiagnosticStatus.WARN, f"no body scheme yet ({learner.phase}, step {learner.step})"
-        elif n_invalid:
-            level, message = DiagnosticStatus.ERROR, f"{n_invalid} local model(s) invalid ({learner.phase})"
-        elif learner.unexplained_parts:
-            level, message = DiagnosticStatus.WARN, (f"not trusted: the body scheme does not explain part(s) "
-                                                     f"{list(learner.unexplained_parts)} ({learner.phase})")
-        else:
-            level, message = DiagnosticStatus.OK, f"body scheme valid ({learner.phase})"
-        stalled = self._stalled_for()
-        if stalled is not None:
-            level, message = DiagnosticStatus.ERROR, (f"input arriving but nothing learnt for {stalled:.0f} s "
-                                                      f"(see rejected.*): {message}")
-        latency = sorted(self.latency)
+        level, message = scheme_diagnostics.scheme_level(learner, edges, self._stalled_for())
         with self._lock:
             at_intake = Counter(self.refused_at_intake)
         rejected = Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected) + at_intake
-        lateral, depth, rotation = learner.noise.axis_sigmas()
-        values = {"phase": learner.phase, "step": learner.step, "edges": len(edges), "invalid_edges": n_invalid,
-                  "trusted": learner.trusted, "unexplained_parts": list(learner.unexplained_parts),
-                  "noise.trans_mm": 1e3 * learner.noise.sigma_trans,
-                  "noise.rot_deg": math.degrees(learner.noise.sigma_rot),
-                  "noise.lateral_mm": 1e3 * lateral, "noise.depth_mm": 1e3 * depth,
-                  "noise.rotation_deg": math.degrees(rotation), "noise.residuals": learner.noise.n_observations,
-                  "update_latency_median_ms": 1e3 * latency[len(latency) // 2] if latency else float("nan"),
-                  "update_latency_max_ms": 1e3 * latency[-1] if latency else float("nan"),
-                  "learning_lag_ms": 1e3 * self.lag[-1] if self.lag else float("nan"),
-                  "learning_lag_max_ms": 1e3 * max(self.lag) if self.lag else float("nan"),
-                  "candidates": learner.n_candidates, "candidates_raced": learner.n_raced,
-                  "rejected_total": sum(rejected.values())}
-        values.update({f"rejected.{reason}": count for reason, count in sorted(rejected.items())})
-        # Cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
-        values.update({f"events.{kind}": count for kind, count in sorted(self.event_counts.items())
-                       if kind != "input_rejected"})
-        values.update({f"restamped.{reason}": count for reason, count in sorted(self.restamped.items())})
-        values.update({f"shed.{kind}": count for kind, count in sorted(self.shed.items())})
-        values.update({f"received.{kind}": count for kind, count in sorted(self.received.items())})
+        values = scheme_diagnostics.learner_values(learner, edges, self.latency, self.lag)
+        values["rejected_total"] = sum(rejected.values())
+        # Events are cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
+        values.update(scheme_diagnostics.counter_values({
+            "rejected": rejected, "events": {k: n for k, n in self.event_counts.items() if k != "input_rejected"},
+            "restamped": self.restamped, "shed": self.shed, "received": self.received}))
         for kind, intake in self._intake.items():  # inside DDS, before the node saw them (body_scheme_nodes.intake)
             values[f"lost.{kind}_messages"] = intake.lost
             values[f"lost.{kind}_full_queue_takes"] = intake.full_queue_takes
-        values.update({f"services.{key}": count for key, count in sorted(self.requests.items())})
+        values.update(scheme_diagnostics.counter_values({"services": self.requests}))
         values["pending_samples"] = len(self._pending)
         name = self.get_fully_qualified_name()
         hardware_id = self.settings.hardware_id or name
         array.status.append(conversions.diagnostic_status(f"{name}: body scheme", level, message, values,
                                                           hardware_id))
-        for e in edges:
-            level = (DiagnosticStatus.ERROR if e["in_mismatch"] or not e["valid"] else DiagnosticStatus.OK)
-            message = "valid" if level == DiagnosticStatus.OK else ("mismatch" if e["in_mismatch"] else "invalid")
-            array.status.append(conversions.diagnostic_status(
-                f"{name}: local model {e['parent']}->{e['child']}", level, message,
-                {k: e[k] for k in ("model", "kind", "n_test", "trans_error", "rot_error", "theta_trans", "theta_rot")},
-                hardware_id))
+        array.status.extend(scheme_diagnostics.edge_statuses(name, edges, hardware_id))
         self.pub_diagnostics.publish(array)
 
     def _stalled_for(self):

@@ -16,9 +16,9 @@ flip a bit, change a digit, delete or insert a character).
 
 The mutations are shared among two processes (``BODY_SCHEME_FUZZ_WORKERS``); each may take :data:`CPU_BUDGET` CPU
 seconds and the loop at most :data:`MEMORY_BUDGET` more memory. More mutations:
-``python ros2_ws/src/body_scheme_core/test/learning/test_state_fuzz.py 5000 [seed]`` prints every failure, or the environment
-variables ``BODY_SCHEME_FUZZ_MUTATIONS`` and ``BODY_SCHEME_FUZZ_SEED`` for the pytest run. Mutation ``i`` of a seed is
-always the same document (:func:`mutation`), so a failure's ``#i`` reproduces it.
+``python ros2_ws/src/body_scheme_core/test/learning/test_state_fuzz.py 5000 [seed]`` prints every failure, or the
+environment variables ``BODY_SCHEME_FUZZ_MUTATIONS`` and ``BODY_SCHEME_FUZZ_SEED`` for the pytest run. Mutation ``i`` of
+a seed is always the same document (:func:`mutation`), so a failure's ``#i`` reproduces it.
 """
 
 from __future__ import annotations
