@@ -603,8 +603,8 @@ def test_markers_poses_tf_and_urdf_show_the_learned_body(start_node, ros_node, s
 
 def test_exploration_suggests_only_postures_the_camera_would_see(start_node, ros_node, spin_until):
     """With ``exploration_camera_info``: suggestions flow while no CameraInfo arrived; a camera whose image lies far
-    off its axis (it would see no marker) stops them once a body scheme exists; an uncalibrated CameraInfo is counted
-    and ignored."""
+    off its axis (it would see no marker) stops them once a body scheme exists; an uncalibrated CameraInfo and an empty
+    image are counted and ignored."""
     tree = planar_2dof()
     session = make_session(tree, n_steps=600, seed=2, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
     process = start_node("body_scheme_nodes", "scheme_node", {
@@ -623,11 +623,14 @@ def test_exploration_suggests_only_postures_the_camera_would_see(start_node, ros
                                                                             [0, 0, 1.0]]))
     uncalibrated = conversions.camera_info_msg(0.0, "camera", 640, 480, np.eye(3))
     uncalibrated.k = [0.0] * 9
+    empty = conversions.camera_info_msg(0.0, "camera", 0, 480, np.diag([500.0, 500.0, 1.0]))
     for _ in range(5):  # best effort: repeat
         info.publish(blind)
         spin_until(lambda: False, timeout=0.1, during=babbler)
     info.publish(uncalibrated)
-    assert spin_until(lambda: _values(collector).get("rejected.bad_camera_info") == "1", timeout=15, during=babbler), (
+    assert spin_until(lambda: _values(collector).get("rejected.bad_camera_info") == "1", timeout=15, during=babbler)
+    info.publish(empty)  # an empty image: counted too, and the node lives on
+    assert spin_until(lambda: _values(collector).get("rejected.bad_camera_info") == "2", timeout=15, during=babbler), (
         {k: v for k, v in _values(collector).items() if "." in k}, process.output())
     step = int(_values(collector)["step"])
     suggestions.clear()

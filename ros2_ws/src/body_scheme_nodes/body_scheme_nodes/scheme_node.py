@@ -53,7 +53,7 @@ stall_timeout : double 10.0 s         input arriving but no learning step for th
 hardware_id : string ""               diagnostics hardware_id ("" = the node's fully qualified name)
 tf_prefix : string ""                 prefix of the TF frames and URDF links; joints keep the robot's names
 view_period : double 0.1 s            markers, poses and /tf at most this often
-exploration : bool false, exploration_candidates : int 256, exploration_travel_weight : double 0.0
+exploration : bool false, exploration_candidates : int 64, exploration_travel_weight : double 0.0
                                       suggest the next command (see body_scheme/exploration_command)
 exploration_camera_info : string ""   CameraInfo topic: suggest only postures whose markers are predicted inside
                                       the image, 10 % in from each border ("" = no view constraint)
@@ -94,7 +94,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.control import ExplorationPolicy, in_camera_view
-from body_scheme_core.errors import BodySchemeError, ModelFileError
+from body_scheme_core.errors import BodySchemeError, InvalidInputError, ModelFileError
 from body_scheme_core.learning import encode_state, load_state, write_state_text
 from body_scheme_core.prediction import learned_tree, learned_urdf
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -168,6 +168,8 @@ class SchemeNode(Node):
             if self.settings.exploration_camera_info:
                 self.create_subscription(CameraInfo, self.settings.exploration_camera_info, self._on_camera_info,
                                          qos_profile_sensor_data)  # best effort: matches either publisher
+        elif self.settings.exploration_camera_info:
+            self.get_logger().warn("exploration_camera_info is set but exploration is false: it is ignored")
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", 10)
         self.pub_markers = self.create_publisher(MarkerArray, "body_scheme/markers", 10)
@@ -382,6 +384,7 @@ class SchemeNode(Node):
         stamp (babble_node takes it only if it is not older than its last action)."""
         learner = self.learner
         scheme = learner.body_scheme if learner.phase != "bootstrapping" else None
+        self.explorer.noise = learner.noise.sigma_trans / math.sqrt(3.0)  # the camera as the learner knows it now
         in_view = None
         camera = self.camera
         if camera is not None and learner.body_scheme is not None:
@@ -391,11 +394,18 @@ class SchemeNode(Node):
             self.pub_exploration.publish(conversions.joint_state_msg(stamp, self.joint_names, command))
 
     def _on_camera_info(self, msg):
-        """Keep the camera's intrinsics for the view constraint; an uncalibrated one is counted and ignored."""
+        """Keep the camera's intrinsics and image size for the view constraint; an uncalibrated camera or an empty
+        image is counted (``rejected.bad_camera_info``) and ignored."""
         try:
-            self.camera = (conversions.camera_matrix_from_info(msg), int(msg.width), int(msg.height))
+            K = conversions.camera_matrix_from_info(msg)
+            if msg.width < 1 or msg.height < 1:
+                raise InvalidInputError(f"CameraInfo has an empty image ({msg.width} x {msg.height})")
         except BodySchemeError as exc:
-            self._reject("bad_camera_info", str(exc))
+            with self._lock:  # the executor's thread: the learning thread counts under the learner lock
+                self.refused_at_intake["bad_camera_info"] += 1
+            self.get_logger().warn(f"rejected input (bad_camera_info): {exc}", throttle_duration_sec=5.0)
+            return
+        self.camera = (K, int(msg.width), int(msg.height))
 
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()

@@ -47,7 +47,7 @@ def parameter_defaults(n_joints=1):
         "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
         "queue_depth": 1000, "max_inbox": 2000, "max_pending_samples": 500, "max_sample_age": 5.0,
-        "tf_prefix": "", "view_period": 0.1, "exploration": False, "exploration_candidates": 256,
+        "tf_prefix": "", "view_period": 0.1, "exploration": False, "exploration_candidates": 64,
         "exploration_travel_weight": 0.0, "exploration_camera_info": "",
         "max_message_bytes": MessageLimits().max_bytes, "max_joint_names": MessageLimits().max_joint_names,
         "max_markers": MessageLimits().max_markers, "service_queue_depth": 100, "max_requests_per_take": 20,
@@ -121,7 +121,7 @@ class SchemeSettings:
     service_queue_depth: int = 100
     max_requests_per_take: int = 20
     exploration: bool = False
-    exploration_candidates: int = 256
+    exploration_candidates: int = 64
     exploration_travel_weight: float = 0.0
     exploration_camera_info: str = ""
 

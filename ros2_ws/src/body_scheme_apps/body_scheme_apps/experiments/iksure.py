@@ -141,8 +141,9 @@ def run(seed, perception="paper", quick=False):
 
 def _after_exploring(learner, tree, unsure, truth, bounds, noise, seed, suffix):
     """The *after exploring* figures (see the module docstring) for the ``(target's command, answer)`` pairs."""
-    if not unsure:
-        return {}
+    if not unsure:  # every answer sure: NaN, so that the run still carries the keys
+        return {f"ik_{kind}_after_{how}{suffix}": math.nan for how in ("near", "random")
+                for kind in ("success_rate", "false_success_rate", "std_ratio")}
     body, effector, (lower, upper) = Body(tree), tree.marker_ids[-1], bounds
     rng_observe, rng_random, rng_ik = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)[2:])
     observer = ObservationModel(*noise, 1.0, rng_observe)

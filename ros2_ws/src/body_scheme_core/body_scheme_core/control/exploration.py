@@ -19,8 +19,10 @@ arm's posture:
   space, where the candidate models all fail alike.
 
 Measured (``docs/RESULTS.md``, explore): with every marker seen, one observation teaches every parameter almost
-equally wherever the arm is (on the 6-DOF arm after 40 commands the candidates' expected falls span 0.85-1.12 of
-their mean, 10th to 90th percentile), so active exploration gains little over random babbling there.
+equally wherever the arm is (``explore_information_spread_*``: the 90th over the 10th percentile of the candidates'
+expected falls at the end of bootstrapping is about 1.3), so active exploration gains little over random babbling
+there. A suggestion costs about P + 1 predictions of the candidates (P: the joint fit's parameters; 256 candidates
+on the 6-DOF arm: tens of ms).
 
 Scores are scaled by their mean over the candidates, so ``travel_weight`` trades a unit of relative information
 against moving across the whole joint range. :func:`explore_near` teaches the learner around one posture (an IK
@@ -38,6 +40,12 @@ __all__ = ["ExplorationPolicy", "PAPER_NOISE", "explore_near", "in_camera_view"]
 
 #: The camera's positional noise per axis (m) the policy assumes by default: the paper's 44 mm 3D RMS.
 PAPER_NOISE = 0.044 / np.sqrt(3.0)
+
+
+def _positive(value):
+    """Whether ``value`` is a finite real number > 0 (not a bool)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+        and bool(np.isfinite(value)) and value > 0
 
 
 class ExplorationPolicy:
@@ -80,12 +88,13 @@ class ExplorationPolicy:
         if feasible is not None and not callable(feasible):
             raise InvalidInputError("feasible must be callable (candidates (k, m) -> bool (k,)) or None")
         self.n_candidates, self.feasible, self.travel_weight = int(n_candidates), feasible, float(travel_weight)
-        if not (np.isfinite(noise) and noise > 0):
+        if not _positive(noise):
             raise InvalidInputError(f"noise must be a number > 0 (m per axis), got {noise!r}")
         if isinstance(n_reference, bool) or not isinstance(n_reference, (int, np.integer)) or n_reference < 1:
             raise InvalidInputError(f"n_reference must be an integer >= 1, got {n_reference!r}")
         self.noise = float(noise)
         self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        self._weights = None  # (scheme, reference, M): the reference postures' weights, per body scheme
         #: Postures over which the body scheme should become sure (uniform within the limits).
         self.reference = self.rng.uniform(self.lower, self.upper, size=(int(n_reference), self.lower.size))
         self._scale = np.where(self.upper > self.lower, self.upper - self.lower, 1.0)
@@ -104,7 +113,7 @@ class ExplorationPolicy:
         near : array-like, shape (m,) or None
             A posture whose prediction should become sure (an IK answer the body scheme is not sure of): the
             candidates are drawn within ``radius`` of each joint's range around it, and scored by how much they
-            reduce the variance at ``near`` alone.
+            reduce the variance at ``near`` alone (without the joint fit's covariance: by their own variance).
         radius : float
             Fraction of each joint's range (with ``near``).
         feasible : callable or None
@@ -116,7 +125,7 @@ class ExplorationPolicy:
             near = np.asarray(near, dtype=float)
             if near.shape != self.lower.shape or not np.all(np.isfinite(near)):
                 raise InvalidInputError(f"near must be a finite vector of {self.lower.size} actions, got {near!r}")
-            if not (np.isfinite(radius) and radius > 0):
+            if not _positive(radius):
                 raise InvalidInputError(f"radius must be a number > 0, got {radius!r}")
             near = np.clip(near, self.lower, self.upper)
             lower = np.maximum(self.lower, near - radius * self._scale)
@@ -155,14 +164,16 @@ class ExplorationPolicy:
         camera's noise ``R``, one observation leaves ``S - S J' (J S J' + R)^-1 J S``; averaged over the reference
         postures' Jacobians ``Jr`` the variance falls by ``tr((J S J' + R)^-1 J S M S J')``, ``M = mean Jr' Jr``.
         """
-        J = parameter_jacobian(scheme, np.vstack([C, reference]))
-        if J is None:
+        if scheme.param_covariance is None:
             return None
         S = scheme.param_covariance[1]
+        cached = self._weights
+        if cached is None or cached[0] is not scheme or cached[1] is not reference:
+            Jr = parameter_jacobian(scheme, reference).reshape(-1, S.shape[0])
+            cached = self._weights = (scheme, reference, Jr.T @ Jr / reference.shape[0])
+        M = cached[2]
         k = C.shape[0]
-        Jc = J[:k].reshape(k, -1, S.shape[0])
-        Jr = J[k:].reshape(-1, S.shape[0])
-        M = Jr.T @ Jr / reference.shape[0]
+        Jc = parameter_jacobian(scheme, C).reshape(k, -1, S.shape[0])
         JS = Jc @ S
         innovation = JS @ Jc.transpose(0, 2, 1) + self.noise**2 * np.eye(Jc.shape[1])
         gain = JS @ M @ JS.transpose(0, 2, 1)

@@ -411,13 +411,7 @@ class BodySchemeLearner(JointFitSteps):
         else:
             tree_changed = self._adapt_step(a, obs, step, events)
         if self._tree is not None and (tree_changed or self._calibration_due(step)):
-            self._calibrate(step, events)
-            if self._bootstrapping:
-                self._veto_inconsistent_edges(step, events)
-            elif self._just_finished:
-                self._sample_challengers(step, events)
-            else:
-                self._flag_unexplained(step, events)
+            self._fit_and_check(step, events)
         self._just_finished = False
         self.step = step + 1
         return events

@@ -15,11 +15,12 @@ import math
 import numpy as np
 
 from ..calibration import calibrate, part_consistency
-from ..errors import BodySchemeError
+from ..errors import BodySchemeError, LearnerStepError
 from ..events import Event
 from ..models import RigidJointModel
 from ..prediction import BodyScheme
-from .learner_state import Calibrated
+from .learner_state import Calibrated, restore, snapshot
+from .tracked import Journal
 from .validity import RATIO_CLIP
 
 __all__ = ["JointFitSteps"]
@@ -252,12 +253,34 @@ class JointFitSteps:
                               f"the body scheme does not explain part {part}: its residuals depend on the commands "
                               f"(F = {t.F:.1f}, p = {t.p:.1g}, {100 * t.explained:.0f} % of their variance)")
 
+    def _fit_and_check(self, step, events):
+        """The joint fit, then what follows it: while bootstrapping the vetoes, right after it the GP challengers,
+        afterwards the parts the fit leaves unexplained."""
+        self._calibrate(step, events)
+        if self._bootstrapping:
+            self._veto_inconsistent_edges(step, events)
+        elif self._just_finished:
+            self._sample_challengers(step, events)
+        else:
+            self._flag_unexplained(step, events)
+
     def recalibrate(self):
-        """Run the joint fit of the current tree now, on the whole history window, instead of when it is next due
-        (after samples taken on purpose, e.g. :func:`~body_scheme_core.control.exploration.explore_near`). Returns the
-        events it raised (none before the first tree)."""
-        events = []
-        if self._tree is not None and self.step > 0:
-            self._calibrate(self.step - 1, events)
-        return events
+        """Run the joint fit of the current tree and what follows it now, on the whole history window, instead of
+        when it is next due (after samples taken on purpose, e.g.
+        :func:`~body_scheme_core.control.exploration.explore_near`). All or nothing, as :meth:`update`: a failure is
+        undone and raised as ``LearnerStepError``. Returns the events it raised (none before the first tree)."""
+        if self._tree is None or self.step == 0:
+            return []
+        with Journal() as journal:
+            saved = snapshot(self, journal)
+            try:
+                events = []
+                self._fit_and_check(self.step - 1, events)
+                return events
+            except BaseException as error:
+                restore(self, saved)
+                if not isinstance(error, Exception):
+                    raise
+                raise LearnerStepError(f"the joint fit after step {self.step - 1} failed and was undone: "
+                                       f"{type(error).__name__}: {error}") from error
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InvalidInputError
-from .scheme import BodyScheme
+from ..transforms import invert_transform
 
 __all__ = ["parameter_jacobian", "position_covariance", "position_std"]
 
@@ -88,23 +88,36 @@ def position_std(scheme, a, part):
 def parameter_jacobian(scheme, A):
     """Derivatives (n, n_parts, 3, P) of every part's position in the root frame, at each action vector of ``A``
     (n, m), with respect to the joint fit's parameter increments (the order of ``scheme.param_covariance``); ``None``
-    when the scheme has no joint covariance. Forward differences of :meth:`BodyScheme.predict_batch` (one batch per
-    parameter)."""
+    when the scheme has no joint covariance.
+
+    Forward differences, one edge at a time: an increment of the model on edge ``parent -> child`` moves every part
+    below ``child`` rigidly by ``W_parent T' W_child^-1`` (``W``: predicted poses in the root frame, ``T'``: the
+    edge's transform after the increment), so each parameter costs one prediction of its own model, not of the
+    whole chain.
+    """
     if scheme.param_covariance is None:
         return None
     A = np.asarray(A, dtype=float)
-    base = scheme.predict_batch(A)[:, :, :3, 3]
+    base = scheme.predict_batch(A)
+    positions = base[:, :, :3, 3]
     indices, matrix = scheme.param_covariance
-    J = np.empty(base.shape + (matrix.shape[0],))
-    column = 0
+    J = np.zeros(positions.shape + (matrix.shape[0],))
+    column, offset = {}, 0
     for k in indices:
-        model = scheme.models[k]
+        column[id(scheme.models[k])] = offset
+        offset += scheme.models[k].n_params
+    for parent, child, model, inverted in scheme.edges:
+        if id(model) not in column:
+            continue
+        below = [i for i, part in enumerate(scheme.parts) if child in scheme.path(part)]
+        W_parent = base[:, scheme.parts.index(parent)]
+        child_inv = invert_transform(base[:, scheme.parts.index(child)])
         for d in range(model.n_params):
             delta = np.zeros(model.n_params)
             delta[d] = _STEP
-            models = list(scheme.models)
-            models[k] = model.with_params(model.retract(delta))
-            moved = BodyScheme(scheme.parts, scheme.root, models).predict_batch(A)[:, :, :3, 3]
-            J[..., column] = (moved - base) / _STEP
-            column += 1
+            moved = scheme.edge_transform(model.with_params(model.retract(delta)), inverted, A)
+            shift = W_parent @ moved @ child_inv  # (n, 4, 4)
+            p = positions[:, below]
+            p_moved = np.einsum("nij,nkj->nki", shift[:, :3, :3], p) + shift[:, None, :3, 3]
+            J[..., column[id(model)] + d][:, below] = (p_moved - p) / _STEP
     return J
