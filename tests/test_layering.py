@@ -136,10 +136,43 @@ def test_core_units_import_only_lower_layers():
             continue
         mine = unit_of(path)
         for unit, module, _ in core_imports(path):
-            if unit != mine and CORE_LAYERS[unit] >= CORE_LAYERS[mine]:
+            if unit not in CORE_LAYERS:
+                wrong.append(f"{path.relative_to(CORE)} imports {module}, a unit of no layer (add it to CORE_LAYERS)")
+            elif unit != mine and CORE_LAYERS[unit] >= CORE_LAYERS[mine]:
                 wrong.append(f"{path.relative_to(CORE)} imports {module} (layer {CORE_LAYERS[unit]} >= "
                              f"{CORE_LAYERS[mine]})")
     assert wrong == []
+
+
+def private_attributes(source, public):
+    """``[dotted name]`` of attribute accesses past a subpackage's public names in ``source``: ``learning.pool`` after
+    ``from body_scheme_core import learning`` (or ``from .. import learning``), ``body_scheme_core.learning.pool``
+    after ``import body_scheme_core.learning``. ``public``: ``{subpackage: its __all__}``."""
+    tree = ast.parse(source)
+    bound = {}  # local name -> subpackage
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module in (None, "body_scheme_core")):
+            bound.update({alias.asname or alias.name: alias.name for alias in node.names if alias.name in public})
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Attribute):
+            continue
+        chain, value = [node.attr], node.value
+        while isinstance(value, ast.Attribute):
+            chain.append(value.attr)
+            value = value.value
+        if not isinstance(value, ast.Name):
+            continue
+        chain = [value.id] + chain[::-1]
+        if chain[0] == "body_scheme_core" and len(chain) > 2 and chain[1] in public:
+            sub, name = chain[1], chain[2]
+        elif chain[0] in bound and len(chain) > 1:
+            sub, name = bound[chain[0]], chain[1]
+        else:
+            continue
+        if name not in public[sub]:
+            found.append(".".join(chain))
+    return found
 
 
 def _library_files():
@@ -149,17 +182,28 @@ def _library_files():
 
 
 def test_subpackages_are_imported_only_through_their_public_names():
-    """Outside a subpackage of the core (in the core or in another package), its modules are not imported: only the
-    names its ``__init__`` exports."""
+    """Outside a subpackage of the core (in the core or in another package), its modules are not imported, nor
+    reached as attributes: only the names its ``__init__`` exports."""
+    public = {unit: set(importlib.import_module(f"body_scheme_core.{unit}").__all__) for unit in SUBPACKAGES}
     wrong = []
     for path in _library_files():
         mine = unit_of(path) if path.is_relative_to(CORE) else None
         for unit, module, names in core_imports(path):
             if unit in SUBPACKAGES and unit != mine:
-                public = set(importlib.import_module(f"body_scheme_core.{unit}").__all__)
-                if module != unit or not set(names or ()) <= public:
+                if module != unit or not set(names or ()) <= public[unit]:
                     wrong.append(f"{path.relative_to(SRC)}: {module} {names}")
+        others = {unit: names for unit, names in public.items() if unit != mine}
+        wrong += [f"{path.relative_to(SRC)}: {name}"
+                  for name in private_attributes(path.read_text(encoding="utf-8"), others)]
     assert wrong == []
+
+
+def test_the_public_names_checker_sees_attribute_access():
+    public = {"learning": {"BodySchemeLearner"}}
+    source = ("from .. import learning\nimport body_scheme_core.learning\nlearning.pool.Targets\n"
+              "body_scheme_core.learning.tracked\nlearning.BodySchemeLearner\n")
+    assert sorted(private_attributes(source, public)) == ["body_scheme_core.learning.tracked", "learning.pool",
+                                                          "learning.pool.Targets"]
 
 
 def test_the_layer_checker_resolves_relative_imports():

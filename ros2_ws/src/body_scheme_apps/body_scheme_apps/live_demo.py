@@ -8,7 +8,7 @@ It prints the event timeline and a summary, and writes ``summary.json`` and ``li
 and records the whole session as a rosbag2 (mcap) in ``<out>/session`` (:data:`RECORDED_TOPICS`; open it in Foxglove
 with ``ros2_ws/src/body_scheme_nodes/config/body_scheme.foxglove.json``).
 
-``make demo`` runs ``python -m body_scheme_apps.live_demo`` (also ``ros2 run body_scheme_sim live_demo``); without
+``make demo`` runs ``python -m body_scheme_apps.live_demo`` (also ``ros2 run body_scheme_apps live_demo``); without
 the ``launch`` package it starts the installed node executables as processes (``body_scheme_nodes.graph``).
 """
 

@@ -25,15 +25,14 @@ Three conditions:
 1. ``undamaged``: the engineered body scheme (:func:`~body_scheme_core.models.engineered.engineered_models` of the
    robot's specification) on the healthy arm.
 2. ``static``: the same scheme, never adapted, on the bent arm (the same IK solutions, so the error is the bend's).
-3. ``adaptive``: a :class:`~body_scheme_core.learning.learner.BodySchemeLearner` started from the engineered models
-babbles
-   :data:`N_BEFORE` = 100 samples on the healthy arm (Table I's first block), then :data:`N_AFTER` = 150 samples (the
-   fixed budget, the same for every run: detection and replacement take ~5 of them, the replacement then keeps
-   learning through the joint fit of the body scheme) on the bent arm; then the trajectory is followed with its
-   current body scheme, IK within :func:`~body_scheme_core.control.ik.trained_bounds`. Noise mode: the paper's noise (44
-   mm / 15 deg), every marker seen (the paper gives no visibility for its simulation); rendered mode: the simulator's
-   images through the ArUco tracker, the learner with the tracker's sigmas, babbling that keeps markers 3 and 4 (the
-   changed pair) in view of the healthy arm.
+3. ``adaptive``: a :class:`~body_scheme_core.learning.learner.BodySchemeLearner` started from the engineered
+   models babbles :data:`N_BEFORE` = 100 samples on the healthy arm (Table I's first block), then :data:`N_AFTER` =
+   150 samples (the fixed budget, the same for every run: detection and replacement take ~5 of them, the
+   replacement then keeps learning through the joint fit of the body scheme) on the bent arm; then the trajectory is
+   followed with its current body scheme, IK within :func:`~body_scheme_core.control.ik.trained_bounds`. Noise
+   mode: the paper's noise (44 mm / 15 deg), every marker seen (the paper gives no visibility for its simulation);
+   rendered mode: the simulator's images through the ArUco tracker, the learner with the tracker's sigmas, babbling that
+   keeps markers 3 and 4 (the changed pair) in view of the healthy arm.
    ``quick``: 30 + 60 samples, the same trajectory and figures.
 
 ``samples to replace``: post-deformation samples the learner had processed when it replaced (or reinstated) the

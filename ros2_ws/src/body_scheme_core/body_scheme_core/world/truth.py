@@ -42,8 +42,7 @@ def wrong_models(tree, models, blocked=()):
 
 def is_true_tree(tree, scheme, blocked=()):
     """Whether ``scheme`` (a :class:`~body_scheme_core.prediction.scheme.BodyScheme`, or None) is a true body scheme of
-    ``tree``
-    (see the module docstring)."""
+    ``tree`` (see the module docstring)."""
     if scheme is None:
         return False
     if wrong_models(tree, scheme.models, blocked):

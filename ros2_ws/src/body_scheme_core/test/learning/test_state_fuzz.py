@@ -439,7 +439,7 @@ def _describe(error):
     return text, where
 
 
-_SOURCE_ROOT = str(Path(__file__).resolve().parents[1])
+_SOURCE_ROOT = str(Path(__file__).resolve().parents[2])
 
 
 def _actions_for(robot, k, n_actions):
