@@ -18,11 +18,12 @@ from .learned_body import (
     marker_link,
 )
 from .scheme import BodyScheme
-from .uncertainty import parameter_jacobian, position_covariance, position_std
+from .uncertainty import parameter_jacobian, perturbed_models, position_covariance, position_std
 
 __all__ = [
     "BodyScheme",
     "parameter_jacobian",
+    "perturbed_models",
     "position_covariance",
     "position_std",
     "LearnedJoint",

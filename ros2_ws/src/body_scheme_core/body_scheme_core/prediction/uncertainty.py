@@ -17,15 +17,35 @@ pose in the world is not included (the position is in the root part's frame).
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from ..errors import InvalidInputError
 from ..transforms import invert_transform
 
-__all__ = ["parameter_jacobian", "position_covariance", "position_std"]
+__all__ = ["parameter_jacobian", "perturbed_models", "position_covariance", "position_std"]
 
 #: Step of the forward differences in a parameter increment (its units: m, rad).
 _STEP = 1e-6
+#: model -> (its parameters then, the model after a step in each parameter): a retraction costs more than the
+#: prediction it serves, and the same models are differentiated at every IK answer and exploration candidate.
+_PERTURBED = weakref.WeakKeyDictionary()
+
+
+def perturbed_models(model):
+    """The rigid-joint ``model`` after an increment of :data:`_STEP` in each of its parameters (cached per model
+    while its parameters stay the same)."""
+    cached = _PERTURBED.get(model)
+    if cached is None or not np.array_equal(cached[0], model.params_):
+        moved = []
+        for d in range(model.n_params):
+            delta = np.zeros(model.n_params)
+            delta[d] = _STEP
+            moved.append(model.with_params(model.retract(delta)))
+        cached = (model.params_.copy(), moved)
+        _PERTURBED[model] = cached
+    return cached[1]
 
 
 def position_covariance(scheme, a, part):
@@ -57,10 +77,8 @@ def position_covariance(scheme, a, part):
     for i, (_, _, model, inverted) in enumerate(edges):
         if hasattr(model, "retract"):  # a rigid-joint model: differentiate the tip in its parameter increments
             J = np.empty((3, model.n_params))
-            for d in range(model.n_params):
-                delta = np.zeros(model.n_params)
-                delta[d] = _STEP
-                moved = scheme.edge_transform(model.with_params(model.retract(delta)), inverted, A)[0]
+            for d, perturbed in enumerate(perturbed_models(model)):
+                moved = scheme.edge_transform(perturbed, inverted, A)[0]
                 J[:, d] = ((prefix[i] @ moved @ suffix[i + 1])[:3, 3] - tip) / _STEP
             if id(model) in offsets:
                 start = offsets[id(model)]
@@ -112,10 +130,8 @@ def parameter_jacobian(scheme, A):
         below = [i for i, part in enumerate(scheme.parts) if child in scheme.path(part)]
         W_parent = base[:, scheme.parts.index(parent)]
         child_inv = invert_transform(base[:, scheme.parts.index(child)])
-        for d in range(model.n_params):
-            delta = np.zeros(model.n_params)
-            delta[d] = _STEP
-            moved = scheme.edge_transform(model.with_params(model.retract(delta)), inverted, A)
+        for d, perturbed in enumerate(perturbed_models(model)):
+            moved = scheme.edge_transform(perturbed, inverted, A)
             shift = W_parent @ moved @ child_inv  # (n, 4, 4)
             p = positions[:, below]
             p_moved = np.einsum("nij,nkj->nki", shift[:, :3, :3], p) + shift[:, None, :3, 3]

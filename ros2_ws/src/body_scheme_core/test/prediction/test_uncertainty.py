@@ -7,7 +7,12 @@ from body_scheme_core.errors import InvalidInputError, ModelFileError
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.prediction.scheme import BodyScheme
-from body_scheme_core.prediction.uncertainty import parameter_jacobian, position_covariance, position_std
+from body_scheme_core.prediction.uncertainty import (
+    parameter_jacobian,
+    perturbed_models,
+    position_covariance,
+    position_std,
+)
 from body_scheme_core.world import make_session, powercube_6dof
 
 
@@ -113,3 +118,18 @@ def test_a_models_rotation_error_turns_what_follows_about_its_own_child_also_whe
     lever = np.linalg.norm(inverted.predict(a)[parent][:3, 3])
     assert np.trace(position_covariance(forward, a, child)) == pytest.approx(3 * s_t**2)
     assert np.trace(position_covariance(inverted, a, parent)) == pytest.approx(3 * s_t**2 + 2 * s_r**2 * lever**2)
+
+
+def test_the_perturbed_models_follow_their_models_parameters(learned):
+    """The cached models after a parameter step are reused while the model's parameters stay, and rebuilt when they
+    change in place (a refit)."""
+    _, scheme = learned
+    model = next(m for m in scheme.models if hasattr(m, "retract"))
+    model = model.with_params(model.params_)
+    first = perturbed_models(model)
+    assert perturbed_models(model) is first and len(first) == model.n_params
+    refit = model.retract(np.full(model.n_params, 1e-3))
+    model._set_fit(refit, model.param_cov_, model.n_samples_, model.rms_)  # what fit() does, in place
+    again = perturbed_models(model)
+    assert again is not first
+    np.testing.assert_allclose(again[0].params_, model.retract(np.eye(model.n_params)[0] * 1e-6))
