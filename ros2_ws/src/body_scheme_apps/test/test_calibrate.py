@@ -3,6 +3,7 @@
 import json
 import math
 
+import pytest
 from body_scheme_apps.calibrate import main
 from urdf_parser_py.urdf import URDF
 
@@ -41,6 +42,7 @@ def test_unreadable_input_is_one_line_and_exit_code_1(tmp_path, capsys):
     assert len(err) == 2 and all(line.startswith("calibrate: ") for line in err), err
 
 
+@pytest.mark.slow  # a whole simulated session and calibration
 def test_a_robots_urdf_alone_is_enough_to_simulate_and_calibrate(tmp_path, capsys):
     """--simulate <a real arm's URDF> needs no other file: markers are planned (markers.yaml), the camera frames them,
     a body scheme is learned and calibrated (here the noise model at the tracker's accuracy, for speed; make

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import pytest
 from body_scheme_apps import core_demo
 
 
+@pytest.mark.slow  # 270 learning steps end to end
 def test_core_demo_runs_end_to_end(capsys):
     """core_demo bootstraps, detects the blocked joint, repairs and reinstates (short run)."""
     assert core_demo.main(["--steps", "270", "--seed", "1"]) == 0

@@ -15,6 +15,8 @@ from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
 from body_scheme_sim.world import direct_client
 
+pytestmark = pytest.mark.slow  # each robot records a rendered session first
+
 ROBOTS = sorted(ROBOT_BUILDERS)
 
 
