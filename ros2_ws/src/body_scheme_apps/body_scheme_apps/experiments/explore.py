@@ -91,18 +91,17 @@ def _first_below(tree, policy, seed, budget):
         if max(samples, true_tree, bootstrapped) < budget:
             break  # all three seen
         if policy == "active":
-            scheme = learner.body_scheme if learner.phase == "steady" else None
-            if scheme is not None and math.isnan(spread):
-                scores = explorer.information(rng_test.uniform(tree.action_lower, tree.action_upper,
-                                                               (256, tree.n_actions)), scheme)
-                spread = float(np.percentile(scores, 90) / np.percentile(scores, 10))
-            a = explorer.suggest(scheme, current)
+            a = explorer.suggest(learner.body_scheme if learner.phase == "steady" else None, current)
         else:
             a = rng_commands.uniform(tree.action_lower, tree.action_upper)
         travel += float(np.linalg.norm(a - current))
         current = a
         learner.update(a, observer.observe_array(body.true_marker_array(a[None]), tree.marker_ids)[0])
         scheme = learner.body_scheme
+        if policy == "active" and math.isnan(spread) and learner.phase == "steady":  # bootstrapping just ended
+            scores = explorer.information(rng_test.uniform(tree.action_lower, tree.action_upper,
+                                                           (256, tree.n_actions)), scheme)
+            spread = float(np.percentile(scores, 90) / np.percentile(scores, 10))
         if true_tree == budget and is_true_tree(tree, scheme):
             true_tree = t + 1
         if bootstrapped == budget and learner.phase != "bootstrapping":

@@ -20,7 +20,7 @@ arm's posture:
 
 Measured (``docs/RESULTS.md``, explore): with every marker seen, one observation teaches every parameter almost
 equally wherever the arm is (``explore_information_spread_*``: the 90th over the 10th percentile of the candidates'
-expected falls at the end of bootstrapping is about 1.3), so active exploration gains little over random babbling
+expected falls at the end of bootstrapping is 1.2-1.5), so active exploration gains little over random babbling
 there. A suggestion costs about P + 1 predictions of the candidates (P: the joint fit's parameters; 256 candidates
 on the 6-DOF arm: tens of ms).
 
