@@ -40,6 +40,7 @@ from .inputs import (
     check_part_ids,
     check_stamp,
     filter_observations,
+    mirrored_observations,
     rigidity_problem,
     root_part,
 )
@@ -70,7 +71,7 @@ from .quality import (
 )
 from .relative import PartPairs, RelativeObservations
 from .repair import Change, Repair, Replacement, bridge_relative_complexity, tree_halves
-from .root_pose import OFFSET_SAMPLES, OUTLIER_SIGMAS, RootPoseEstimator, RootWatch, register_points
+from .root_pose import OFFSET_SAMPLES, OUTLIER_SIGMAS, RootPoseEstimator, RootWatch, register_points, still_part
 from .structure import (
     CANDIDATE_KINDS,
     action_subsets,
@@ -133,12 +134,14 @@ __all__ = [
     "least_recently_used",
     "Adaptation",
     "ChainTargets",
+    "still_part",
     "RootPoseEstimator",
     "RootWatch",
     "register_points",
     "OUTLIER_SIGMAS",
     "OFFSET_SAMPLES",
     "BodySchemeConfig",
+    "mirrored_observations",
     "OBSERVATION_TOLERANCE",
     "MAX_ACTION",
     "MAX_PARTS",

@@ -21,10 +21,11 @@ import numpy as np
 from ..errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
 from ..limits import MAX_ACTION, MAX_ACTIONS, MAX_PARTS
 from ..prediction import BodyScheme
+from ..transforms import mirror_about_ray, rotational_error
 from .config import BodySchemeConfig
 from .structure import n_candidates
 
-__all__ = [
+__all__ = ["mirrored_observations",
     "OBSERVATION_TOLERANCE",
     "MAX_ACTION",
     "MAX_PARTS",
@@ -319,3 +320,24 @@ def rigidity_problem(pose):
     dev, bad = _rigidity(np.asarray(pose, dtype=float)[None])
     return f"deviation {dev[0]:.3g} or det < 0" if bad[0] else None
 
+
+def mirrored_observations(scheme, world2root, a, observations, theta_rot):
+    """``[(part, detail)]``: observations whose orientation is the mirror image about the camera's ray of what the
+    calibrated body scheme (``scheme`` placed at ``world2root``) predicts at actions ``a`` (the planar ambiguity a
+    marker tracker falls into): off by more than ``theta_rot`` while the mirror is within it and less than half as far
+    off. Every predicted part is judged, also one the scheme does not explain yet: a prediction that is wrong by a
+    change or a poor fit makes a true observation look neither near nor mirrored, and a flip let through would look
+    like a lack of fit itself."""
+    parts = [p for p in observations if p in scheme.parts]
+    if not parts:
+        return []
+    root2part = scheme.predict(a)
+    predicted = np.stack([world2root @ root2part[p] for p in parts])
+    observed = np.stack([observations[p] for p in parts])
+    error = rotational_error(predicted, observed)
+    mirrored = rotational_error(predicted, mirror_about_ray(observed))
+    flipped = (error > theta_rot) & (mirrored <= theta_rot) & (mirrored < 0.5 * error)
+    return [(p, f"the orientation of part {p} is {math.degrees(e):.0f} deg from the body scheme's prediction, "
+                f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
+                f"{math.degrees(theta_rot):.1f} deg)")
+            for p, e, m, f in zip(parts, error, mirrored, flipped, strict=True) if f]

@@ -50,7 +50,7 @@ from ..errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, N
 from ..events import Event, format_errors
 from ..models import GPModel, RigidJointModel
 from ..prediction import BodyScheme
-from ..transforms import invert_transform, mirror_about_ray, project_to_rotation, rotational_error
+from ..transforms import invert_transform
 from .adaptation import Adaptation
 from .bootstrap import Bootstrap
 from .chain import ChainTargets
@@ -66,57 +66,20 @@ from .inputs import (
     check_part_ids,
     check_stamp,
     filter_observations,
+    mirrored_observations,
     root_part,
 )
 from .learner_fit import JointFitSteps
 from .learner_state import learner_from_state, learner_to_state, restore, snapshot
 from .pool import ModelPool
 from .relative import PartPairs
-from .root_pose import RootPoseEstimator, RootWatch
+from .root_pose import RootPoseEstimator, RootWatch, still_part
 from .tracked import MEMORY, TREE, Journal
 
 __all__ = ["BodySchemeLearner", "PHASES"]
 
 #: Phases reported by :attr:`BodySchemeLearner.phase`.
 PHASES = ("bootstrapping", "steady", "adapting")
-#: Observations of a part before it can be chosen as the root (:func:`still_part`).
-_ROOT_SAMPLES = 3
-
-
-def still_part(part_ids, observations, sigma_trans, sigma_rot):
-    """The part whose observed pose moves least in the camera's view: the robot's trunk, the root of the body scheme.
-
-    A part's motion is the median distance of its observed positions from their median, in units of the position
-    noise, or the median angle of its observed orientations from their mean, in units of the orientation noise,
-    whichever is larger (a joint whose axis passes through a marker turns it without moving it). Parts seen fewer than
-    :data:`_ROOT_SAMPLES` times are not considered; ties go to the lowest id.
-
-    Parameters
-    ----------
-    part_ids : iterable of int
-    observations : list of dict of int to ndarray, shape (4, 4)
-        Observed ``world2part`` per step.
-    sigma_trans, sigma_rot : float
-        The noise (3D RMS, m and rad).
-
-    Returns
-    -------
-    part : int or None
-        None while no part was seen often enough.
-    """
-    motion = {}
-    for part in part_ids:
-        Y = np.array([obs[part] for obs in observations if part in obs])
-        if len(Y) < _ROOT_SAMPLES:
-            continue
-        P = Y[:, :3, 3]
-        moved = np.median(np.linalg.norm(P - np.median(P, axis=0), axis=1)) / sigma_trans
-        mean = project_to_rotation(Y[:, :3, :3].mean(axis=0))
-        turned = np.median(rotational_error(np.broadcast_to(mean, Y[:, :3, :3].shape), Y[:, :3, :3])) / sigma_rot
-        motion[part] = max(float(moved), float(turned))
-    return min(motion, key=lambda p: (motion[p], p)) if motion else None
-
-
 class BodySchemeLearner(JointFitSteps):
     """Learns a body scheme from scratch (or starts from a given one) and keeps it valid for a lifetime.
 
@@ -434,35 +397,14 @@ class BodySchemeLearner(JointFitSteps):
         for part, reason, detail in rejections:
             self.rejected[reason] += 1
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))
-        for part, detail in self._mirrored(a, valid):
+        cal = self._calibrated
+        flipped = [] if cal is None else mirrored_observations(cal.scheme, cal.world2root, a, valid,
+                                                               self.noise.theta_rot)
+        for part, detail in flipped:
             del valid[part]
             self.rejected["flipped"] += 1
             events.append(Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part))
         return valid
-
-    def _mirrored(self, a, observations):
-        """``[(part, detail)]``: observations whose orientation is the mirror image about the camera's ray of what the
-        calibrated body scheme predicts (the planar ambiguity a marker tracker falls into): off by more than
-        ``theta_rot`` while the mirror is within it and less than half as far off. Every predicted part is judged,
-        also one the scheme does not explain yet: a prediction that is wrong by a change or a poor fit makes a true
-        observation look neither near nor mirrored, and a flip let through would look like a lack of fit itself."""
-        cal = self._calibrated
-        if cal is None or not observations:
-            return []
-        parts = [p for p in observations if p in cal.scheme.parts]
-        if not parts:
-            return []
-        root2part = cal.scheme.predict(a)
-        predicted = np.stack([cal.world2root @ root2part[p] for p in parts])
-        observed = np.stack([observations[p] for p in parts])
-        error = rotational_error(predicted, observed)
-        mirrored = rotational_error(predicted, mirror_about_ray(observed))
-        theta = self.noise.theta_rot
-        flipped = (error > theta) & (mirrored <= theta) & (mirrored < 0.5 * error)
-        return [(p, f"the orientation of part {p} is {math.degrees(e):.0f} deg from the body scheme's prediction, "
-                    f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
-                    f"{math.degrees(theta):.1f} deg)")
-                for p, e, m, f in zip(parts, error, mirrored, flipped, strict=True) if f]
 
     def _workspace(self):
         """``(root position, reach + workspace_margin)`` once a joint fit exists, else None (only ``max_distance``

@@ -18,10 +18,10 @@ from collections import deque
 
 import numpy as np
 
-from ..transforms import invert_transform, project_to_rotation
+from ..transforms import invert_transform, project_to_rotation, rotational_error
 from .validity import ValidityMonitor
 
-__all__ = ["RootPoseEstimator", "RootWatch", "register_points", "OUTLIER_SIGMAS", "OFFSET_SAMPLES"]
+__all__ = ["still_part", "RootPoseEstimator", "RootWatch", "register_points", "OUTLIER_SIGMAS", "OFFSET_SAMPLES"]
 
 #: Points whose residual after the first fit exceeds this many times the median residual are dropped (about 4.6 sigma
 #: per axis for Gaussian noise).
@@ -218,3 +218,41 @@ class RootWatch:
         """Forget everything (a new root part)."""
         self.monitor.clear([0])
         self.offset, self.n_offset = np.eye(4), OFFSET_SAMPLES
+
+
+#: Observations of a part before it can be chosen as the root (:func:`still_part`).
+_ROOT_SAMPLES = 3
+
+
+def still_part(part_ids, observations, sigma_trans, sigma_rot):
+    """The part whose observed pose moves least in the camera's view: the robot's trunk, the root of the body scheme.
+
+    A part's motion is the median distance of its observed positions from their median, in units of the position
+    noise, or the median angle of its observed orientations from their mean, in units of the orientation noise,
+    whichever is larger (a joint whose axis passes through a marker turns it without moving it). Parts seen fewer than
+    :data:`_ROOT_SAMPLES` times are not considered; ties go to the lowest id.
+
+    Parameters
+    ----------
+    part_ids : iterable of int
+    observations : list of dict of int to ndarray, shape (4, 4)
+        Observed ``world2part`` per step.
+    sigma_trans, sigma_rot : float
+        The noise (3D RMS, m and rad).
+
+    Returns
+    -------
+    part : int or None
+        None while no part was seen often enough.
+    """
+    motion = {}
+    for part in part_ids:
+        Y = np.array([obs[part] for obs in observations if part in obs])
+        if len(Y) < _ROOT_SAMPLES:
+            continue
+        P = Y[:, :3, 3]
+        moved = np.median(np.linalg.norm(P - np.median(P, axis=0), axis=1)) / sigma_trans
+        mean = project_to_rotation(Y[:, :3, :3].mean(axis=0))
+        turned = np.median(rotational_error(np.broadcast_to(mean, Y[:, :3, :3].shape), Y[:, :3, :3])) / sigma_rot
+        motion[part] = max(float(moved), float(turned))
+    return min(motion, key=lambda p: (motion[p], p)) if motion else None
