@@ -9,7 +9,7 @@ from sensor_msgs.msg import JointState
 
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.prediction.scheme import BodyScheme
-from body_scheme_core.world import default_world2root, planar_2dof
+from body_scheme_core.world import ObservationModel, default_world2root, planar_2dof
 from body_scheme_msgs.msg import IKResult, IKTarget, ModelSnapshot
 from body_scheme_nodes import conversions
 
@@ -117,3 +117,112 @@ def test_control_node_executes_an_ik_answer_through_the_controller(start_node, r
     assert spin_until(lambda: len(truth) > seen, timeout=30), "no ground truth from sim_node"
     _, last = conversions.observations_from_msg(truth[-1])[:2]
     assert np.linalg.norm(last[end_effector][:3, 3] - target) < 0.010
+
+
+class Follower:
+    """An arm under active babbling, as babble_node's ``mode: active`` drives it: it executes scheme_node's latest
+    suggestion (a uniform draw when none came within ``patience`` s) and publishes the command, then what the
+    camera sees after it."""
+
+    def __init__(self, node, tree, seed, patience=0.3):
+        from body_scheme_core.world import Body, ObservationModel
+        from body_scheme_msgs.msg import MarkerPoses
+
+        self.node, self.tree, self.patience = node, tree, patience
+        self.body, self.camera = Body(tree), ObservationModel(0.02, np.radians(5.0), 1.0, seed)
+        self.rng = np.random.default_rng(seed)
+        self.commands = node.create_publisher(JointState, "joint_commands", 10)
+        self.observations = node.create_publisher(MarkerPoses, "observations", 10)
+        self.suggestions = []
+        node.create_subscription(JointState, "body_scheme/exploration_command", self.suggestions.append, 100)
+        self._used, self._last = 0, -np.inf
+
+    def __call__(self):
+        """Execute the next suggestion as soon as it is there, or a uniform draw after ``patience`` s."""
+        now = self.node.get_clock().now().nanoseconds * 1e-9
+        if len(self.suggestions) > self._used:
+            _, a = conversions.actions_from_joint_state(self.suggestions[-1], self.tree.action_joint_names)
+            self._used = len(self.suggestions)
+        elif now - self._last > self.patience:
+            a = self.rng.uniform(self.tree.action_lower, self.tree.action_upper)
+        else:
+            return
+        self._last = now
+        self.commands.publish(conversions.joint_state_msg(now, self.tree.action_joint_names, a))
+        seen = self.camera.observe_array(self.body.true_marker_array(a[None]), self.tree.marker_ids)[0]
+        self.observations.publish(conversions.marker_poses_msg(now + 0.005, "camera", seen))
+
+
+def test_an_unsure_answer_is_explored_near_then_solved_again(start_node, ros_node, spin_until):
+    """explore_when_unsure: an answer that reaches the target but is not sure enough asks scheme_node to explore
+    near it; scheme_node's next suggestions lie near the answer, then it runs the joint fit and answers, and
+    control_node solves the request again on the new snapshot, once. A request scheme_node cannot serve is answered
+    with the reason and counted."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from body_scheme_msgs.msg import BodySchemeStructure, ExploreNear
+
+    tree = planar_2dof()
+    end_effector, samples, radius = max(tree.marker_ids), 4, 0.05
+    scheme_node = start_node("body_scheme_nodes", "scheme_node", {
+        "part_ids": [int(i) for i in tree.marker_ids], "joint_names": list(tree.action_joint_names),
+        "action_lower": tree.action_lower.tolist(), "action_upper": tree.action_upper.tolist(),
+        "pairing_grace": 0.05, "exploration": True, "exploration_candidates": 16})
+    control = start_node("body_scheme_nodes", "control_node", {
+        "part_id": int(end_effector), "tolerance": 0.003, "explore_when_unsure": True,
+        "explore_samples": samples, "explore_radius": radius})
+    results, requests, answers, structure, diagnostics = [], [], [], [], {}
+    ros_node.create_subscription(IKResult, "ik_result", results.append, 10)
+    ros_node.create_subscription(ExploreNear, "body_scheme/explore_near", requests.append, 10)
+    ros_node.create_subscription(ExploreNear, "body_scheme/explore_near/done", answers.append, 10)
+    ros_node.create_subscription(BodySchemeStructure, "body_scheme/structure", structure.append, LATCHED)
+    ros_node.create_subscription(DiagnosticArray, "/diagnostics", lambda msg: diagnostics.update(
+        {s.name: {kv.key: kv.value for kv in s.values} for s in msg.status}), 10)
+    follower = Follower(ros_node, tree, seed=3)
+    true_edges = {frozenset(e) for e in tree.marker_tree_edges()}
+
+    def learned():
+        return structure and structure[-1].phase != "bootstrapping" and all(e.valid for e in structure[-1].edges) \
+            and {frozenset((e.parent_id, e.child_id)) for e in structure[-1].edges} == true_edges
+
+    assert spin_until(learned, timeout=90, during=follower), scheme_node.output()[-3000:]
+    for _ in range(40):  # a few more samples: a joint fit with a covariance
+        spin_until(lambda: False, timeout=0.05, during=follower)
+
+    targets = ros_node.create_publisher(IKTarget, "ik_target", 10)
+    assert spin_until(lambda: targets.get_subscription_count() > 0, timeout=30), control.output()
+    target = IKTarget(part_id=-1)
+    target.header.frame_id = "camera"
+    reached = (ObservationModel(0.0, 0.0).world2root @ tree.marker_poses(np.array([0.5, -0.8]))[end_effector])
+    target.position.x, target.position.y, target.position.z = (float(v) for v in reached[:3, 3])
+    targets.publish(target)
+    assert spin_until(lambda: results, timeout=30, during=follower), control.output()
+    first = results[0]
+    assert first.converged and not first.success and f"exploring {samples} postures near it" in first.reason, first
+    assert first.explored_samples == 0
+    assert spin_until(lambda: answers and len(results) == 2, timeout=60, during=follower), (
+        results, answers, control.output()[-2000:], scheme_node.output()[-2000:])
+    assert len(requests) == 1 and answers[0].outcome == "" and answers[0].header.stamp == requests[0].header.stamp
+    span = tree.action_upper - tree.action_lower
+    near = [s for s in follower.suggestions
+            if np.all(np.abs(np.array(s.position) - np.array(first.actions)) <= radius * span + 1e-9)]
+    assert len(near) >= samples, f"{len(near)} of {len(follower.suggestions)} suggestions near the answer"
+    second = results[1]
+    assert second.explored_samples == samples and second.reason.startswith(f"after exploring {samples} postures")
+    assert "exploring" not in second.reason.split(":", 1)[1], second.reason  # once, not again
+    assert spin_until(lambda: diagnostics.get("/control_node: control", {}).get("explored") == "1"
+                      and diagnostics.get("/scheme_node: body scheme", {}).get("exploration.near_answered") == "1",
+                      timeout=10, during=follower), diagnostics
+
+    # A request scheme_node cannot serve (joints it does not have): answered at once with why, and counted.
+    bad = ExploreNear(joint_names=["elbow"], positions=[0.1], samples=2, radius=0.1)
+    bad.header.stamp.sec = 7
+    pub = ros_node.create_publisher(ExploreNear, "body_scheme/explore_near", 10)
+    assert spin_until(lambda: pub.get_subscription_count() > 0, timeout=10)
+    pub.publish(bad)
+    assert spin_until(lambda: len(answers) == 2, timeout=10, during=follower), answers
+    assert answers[1].header.stamp.sec == 7 and answers[1].outcome.startswith("refused:") and "lacks" in \
+        answers[1].outcome, answers[1].outcome
+    assert spin_until(lambda: diagnostics.get("/scheme_node: body scheme", {}).get("rejected.bad_explore_near")
+                      == "1", timeout=10, during=follower), diagnostics
+    assert len(results) == 2  # control_node ignores answers to requests it did not make

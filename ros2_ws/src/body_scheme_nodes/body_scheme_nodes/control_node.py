@@ -10,6 +10,8 @@ ik_target/point : geometry_msgs/PointStamped
     Target position of the ``part_id`` parameter's part.
 joint_commands : sensor_msgs/JointState
     The latest command (from anyone) is the IK start point.
+body_scheme/explore_near/done : body_scheme_msgs/ExploreNear  (``explore_when_unsure``)
+    scheme_node's answer to a request to explore near an unsure answer.
 observations : body_scheme_msgs/MarkerPoses  (execute)
     Where the part is seen after an executed move.
 /joint_states : sensor_msgs/JointState  (execute; ``joint_states_topic``)
@@ -26,8 +28,12 @@ ik_result : body_scheme_msgs/IKResult
     One per request, success or not, with the reason; with ``execute``, after the move: ``executed``, where the part
     went (``reached``: seen by the camera after the move, else predicted at the joint states) and its distance from
     the target.
+body_scheme/explore_near : body_scheme_msgs/ExploreNear  (``explore_when_unsure``)
+    An answer that reaches the target but is not sure enough: scheme_node explores ``explore_samples`` postures near
+    it, runs the joint fit and answers; the request is then solved again on the new snapshot and answered a second
+    time (``IKResult.explored_samples``), once.
 /diagnostics : diagnostic_msgs/DiagnosticArray
-    ``body_scheme: control``: model age, requests, successes, last outcome (1 Hz).
+    ``body_scheme: control``: model age, requests, successes, explorations, last outcome (1 Hz).
 
 Parameters
 ----------
@@ -43,6 +49,9 @@ trajectory_period : double 0.05 s    time between interpolated commands
 stay_in_training_range : bool true   search only actions the learned local models were trained on
                                      (:func:`~body_scheme_core.control.ik.trained_bounds`); false: the full joint limits
 execute : bool false                 move the arm through its JointTrajectoryController (arm_driver)
+explore_when_unsure : bool false     ask scheme_node (with ``exploration`` true) to explore near an unsure answer,
+                                     then solve again
+explore_samples : int 5, explore_radius : double 0.1 (of each joint's range), explore_timeout : double 60.0 s
 observe_timeout : double 1.0 s       execute: how long to wait for the camera to see the part after the move
 robot, controller, joint_states_topic, max_velocity, max_acceleration, limit_margin, workspace, collision_check,
 package_path, settle_*               execute: as babble_node's (config/babble_node.yaml)
@@ -64,13 +73,29 @@ from sensor_msgs.msg import JointState
 
 from body_scheme_core.control import solve_ik, trained_bounds
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_msgs.msg import IKResult, IKTarget, MarkerPoses, ModelSnapshot
+from body_scheme_msgs.msg import ExploreNear, IKResult, IKTarget, MarkerPoses, ModelSnapshot
 
 from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .spin import run_node
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class ExploreSettings:
+    """``explore_when_unsure`` and its parameters, checked."""
+
+    def __init__(self, enabled, samples, radius, timeout):
+        if not isinstance(enabled, bool):
+            raise InvalidInputError(f"explore_when_unsure must be true or false, got {enabled!r}")
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 1000:
+            raise InvalidInputError(f"explore_samples must be an integer from 1 to 1000, got {samples!r}")
+        if not (isinstance(radius, float) and 0.0 < radius <= 1.0):
+            raise InvalidInputError(f"explore_radius must be a number in (0, 1] (of each joint's range), got "
+                                    f"{radius!r}")
+        if not (isinstance(timeout, float) and np.isfinite(timeout) and timeout > 0):
+            raise InvalidInputError(f"explore_timeout must be a number > 0 (s), got {timeout!r}")
+        self.enabled, self.samples, self.radius, self.timeout = enabled, samples, radius, timeout
 
 
 class ControlNode(Node):
@@ -92,17 +117,24 @@ class ControlNode(Node):
         self.stay_in_training_range = self.declare_parameter("stay_in_training_range", True).value
         self.execute = self.declare_parameter("execute", False).value
         self.observe_timeout = self.declare_parameter("observe_timeout", 1.0).value
+        self.explore = ExploreSettings(self.declare_parameter("explore_when_unsure", False).value,
+                                       self.declare_parameter("explore_samples", 5).value,
+                                       self.declare_parameter("explore_radius", 0.1).value,
+                                       self.declare_parameter("explore_timeout", 60.0).value)
         driver_values = declare_driver_parameters(self)
         self.driver = driver_from_parameters(self, driver_values) if self.execute else None
         self.moving = None  # execute: (IKResult, part, target, model) of the move under way
         self.settled_at = None  # execute: (time s, positions) the move settled at, until the part is seen
         self.seen = {}  # part -> (stamp s, camera2part) of its last observation
 
-        self.model = None  # (scheme, world2root, lower, upper, joint names, frame_id, received_at)
+        self.model = None  # (scheme, world2root, lower, upper, joint names, frame_id, received_at, step)
         self.current = None  # latest commanded actions, in the model's joint order
-        self.requests = deque()  # (stamp msg, part, frame_id, position) awaiting a solve
+        self.requests = deque()  # (header, part, position, samples explored near an earlier answer) awaiting a solve
+        self.exploring = None  # (request ExploreNear, header, part, target, asked at) awaiting scheme_node's answer
+        self.resolve = None  # (header, part, target, step): solve again once the snapshot is of this step
         self.trajectory = deque()  # action vectors still to command
-        self.counts = {"requests": 0, "succeeded": 0, "failed": 0, "executed": 0}
+        self.counts = {"requests": 0, "succeeded": 0, "failed": 0, "executed": 0, "explored": 0,
+                       "explore_refused": 0, "explore_timeouts": 0}
         self.last_outcome = "none yet"
         self.last_uncertainty = (float("nan"), float("nan"))  # position_std, error_bound (m) of the last answer
         self._lock = threading.Lock()
@@ -114,6 +146,9 @@ class ControlNode(Node):
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
         if self.execute:
             self.create_subscription(MarkerPoses, "observations", self._on_observations, 10)
+        if self.explore.enabled:
+            self.pub_explore = self.create_publisher(ExploreNear, "body_scheme/explore_near", 10)
+            self.create_subscription(ExploreNear, "body_scheme/explore_near/done", self._on_explored, 10)
         self.pub_command = self.create_publisher(JointState, "joint_commands", 10)
         self.pub_result = self.create_publisher(IKResult, "ik_result", 10)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -131,7 +166,7 @@ class ControlNode(Node):
             return
         with self._lock:
             self.model = (scheme, world2root, lower, upper, list(msg.action_names), msg.header.frame_id,
-                          time.monotonic())
+                          time.monotonic(), msg.step)
 
     def _on_command(self, msg):
         with self._lock:
@@ -155,25 +190,45 @@ class ControlNode(Node):
         part = self.default_part if msg.part_id < 0 else msg.part_id
         p = msg.position
         with self._lock:
-            self.requests.append((msg.header, int(part), [p.x, p.y, p.z]))
+            self.requests.append((msg.header, int(part), [p.x, p.y, p.z], 0))
 
     def _on_point(self, msg):
         p = msg.point
         with self._lock:
-            self.requests.append((msg.header, int(self.default_part), [p.x, p.y, p.z]))
+            self.requests.append((msg.header, int(self.default_part), [p.x, p.y, p.z], 0))
+
+    def _on_explored(self, msg):
+        """scheme_node served (or refused) our request to explore near an unsure answer."""
+        with self._lock:
+            if self.exploring is None or self.exploring[0].header.stamp != msg.header.stamp:
+                return  # another control_node's request, or one we gave up on
+            _, header, part, target, _ = self.exploring
+            self.exploring = None
+            if msg.outcome:
+                self.counts["explore_refused"] += 1
+            else:
+                self.resolve = (header, part, target, msg.step)
+        if msg.outcome:
+            self.get_logger().warn(f"exploring near the answer for part {part}: {msg.outcome}")
 
     # -- work in timers --------------------------------------------------------------------------------------------
     def _solve_pending(self):
         if self.moving is not None:
             self._watch_move()
             return
+        self._follow_exploration()
         with self._lock:
             if not self.requests:
                 return
-            header, part, target = self.requests.popleft()
+            header, part, target, explored = self.requests.popleft()
             model = self.model
         self.counts["requests"] += 1
         result = self._solve(header, part, target, model)
+        result.explored_samples = explored
+        if explored:
+            result.reason = f"after exploring {explored} postures near the first answer: {result.reason}"
+        elif self.explore.enabled and result.converged and not result.success:
+            result.reason += self._ask_to_explore(header, part, target, result.actions, model)
         if self.execute and result.success:
             why = self._send(result, model)
             if why is None:
@@ -181,6 +236,34 @@ class ControlNode(Node):
                 return
             result.reason = f"converged, not executed: {why}"
         self._report(result, part, target)
+
+    def _ask_to_explore(self, header, part, target, actions, model):
+        """Ask scheme_node to explore near ``actions``; returns what to add to the answer's reason."""
+        if self.exploring is not None or self.resolve is not None:
+            return "; not exploring near it: exploring near an earlier answer"
+        request = ExploreNear(joint_names=model[4], positions=list(actions), samples=self.explore.samples,
+                              radius=self.explore.radius)
+        request.header.stamp = self.get_clock().now().to_msg()
+        with self._lock:
+            self.exploring = (request, header, part, target, time.monotonic())
+        self.counts["explored"] += 1
+        self.pub_explore.publish(request)
+        return f"; exploring {self.explore.samples} postures near it, then solving again"
+
+    def _follow_exploration(self):
+        """Solve an explored request again once the snapshot of scheme_node's joint fit arrived; give up on an
+        exploration that was not answered within ``explore_timeout``."""
+        with self._lock:
+            if self.exploring is not None and time.monotonic() - self.exploring[4] > self.explore.timeout:
+                part, self.exploring = self.exploring[2], None
+                self.counts["explore_timeouts"] += 1
+                self.get_logger().warn(f"no answer to exploring near the answer for part {part} within "
+                                       f"{self.explore.timeout} s: is scheme_node running with exploration true, "
+                                       f"and a babble_node in mode active?")
+            if self.resolve is not None and self.model is not None and self.model[7] >= self.resolve[3]:
+                header, part, target, _ = self.resolve
+                self.resolve = None
+                self.requests.appendleft((header, part, target, self.explore.samples))
 
     def _report(self, result, part, target):
         self.counts["succeeded" if result.success else "failed"] += 1
@@ -246,7 +329,7 @@ class ControlNode(Node):
         if model is None or model[0] is None:
             result.reason = "no body scheme yet: waiting for a model snapshot from scheme_node"
             return result
-        scheme, world2root, lower, upper, names, frame_id, received_at = model
+        scheme, world2root, lower, upper, names, frame_id, received_at, _ = model
         age = time.monotonic() - received_at
         if self.max_age > 0 and age > self.max_age:
             result.reason = f"model snapshot is stale: {age:.1f} s old (max_snapshot_age {self.max_age} s)"

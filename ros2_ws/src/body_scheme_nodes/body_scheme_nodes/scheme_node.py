@@ -6,6 +6,9 @@ joint_commands : sensor_msgs/JointState
     The action signals (commanded joint angles), in ``joint_names`` order.
 observations : body_scheme_msgs/MarkerPoses
     Marker poses from the tracker, in the camera frame.
+body_scheme/explore_near : body_scheme_msgs/ExploreNear
+    A request (control_node's, when an IK answer is not sure enough) to explore near a posture: the next
+    ``samples`` suggestions are drawn there, then the joint fit runs (body_scheme_nodes.explorer).
 
 Publishers
 ----------
@@ -13,6 +16,7 @@ predicted_poses : body_scheme_msgs/MarkerPoses
     Predicted pose of every part (also unobserved ones) for each paired command, with covariance.
 body_scheme/structure : body_scheme_msgs/BodySchemeStructure  (transient local)
 body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
+    The body scheme for control_node: with the structure, and within a second of a joint fit that changed it.
 body_scheme/events : body_scheme_msgs/SchemeEvent
 /diagnostics : diagnostic_msgs/DiagnosticArray
 body_scheme/progress : std_msgs/UInt64
@@ -25,6 +29,9 @@ body_scheme/exploration_command : sensor_msgs/JointState  (``exploration`` true)
     After each learnt sample, the next command to babble (body_scheme_core.control.exploration: a uniform draw while
     bootstrapping, then the posture expected to make the body scheme surest); babble_node's ``mode: active``
     follows it.
+body_scheme/explore_near/done : body_scheme_msgs/ExploreNear
+    Each request echoed once it is served (``step``: the learner's step after the joint fit, whose snapshot is
+    published first) or refused (``outcome``: why; e.g. ``exploration`` false).
 
 Services
 --------
@@ -86,15 +93,14 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, JointState
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
 from std_msgs.msg import String, UInt64
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
-from body_scheme_core.control import ExplorationPolicy, in_camera_view
-from body_scheme_core.errors import BodySchemeError, InvalidInputError, ModelFileError
+from body_scheme_core.errors import BodySchemeError, ModelFileError
 from body_scheme_core.learning import encode_state, load_state, write_state_text
 from body_scheme_core.prediction import learned_tree, learned_urdf
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -102,13 +108,12 @@ from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
 from . import conversions, scheme_diagnostics, state_files, view
 from .checkpoint import Checkpoint
+from .explorer import SchemeExplorer
 from .intake import BatchIntake, RequestIntake
 from .message_feed import feed_message, learn_sample
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
 
-#: Fraction of the image's width and height kept clear at each border by the exploration's view constraint.
-VIEW_MARGIN = 0.1
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -157,19 +162,8 @@ class SchemeNode(Node):
         self.pub_structure = self.create_publisher(BodySchemeStructure, "body_scheme/structure", LATCHED)
         self.pub_snapshot = self.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
         self.pub_events = self.create_publisher(SchemeEvent, "body_scheme/events", 100)
-        self.explorer = None
-        if self.settings.exploration:
-            self.explorer = ExplorationPolicy(self.settings.action_lower, self.settings.action_upper,
-                                              self.settings.exploration_candidates,
-                                              travel_weight=self.settings.exploration_travel_weight,
-                                              noise=self.learner.config.prior_sigma_trans / math.sqrt(3.0))
-            self.pub_exploration = self.create_publisher(JointState, "body_scheme/exploration_command", 10)
-            self.camera = None  # (K, width, height) of the last valid CameraInfo
-            if self.settings.exploration_camera_info:
-                self.create_subscription(CameraInfo, self.settings.exploration_camera_info, self._on_camera_info,
-                                         qos_profile_sensor_data)  # best effort: matches either publisher
-        elif self.settings.exploration_camera_info:
-            self.get_logger().warn("exploration_camera_info is set but exploration is false: it is ignored")
+        self.explorer = SchemeExplorer(self, self.settings, self.learner.config.prior_sigma_trans / math.sqrt(3.0),
+                                       self._publish_snapshot)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", 10)
         self.pub_markers = self.create_publisher(MarkerArray, "body_scheme/markers", 10)
@@ -192,6 +186,7 @@ class SchemeNode(Node):
         if self.checkpoint is not None:
             self.create_timer(self.settings.checkpoint_period, self._checkpoint)
         self._last_structure_key = None
+        self._snapshot_scheme = None  # the body scheme of the last snapshot
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_structure(force=True)
         # Learning runs in a thread of its own, not in an executor callback: the executor's thread only takes
@@ -379,34 +374,6 @@ class SchemeNode(Node):
             return False
         return True
 
-    def _suggest(self, stamp, actions):
-        """Publish the next command to babble after the sample at ``actions`` was learnt, stamped with the sample's
-        stamp (babble_node takes it only if it is not older than its last action)."""
-        learner = self.learner
-        scheme = learner.body_scheme if learner.phase != "bootstrapping" else None
-        self.explorer.noise = learner.noise.sigma_trans / math.sqrt(3.0)  # the camera as the learner knows it now
-        in_view = None
-        camera = self.camera
-        if camera is not None and learner.body_scheme is not None:
-            in_view = in_camera_view(learner.body_scheme, learner.root_pose, *camera, margin=VIEW_MARGIN)
-        command = self.explorer.suggest(scheme, current=actions, feasible=in_view)
-        if command is not None:
-            self.pub_exploration.publish(conversions.joint_state_msg(stamp, self.joint_names, command))
-
-    def _on_camera_info(self, msg):
-        """Keep the camera's intrinsics and image size for the view constraint; an uncalibrated camera or an empty
-        image is counted (``rejected.bad_camera_info``) and ignored."""
-        try:
-            K = conversions.camera_matrix_from_info(msg)
-            if msg.width < 1 or msg.height < 1:
-                raise InvalidInputError(f"CameraInfo has an empty image ({msg.width} x {msg.height})")
-        except BodySchemeError as exc:
-            with self._lock:  # the executor's thread: the learning thread counts under the learner lock
-                self.refused_at_intake["bad_camera_info"] += 1
-            self.get_logger().warn(f"rejected input (bad_camera_info): {exc}", throttle_duration_sec=5.0)
-            return
-        self.camera = (K, int(msg.width), int(msg.height))
-
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()
         events, rejection = learn_sample(self.learner, stamp, actions, observations)
@@ -415,8 +382,7 @@ class SchemeNode(Node):
             return
         self.last_learn_time = self._now()
         self.latency.append(time.perf_counter() - start)
-        if self.explorer is not None:
-            self._suggest(stamp, actions)
+        events = events + self.explorer.after_learning(self.learner, stamp, actions)
         for event in events:
             self.event_counts[event.kind] += 1
             self.pub_events.publish(conversions.event_msg(stamp, event))
@@ -474,15 +440,27 @@ class SchemeNode(Node):
         stamp = self.get_clock().now().nanoseconds * 1e-9
         self.pub_structure.publish(conversions.structure_msg(
             stamp, learner.step, learner.phase, learner.root, learner.part_ids, edges))
+        self._publish_snapshot()
+
+    def _publish_snapshot(self):
+        """The body scheme for control_node: with the structure, after the joint fit that ends an exploration near a
+        posture, and once a second when a joint fit changed it (:meth:`_publish_refit`)."""
+        learner = self.learner
+        self._snapshot_scheme = scheme = learner.body_scheme
         self.pub_snapshot.publish(conversions.snapshot_msg(
-            stamp, self.frame_id, learner.step, learner.body_scheme, self.joint_names, self.settings.action_lower,
-            self.settings.action_upper,
-            learner.root_pose))
+            self.get_clock().now().nanoseconds * 1e-9, self.frame_id, learner.step, scheme, self.joint_names,
+            self.settings.action_lower, self.settings.action_upper, learner.root_pose))
+
+    def _publish_refit(self):
+        """The snapshot again if the body scheme is not the one last published (a joint fit refitted it)."""
+        if self.learner.body_scheme is not self._snapshot_scheme:
+            self._publish_snapshot()
 
     def _publish_diagnostics(self):
         with self._learner_lock:
             self._publish_diagnostics_locked()
             self._publish_description()
+            self._publish_refit()
 
     def _publish_diagnostics_locked(self):
         learner = self.learner
@@ -492,7 +470,9 @@ class SchemeNode(Node):
         level, message = scheme_diagnostics.scheme_level(learner, edges, self._stalled_for())
         with self._lock:
             at_intake = Counter(self.refused_at_intake)
-        rejected = Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected) + at_intake
+        explored_rejected, explored = self.explorer.diagnostics()
+        rejected = (Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected) + at_intake
+                    + explored_rejected)
         values = scheme_diagnostics.learner_values(learner, edges, self.latency, self.lag)
         values["rejected_total"] = sum(rejected.values())
         # Events are cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
@@ -504,6 +484,8 @@ class SchemeNode(Node):
             values[f"lost.{kind}_full_queue_takes"] = intake.full_queue_takes
         values.update(scheme_diagnostics.counter_values({"services": self.requests}))
         values["pending_samples"] = len(self._pending)
+        values["pairing_waiting"] = self.pairer.waiting  # observations waiting for their command
+        values.update(explored)
         name = self.get_fully_qualified_name()
         hardware_id = self.settings.hardware_id or name
         array.status.append(conversions.diagnostic_status(f"{name}: body scheme", level, message, values,

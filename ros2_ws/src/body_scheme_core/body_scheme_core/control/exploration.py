@@ -26,7 +26,7 @@ on the 6-DOF arm: tens of ms).
 
 Scores are scaled by their mean over the candidates, so ``travel_weight`` trades a unit of relative information
 against moving across the whole joint range. :func:`explore_near` teaches the learner around one posture (an IK
-answer it is unsure of).
+answer it is unsure of); :class:`NearFocus` does it one suggestion at a time, for scheme_node.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import InvalidInputError
 from ..prediction import parameter_jacobian
 
-__all__ = ["ExplorationPolicy", "PAPER_NOISE", "explore_near", "in_camera_view"]
+__all__ = ["ExplorationPolicy", "NearFocus", "PAPER_NOISE", "explore_near", "in_camera_view"]
 
 #: The camera's positional noise per axis (m) the policy assumes by default: the paper's 44 mm 3D RMS.
 PAPER_NOISE = 0.044 / np.sqrt(3.0)
@@ -220,6 +220,59 @@ def in_camera_view(scheme, world2root, K, width, height, parts=None, margin=0.05
     return feasible
 
 
+class NearFocus:
+    """Exploration near one posture, one suggestion at a time: the streaming form of :func:`explore_near`, for a
+    learner fed by a camera (scheme_node) rather than by a callback.
+
+    Draw the next ``n_samples`` suggestions with :meth:`suggest`; once the sample of the last of them is learnt,
+    run the joint fit (:meth:`BodySchemeLearner.recalibrate`) and solve again.
+
+    Parameters
+    ----------
+    actions : array-like, shape (m,)
+        The posture to explore near (an IK answer whose predicted error is too large).
+    n_samples : int
+        Suggestions near it (>= 1).
+    radius : float
+        Fraction of each joint's range around it (> 0, at most 1).
+
+    Raises
+    ------
+    InvalidInputError
+        On a posture that is not a finite vector, or bad settings.
+    """
+
+    def __init__(self, actions, n_samples=5, radius=0.1):
+        self.actions = np.asarray(actions, dtype=float)
+        if self.actions.ndim != 1 or not np.all(np.isfinite(self.actions)):
+            raise InvalidInputError(f"the posture to explore near must be a finite vector, got {actions!r}")
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
+            raise InvalidInputError(f"n_samples must be an integer >= 1, got {n_samples!r}")
+        if not (_positive(radius) and radius <= 1.0):
+            raise InvalidInputError(f"radius must be a number in (0, 1], got {radius!r}")
+        self.radius = float(radius)
+        #: Suggestions still to draw near :attr:`actions`.
+        self.left = int(n_samples)
+
+    @property
+    def done(self):
+        """Whether every suggestion was drawn."""
+        return self.left == 0
+
+    def suggest(self, policy, scheme=None, current=None, feasible=None):
+        """The next command near :attr:`actions` (:meth:`ExplorationPolicy.suggest` with ``near``), or None when
+        every suggestion was drawn or none near it is feasible (then :attr:`done` stays False)."""
+        if self.done:
+            return None
+        if self.actions.shape != policy.lower.shape:
+            raise InvalidInputError(f"the posture to explore near has {self.actions.size} actions, the policy "
+                                    f"{policy.lower.size}")
+        command = policy.suggest(scheme, current, near=self.actions, radius=self.radius, feasible=feasible)
+        if command is not None:
+            self.left -= 1
+        return command
+
+
 def explore_near(learner, policy, actions, observe, n_samples=5, radius=0.1):
     """Teach ``learner`` where it is unsure: ``n_samples`` commands chosen by ``policy`` near ``actions`` (an IK
     answer whose predicted error is too large), each executed and observed through ``observe(a) -> {part:
@@ -230,11 +283,9 @@ def explore_near(learner, policy, actions, observe, n_samples=5, radius=0.1):
     list of Event
         The learner's events of those steps.
     """
-    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
-        raise InvalidInputError(f"n_samples must be an integer >= 1, got {n_samples!r}")
-    events, current = [], np.asarray(actions, dtype=float)
-    for _ in range(int(n_samples)):
-        a = policy.suggest(learner.body_scheme, current, near=actions, radius=radius)
+    focus, events, current = NearFocus(actions, n_samples, radius), [], np.asarray(actions, dtype=float)
+    while not focus.done:
+        a = focus.suggest(policy, learner.body_scheme, current)
         if a is None:
             break
         events += learner.update(a, observe(a))

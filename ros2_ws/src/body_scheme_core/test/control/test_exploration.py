@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from body_scheme_core.control.exploration import ExplorationPolicy, explore_near, in_camera_view
+from body_scheme_core.control.exploration import ExplorationPolicy, NearFocus, explore_near, in_camera_view
 from body_scheme_core.errors import InvalidInputError, LearnerStepError
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.prediction.uncertainty import parameter_jacobian
@@ -125,6 +125,30 @@ def test_explore_near_observes_each_chosen_command_then_refits(learned):
     assert learner._calibrated.step == learner.step - 1
     with pytest.raises(InvalidInputError, match="n_samples"):
         explore_near(learner, policy, answer, observe, n_samples=0)
+
+
+def test_a_near_focus_draws_its_samples_near_the_posture_then_is_done():
+    """NearFocus hands out exactly ``n_samples`` suggestions within ``radius`` of the posture, none after; a
+    suggestion that finds no feasible candidate is not counted; a posture of another size is refused."""
+    lower, upper = np.array([-1.0, 0.0, -2.0]), np.array([1.0, 3.0, 2.0])
+    policy, answer = ExplorationPolicy(lower, upper, n_candidates=8, rng=1), np.array([0.5, 2.9, -1.0])
+    focus = NearFocus(answer, n_samples=3, radius=0.05)
+    assert focus.suggest(policy, feasible=lambda C: np.zeros(len(C), bool)) is None and focus.left == 3
+    drawn = [focus.suggest(policy) for _ in range(3)]
+    assert focus.done and focus.suggest(policy) is None
+    for a in drawn:
+        assert np.all(np.abs(a - answer) <= 0.05 * (upper - lower) + 1e-12)
+        assert np.all(a >= lower) and np.all(a <= upper)
+    with pytest.raises(InvalidInputError, match="actions"):
+        NearFocus([0.0, 1.0]).suggest(policy)
+
+
+@pytest.mark.parametrize("args, match", [
+    (([0.0, np.nan],), "finite"), (([[0.0]],), "finite"), (([0.0], 0), "n_samples"), (([0.0], True), "n_samples"),
+    (([0.0], 2, 0.0), "radius"), (([0.0], 2, 1.5), "radius")])
+def test_a_bad_near_focus_is_refused(args, match):
+    with pytest.raises(InvalidInputError, match=match):
+        NearFocus(*args)
 
 
 def test_in_camera_view_keeps_the_postures_whose_markers_the_camera_would_see(learned):

@@ -1,0 +1,161 @@
+"""scheme_node's active exploration (body_scheme_core.control.exploration) over topics.
+
+After each learnt sample, :meth:`SchemeExplorer.after_learning` publishes the next command to babble on
+``body_scheme/exploration_command``, within the camera's view once a CameraInfo arrived. A request on
+``body_scheme/explore_near`` (control_node, when an IK answer is not sure enough) turns the next ``samples``
+suggestions towards its posture (:class:`~body_scheme_core.control.exploration.NearFocus`); once the last of them is
+learnt, the joint fit runs, the body scheme snapshot is published and the request is answered on
+``body_scheme/explore_near/done``. A request that cannot be served (exploration off, wrong joints, bad values) is
+answered at once with the reason, and counted (``rejected.bad_explore_near``).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import Counter
+
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, JointState
+
+from body_scheme_core.control import ExplorationPolicy, NearFocus, in_camera_view
+from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_msgs.msg import ExploreNear
+
+from . import conversions
+
+#: Fraction of the image's width and height kept clear at each border by the exploration's view constraint.
+VIEW_MARGIN = 0.1
+
+
+class SchemeExplorer:
+    """The exploration topics of scheme_node ``node``: its ``settings`` (SchemeSettings), the camera's positional noise
+    per axis (m) to assume until the learner has its own estimate, and ``publish_snapshot()``, called after the joint
+    fit that ends an exploration near a posture."""
+
+    def __init__(self, node, settings, noise, publish_snapshot):
+        self.node, self.joint_names, self.publish_snapshot = node, list(settings.joint_names), publish_snapshot
+        self.policy = None
+        self.camera = None  # (K, width, height) of the last valid CameraInfo
+        self.rejected = Counter()  # bad_camera_info, bad_explore_near: by the executor's thread under _lock
+        self.counts = Counter()  # near_requests, near_answered: by either thread under _lock
+        self._lock = threading.Lock()
+        self._requested = None  # (request, NearFocus) not taken up by the learning thread yet
+        self._focus = None  # (request, NearFocus) being explored
+        self._to_finish = None  # (request, NearFocus) whose last sample is the next one learnt
+        if settings.exploration:
+            self.policy = ExplorationPolicy(settings.action_lower, settings.action_upper,
+                                            settings.exploration_candidates,
+                                            travel_weight=settings.exploration_travel_weight,
+                                            noise=noise)
+            self.pub_command = node.create_publisher(JointState, "body_scheme/exploration_command", 10)
+            if settings.exploration_camera_info:
+                node.create_subscription(CameraInfo, settings.exploration_camera_info, self._on_camera_info,
+                                         qos_profile_sensor_data)  # best effort: matches either publisher
+        elif settings.exploration_camera_info:
+            node.get_logger().warn("exploration_camera_info is set but exploration is false: it is ignored")
+        self.pub_done = node.create_publisher(ExploreNear, "body_scheme/explore_near/done", 10)
+        node.create_subscription(ExploreNear, "body_scheme/explore_near", self._on_explore_near, 10)
+
+    # -- the executor's thread ---------------------------------------------------------------------------------------
+    def _on_camera_info(self, msg):
+        """Keep the camera's intrinsics and image size for the view constraint; an uncalibrated camera or an empty
+        image is counted (``rejected.bad_camera_info``) and ignored."""
+        try:
+            K = conversions.camera_matrix_from_info(msg)
+            if msg.width < 1 or msg.height < 1:
+                raise InvalidInputError(f"CameraInfo has an empty image ({msg.width} x {msg.height})")
+        except BodySchemeError as exc:
+            self._refuse("bad_camera_info", exc)
+            return
+        self.camera = (K, int(msg.width), int(msg.height))
+
+    def _on_explore_near(self, msg):
+        """Take a request up (a newer one replaces it until the learning thread takes it), or answer why not."""
+        with self._lock:
+            self.counts["near_requests"] += 1
+        if self.policy is None:
+            self._answer(msg, 0, "refused: exploration is false on this scheme_node (set exploration: true)")
+            return
+        try:
+            _, actions = conversions.actions_from_joint_state(
+                JointState(name=list(msg.joint_names), position=list(msg.positions)), self.joint_names)
+            focus = NearFocus(actions, int(msg.samples), msg.radius)
+        except BodySchemeError as exc:
+            self._refuse("bad_explore_near", exc)
+            self._answer(msg, 0, f"refused: {exc}")
+            return
+        with self._lock:
+            replaced, self._requested = self._requested, (msg, focus)
+        if replaced is not None:
+            self._answer(replaced[0], 0, "replaced by a newer request before it started")
+
+    def _refuse(self, code, exc):
+        with self._lock:
+            self.rejected[code] += 1
+        self.node.get_logger().warn(f"rejected input ({code}): {exc}", throttle_duration_sec=5.0)
+
+    def _answer(self, request, step, outcome):
+        answer = ExploreNear(header=request.header, joint_names=list(request.joint_names),
+                             positions=list(request.positions), samples=request.samples, radius=request.radius,
+                             step=int(step), outcome=outcome)
+        with self._lock:
+            self.counts["near_answered"] += 1
+        self.pub_done.publish(answer)
+
+    # -- the learning thread -----------------------------------------------------------------------------------------
+    def after_learning(self, learner, stamp, actions):
+        """After the sample at ``actions`` (stamp ``stamp``) was learnt: end an exploration near a posture whose
+        last sample this was, then publish the next command (if exploration is on). Returns the learner's events of
+        the joint fit that ends it."""
+        events = self._finish(learner)
+        if self.policy is None:
+            return events
+        with self._lock:
+            requested, self._requested = self._requested, None
+        if requested is not None:
+            if self._focus is not None:
+                self._answer(self._focus[0], learner.step, "replaced by a newer request")
+            self._focus = requested
+        scheme = learner.body_scheme if learner.phase != "bootstrapping" else None
+        self.policy.noise = learner.noise.sigma_trans / math.sqrt(3.0)  # the camera as the learner knows it now
+        in_view = None
+        camera = self.camera
+        if camera is not None and learner.body_scheme is not None:
+            in_view = in_camera_view(learner.body_scheme, learner.root_pose, *camera, margin=VIEW_MARGIN)
+        if self._focus is None:
+            command = self.policy.suggest(scheme, current=actions, feasible=in_view)
+        else:
+            request, focus = self._focus
+            command = focus.suggest(self.policy, scheme, current=actions, feasible=in_view)
+            if command is None:
+                self._focus = None
+                self._answer(request, learner.step, "refused: no feasible posture near it (limits, camera view)")
+                command = self.policy.suggest(scheme, current=actions, feasible=in_view)
+            elif focus.done:
+                self._focus, self._to_finish = None, self._focus
+        if command is not None:
+            self.pub_command.publish(conversions.joint_state_msg(stamp, self.joint_names, command))
+        return events
+
+    def _finish(self, learner):
+        """The joint fit after the last sample near a posture, the snapshot, and the answer."""
+        if self._to_finish is None:
+            return []
+        request, self._to_finish = self._to_finish[0], None
+        try:
+            events, outcome = learner.recalibrate(), ""
+        except BodySchemeError as exc:  # undone by the learner: the body scheme stays as it was
+            events, outcome = [], f"the joint fit failed and was undone: {exc}"
+        self.publish_snapshot()
+        self._answer(request, learner.step, outcome)
+        return events
+
+    def diagnostics(self):
+        """(rejected counts, values) for /diagnostics."""
+        with self._lock:
+            values = {f"exploration.{k}": n for k, n in self.counts.items()}
+            rejected = Counter(self.rejected)
+        if self._focus is not None:
+            values["exploration.near_samples_left"] = self._focus[1].left
+        return rejected, values
