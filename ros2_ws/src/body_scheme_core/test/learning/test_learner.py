@@ -89,6 +89,7 @@ def test_prediction_error_below_the_observation_noise():
     assert prediction_error < observation_error
 
 
+@pytest.mark.slow
 def test_no_false_alarms_on_a_long_clean_run():
     """2000 clean steps with the engineered scheme at the paper's noise and 90 % visibility: no mismatch."""
     robot = powercube_6dof()
@@ -167,6 +168,7 @@ def test_deformed_limb_detected_replaced_repaired_and_reused():
     assert all(status["valid"] for status in learner.edge_status())
 
 
+@pytest.mark.slow
 def test_displaced_marker_detected_and_recovered_from_scratch():
     """A marker moved on its link after bootstrapping from scratch: only its edge is replaced."""
     robot = powercube_6dof()
@@ -295,7 +297,8 @@ def test_root_pose_is_a_robust_mean_of_root_observations():
     assert np.linalg.norm(learner.root_pose[:3, 3] - true_root[:3, 3]) < 0.03
 
 
-@pytest.mark.parametrize("cut", [20, 103, 150])
+@pytest.mark.parametrize("cut", [20, pytest.param(103, marks=pytest.mark.slow),
+                                 pytest.param(150, marks=pytest.mark.slow)])
 def test_restored_learner_continues_bit_identically(cut):
     """Save mid-bootstrap, mid-adaptation or in steady state; both learners then produce identical output."""
     session = joint_blocked_protocol(0)

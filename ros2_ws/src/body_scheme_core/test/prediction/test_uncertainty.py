@@ -40,6 +40,7 @@ def test_the_joint_fit_leaves_its_covariance_with_the_scheme(learned):
         start += p
 
 
+@pytest.mark.slow
 def test_first_order_propagation_matches_sampling_the_joint_covariance(learned):
     """Parameters drawn from the joint covariance (cross terms included) move the tip as the first-order covariance
     says (within 15 % in every direction); dropping the cross terms gives another, larger answer."""
