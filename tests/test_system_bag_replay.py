@@ -64,7 +64,7 @@ def test_replay_through_the_graph_equals_the_offline_replay(start_node, ros_node
     assert spin_until(lambda: collector.structure is not None
                       and collector.events_subscription.get_publisher_count() > 0, timeout=30), scheme.output()
     replay = start_node("body_scheme_nodes", "bag_replay",
-                        {"bag_path": str(BAG), "rate": 0.0, "start_delay": 0.5, "max_in_flight": 10})
+                        {"bag_path": str(BAG), "rate": 0.0, "start_delay": 0.5})
     started = time.monotonic()
     assert spin_until(lambda: collector.done is not None, timeout=40), (replay.output(), scheme.output())
     replay_seconds = time.monotonic() - started

@@ -226,3 +226,62 @@ def test_an_unsure_answer_is_explored_near_then_solved_again(start_node, ros_nod
     assert spin_until(lambda: diagnostics.get("/scheme_node: body scheme", {}).get("rejected.bad_explore_near")
                       == "1", timeout=10, during=follower), diagnostics
     assert len(results) == 2  # control_node ignores answers to requests it did not make
+
+
+def test_an_unsure_answer_is_answered_again_when_exploring_is_refused_or_unanswered(start_node, ros_node,
+                                                                                    spin_until):
+    """explore_when_unsure without a scheme_node that explores: a refusal, or no answer within explore_timeout,
+    still gives the request its second answer, which says why it was not explored; answers to requests
+    control_node did not make change nothing."""
+    from body_scheme_core.learning import BodySchemeLearner
+    from body_scheme_core.world import make_session
+    from body_scheme_msgs.msg import ExploreNear
+
+    tree = planar_2dof()
+    end_effector = max(tree.marker_ids)
+    session = make_session(tree, 60, 0)  # the paper's noise: an unsure body scheme
+    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions, action_lower=tree.action_lower,
+                                action_upper=tree.action_upper)
+    for t in range(60):
+        learner.update(session.actions[t], session.observations[t])
+    control = start_node("body_scheme_nodes", "control_node", {
+        "part_id": int(end_effector), "tolerance": 0.003, "explore_when_unsure": True, "explore_samples": 3,
+        "explore_timeout": 1.0})
+    results, requests = [], []
+    ros_node.create_subscription(IKResult, "ik_result", results.append, 10)
+    ros_node.create_subscription(ExploreNear, "body_scheme/explore_near", requests.append, 10)
+    answers = ros_node.create_publisher(ExploreNear, "body_scheme/explore_near/done", 10)
+    targets = ros_node.create_publisher(IKTarget, "ik_target", 10)
+    snapshots = ros_node.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
+    snapshots.publish(conversions.snapshot_msg(0.0, "camera", learner.step, learner.body_scheme,
+                                               tree.action_joint_names, tree.action_lower, tree.action_upper,
+                                               learner.root_pose))
+    assert spin_until(lambda: targets.get_subscription_count() > 0 and answers.get_subscription_count() > 0,
+                      timeout=30), control.output()
+    spin_until(lambda: False, timeout=1.0)  # the latched snapshot reaches control_node
+
+    def send():
+        target = IKTarget(part_id=-1)
+        target.header.frame_id = "camera"
+        p = (learner.root_pose @ learner.body_scheme.predict(np.array([0.5, -0.8]))[end_effector])[:3, 3]
+        target.position.x, target.position.y, target.position.z = (float(v) for v in p)
+        targets.publish(target)
+
+    send()
+    assert spin_until(lambda: results and requests, timeout=20), control.output()
+    assert "exploring 3 postures near it" in results[0].reason, results[0].reason
+    stranger = ExploreNear(outcome="refused: not yours")
+    stranger.header.stamp.sec = 12345
+    answers.publish(stranger)  # an answer to another control_node's request
+    refusal = ExploreNear(header=requests[0].header, outcome="refused: exploration is false on this scheme_node")
+    answers.publish(refusal)
+    assert spin_until(lambda: len(results) == 2, timeout=10), control.output()
+    assert results[1].reason.startswith("not explored (refused: exploration is false") and \
+        results[1].explored_samples == 0, results[1].reason
+    spin_until(lambda: False, timeout=0.5)
+    assert len(results) == 2, [r.reason for r in results]  # the stranger's answer changed nothing
+
+    send()  # no answer this time
+    assert spin_until(lambda: len(results) == 4, timeout=20), control.output()
+    assert "exploring 3 postures near it" in results[2].reason
+    assert results[3].reason.startswith("not explored (no answer from scheme_node within 1.0 s)"), results[3].reason

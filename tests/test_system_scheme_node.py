@@ -130,6 +130,13 @@ def test_scheme_node_learns_structure_over_dds(start_node, ros_node, spin_until)
     # (With the structure alone, a snapshot's step would always be the structure's.)
     assert spin_until(lambda: collector.snapshot.step > collector.structure.step, timeout=20, during=babbler), (
         collector.snapshot.step, collector.structure.step, babbler.k)
+    # Nothing learnt, nothing refitted: no snapshot is republished.
+    assert spin_until(lambda: babbler.k == session.n_steps and _values(collector).get("pending_samples") == "0"
+                      and _values(collector).get("pairing_waiting") == "0", timeout=30, during=babbler), babbler.k
+    spin_until(lambda: False, timeout=1.5)  # a refit of the last step goes out within a second
+    last = collector.snapshot
+    spin_until(lambda: False, timeout=2.5)
+    assert collector.snapshot is last, (last.step, collector.snapshot.step)
 
 
 def _learned(collector, true_edges):

@@ -81,7 +81,9 @@ class BagReplay(Node):
                                                bag topics to publish (types: bag_io.MESSAGE_CLASSES)
     restamp : bool true                        move header stamps into the present (module docstring)
     start_delay : double 1.0 s                 wait before the first message (for subscribers to connect)
-    max_in_flight : int 10                     rate 0: observation messages published but not yet decided
+    max_in_flight : int 3                      rate 0: observation messages published but not yet decided; a
+                                               sample waits for about this many learning steps, which must stay
+                                               under scheme_node's max_sample_age (5 s) or it is shed
 
     Publishers
     ----------
@@ -100,7 +102,7 @@ class BagReplay(Node):
         self.topics = list(self.declare_parameter("topics", DEFAULT_TOPICS).value)
         self.restamp = bool(self.declare_parameter("restamp", True).value)
         self.start_delay = float(self.declare_parameter("start_delay", 1.0).value)
-        self.max_in_flight = int(self.declare_parameter("max_in_flight", 10).value)
+        self.max_in_flight = int(self.declare_parameter("max_in_flight", 3).value)
         _check_parameters(self.bag_path, self.rate, self.topics, self.start_delay, self.max_in_flight)
 
         available = bag_topics(self.bag_path)

@@ -31,7 +31,8 @@ ik_result : body_scheme_msgs/IKResult
 body_scheme/explore_near : body_scheme_msgs/ExploreNear  (``explore_when_unsure``)
     An answer that reaches the target but is not sure enough: scheme_node explores ``explore_samples`` postures near
     it, runs the joint fit and answers; the request is then solved again on the new snapshot and answered a second
-    time (``IKResult.explored_samples``), once.
+    time (``IKResult.explored_samples``), once. Refused or unanswered within ``explore_timeout``, it is answered a
+    second time without exploring (reason "not explored (why): ...").
 /diagnostics : diagnostic_msgs/DiagnosticArray
     ``body_scheme: control``: model age, requests, successes, explorations, last outcome (1 Hz).
 
@@ -71,7 +72,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from body_scheme_core.control import solve_ik, trained_bounds
+from body_scheme_core.control import NearFocus, solve_ik, trained_bounds
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
 from body_scheme_msgs.msg import ExploreNear, IKResult, IKTarget, MarkerPoses, ModelSnapshot
 
@@ -88,8 +89,9 @@ class ExploreSettings:
     def __init__(self, enabled, samples, radius, timeout):
         if not isinstance(enabled, bool):
             raise InvalidInputError(f"explore_when_unsure must be true or false, got {enabled!r}")
-        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 1000:
-            raise InvalidInputError(f"explore_samples must be an integer from 1 to 1000, got {samples!r}")
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= NearFocus.MAX_SAMPLES:
+            raise InvalidInputError(f"explore_samples must be an integer from 1 to {NearFocus.MAX_SAMPLES}, got "
+                                    f"{samples!r}")
         if not (isinstance(radius, float) and 0.0 < radius <= 1.0):
             raise InvalidInputError(f"explore_radius must be a number in (0, 1] (of each joint's range), got "
                                     f"{radius!r}")
@@ -129,9 +131,10 @@ class ControlNode(Node):
 
         self.model = None  # (scheme, world2root, lower, upper, joint names, frame_id, received_at, step)
         self.current = None  # latest commanded actions, in the model's joint order
-        self.requests = deque()  # (header, part, position, samples explored near an earlier answer) awaiting a solve
+        # (header, part, position, None | (samples explored, reason prefix) of a second solve) awaiting a solve
+        self.requests = deque()
         self.exploring = None  # (request ExploreNear, header, part, target, asked at) awaiting scheme_node's answer
-        self.resolve = None  # (header, part, target, step): solve again once the snapshot is of this step
+        self.resolve = None  # (header, part, target, step, answered at): solve again once the snapshot is of step
         self.trajectory = deque()  # action vectors still to command
         self.counts = {"requests": 0, "succeeded": 0, "failed": 0, "executed": 0, "explored": 0,
                        "explore_refused": 0, "explore_timeouts": 0}
@@ -190,12 +193,12 @@ class ControlNode(Node):
         part = self.default_part if msg.part_id < 0 else msg.part_id
         p = msg.position
         with self._lock:
-            self.requests.append((msg.header, int(part), [p.x, p.y, p.z], 0))
+            self.requests.append((msg.header, int(part), [p.x, p.y, p.z], None))
 
     def _on_point(self, msg):
         p = msg.point
         with self._lock:
-            self.requests.append((msg.header, int(self.default_part), [p.x, p.y, p.z], 0))
+            self.requests.append((msg.header, int(self.default_part), [p.x, p.y, p.z], None))
 
     def _on_explored(self, msg):
         """scheme_node served (or refused) our request to explore near an unsure answer."""
@@ -206,8 +209,9 @@ class ControlNode(Node):
             self.exploring = None
             if msg.outcome:
                 self.counts["explore_refused"] += 1
+                self.requests.appendleft((header, part, target, (0, f"not explored ({msg.outcome}): ")))
             else:
-                self.resolve = (header, part, target, msg.step)
+                self.resolve = (header, part, target, msg.step, time.monotonic())
         if msg.outcome:
             self.get_logger().warn(f"exploring near the answer for part {part}: {msg.outcome}")
 
@@ -220,13 +224,13 @@ class ControlNode(Node):
         with self._lock:
             if not self.requests:
                 return
-            header, part, target, explored = self.requests.popleft()
+            header, part, target, again = self.requests.popleft()
             model = self.model
-        self.counts["requests"] += 1
+        self.counts["requests"] += int(again is None)
         result = self._solve(header, part, target, model)
-        result.explored_samples = explored
-        if explored:
-            result.reason = f"after exploring {explored} postures near the first answer: {result.reason}"
+        if again is not None:  # the second answer of a request whose first was unsure
+            result.explored_samples = again[0]
+            result.reason = again[1] + result.reason
         elif self.explore.enabled and result.converged and not result.success:
             result.reason += self._ask_to_explore(header, part, target, result.actions, model)
         if self.execute and result.success:
@@ -251,19 +255,34 @@ class ControlNode(Node):
         return f"; exploring {self.explore.samples} postures near it, then solving again"
 
     def _follow_exploration(self):
-        """Solve an explored request again once the snapshot of scheme_node's joint fit arrived; give up on an
-        exploration that was not answered within ``explore_timeout``."""
+        """Solve an explored request again once the snapshot of scheme_node's joint fit arrived. Every request whose
+        first answer asked for exploration is answered a second time: without exploring when scheme_node did not
+        answer within ``explore_timeout``, on the newest snapshot when the joint fit's did not arrive within it."""
+        now, timeout, samples = time.monotonic(), self.explore.timeout, self.explore.samples
         with self._lock:
-            if self.exploring is not None and time.monotonic() - self.exploring[4] > self.explore.timeout:
-                part, self.exploring = self.exploring[2], None
+            if self.exploring is not None and now - self.exploring[4] > timeout:
+                _, header, part, target, _ = self.exploring
+                self.exploring = None
                 self.counts["explore_timeouts"] += 1
-                self.get_logger().warn(f"no answer to exploring near the answer for part {part} within "
-                                       f"{self.explore.timeout} s: is scheme_node running with exploration true, "
-                                       f"and a babble_node in mode active?")
-            if self.resolve is not None and self.model is not None and self.model[7] >= self.resolve[3]:
-                header, part, target, _ = self.resolve
-                self.resolve = None
-                self.requests.appendleft((header, part, target, self.explore.samples))
+                self.requests.appendleft((header, part, target, (0, f"not explored (no answer from scheme_node "
+                                                                    f"within {timeout} s): ")))
+                self.get_logger().warn(f"no answer to exploring near the answer for part {part} within {timeout} s: "
+                                       f"is scheme_node running with exploration true, and a babble_node in mode "
+                                       f"active?")
+            if self.resolve is None or self.model is None:
+                return
+            header, part, target, step, answered = self.resolve
+            prefix = f"after exploring {samples} postures near the first answer"
+            if self.model[7] >= step:
+                self.requests.appendleft((header, part, target, (samples, prefix + ": ")))
+            elif now - answered > timeout:
+                self.counts["explore_timeouts"] += 1
+                self.requests.appendleft((header, part, target, (samples, f"{prefix} (the body scheme of step {step} "
+                                                                          f"did not arrive within {timeout} s; on "
+                                                                          f"that of step {self.model[7]}): ")))
+            else:
+                return
+            self.resolve = None
 
     def _report(self, result, part, target):
         self.counts["succeeded" if result.success else "failed"] += 1

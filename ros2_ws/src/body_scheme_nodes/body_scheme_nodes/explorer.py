@@ -5,8 +5,12 @@ After each learnt sample, :meth:`SchemeExplorer.after_learning` publishes the ne
 ``body_scheme/explore_near`` (control_node, when an IK answer is not sure enough) turns the next ``samples``
 suggestions towards its posture (:class:`~body_scheme_core.control.exploration.NearFocus`); once the last of them is
 learnt, the joint fit runs, the body scheme snapshot is published and the request is answered on
-``body_scheme/explore_near/done``. A request that cannot be served (exploration off, wrong joints, bad values) is
-answered at once with the reason, and counted (``rejected.bad_explore_near``).
+``body_scheme/explore_near/done``. A request that cannot be served is answered at once with the reason: with
+exploration off, or with joints or values it cannot take (those are counted, ``rejected.bad_explore_near``).
+
+The ``samples`` are the next samples learnt after the suggestions near the posture; a command babble_node drew at
+random when a suggestion came late (or anyone else's command) counts among them. A reset or a load of the learner
+cancels an exploration under way (answered "cancelled: ...").
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ from . import conversions
 
 #: Fraction of the image's width and height kept clear at each border by the exploration's view constraint.
 VIEW_MARGIN = 0.1
+#: Draws in a row near a posture that find no feasible candidate before its request is refused.
+MAX_MISSES = 3
 
 
 class SchemeExplorer:
@@ -43,6 +49,7 @@ class SchemeExplorer:
         self._requested = None  # (request, NearFocus) not taken up by the learning thread yet
         self._focus = None  # (request, NearFocus) being explored
         self._to_finish = None  # (request, NearFocus) whose last sample is the next one learnt
+        self._misses = 0  # draws in a row near the focus that found no feasible candidate
         if settings.exploration:
             self.policy = ExplorationPolicy(settings.action_lower, settings.action_upper,
                                             settings.exploration_candidates,
@@ -116,7 +123,7 @@ class SchemeExplorer:
         if requested is not None:
             if self._focus is not None:
                 self._answer(self._focus[0], learner.step, "replaced by a newer request")
-            self._focus = requested
+            self._focus, self._misses = requested, 0
         scheme = learner.body_scheme if learner.phase != "bootstrapping" else None
         self.policy.noise = learner.noise.sigma_trans / math.sqrt(3.0)  # the camera as the learner knows it now
         in_view = None
@@ -128,9 +135,12 @@ class SchemeExplorer:
         else:
             request, focus = self._focus
             command = focus.suggest(self.policy, scheme, current=actions, feasible=in_view)
-            if command is None:
-                self._focus = None
-                self._answer(request, learner.step, "refused: no feasible posture near it (limits, camera view)")
+            self._misses = 0 if command is not None else self._misses + 1
+            if command is None:  # this time a suggestion from anywhere; after MAX_MISSES in a row, refused
+                if self._misses >= MAX_MISSES:
+                    self._focus = None
+                    self._answer(request, learner.step, f"refused: no feasible posture near it in {MAX_MISSES} "
+                                                        "draws (limits, camera view, feasibility callback)")
                 command = self.policy.suggest(scheme, current=actions, feasible=in_view)
             elif focus.done:
                 self._focus, self._to_finish = None, self._focus
@@ -143,6 +153,9 @@ class SchemeExplorer:
         if self._to_finish is None:
             return []
         request, self._to_finish = self._to_finish[0], None
+        if learner.body_scheme is None:
+            self._answer(request, learner.step, "no joint fit: the learner has no body scheme")
+            return []
         try:
             events, outcome = learner.recalibrate(), ""
         except BodySchemeError as exc:  # undone by the learner: the body scheme stays as it was
@@ -150,6 +163,15 @@ class SchemeExplorer:
         self.publish_snapshot()
         self._answer(request, learner.step, outcome)
         return events
+
+    def cancel(self, step, why):
+        """Answer every request taken up or under way with ``"cancelled: " + why`` (the learner was replaced)."""
+        with self._lock:
+            requested, self._requested = self._requested, None
+        for entry in (requested, self._focus, self._to_finish):
+            if entry is not None:
+                self._answer(entry[0], step, f"cancelled: {why}")
+        self._focus = self._to_finish = None
 
     def diagnostics(self):
         """(rejected counts, values) for /diagnostics."""

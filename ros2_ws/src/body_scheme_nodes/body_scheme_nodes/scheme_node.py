@@ -186,7 +186,7 @@ class SchemeNode(Node):
         if self.checkpoint is not None:
             self.create_timer(self.settings.checkpoint_period, self._checkpoint)
         self._last_structure_key = None
-        self._snapshot_scheme = None  # the body scheme of the last snapshot
+        self._snapshot_fit = None  # the learner's fitted_at when the last snapshot was published
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_structure(force=True)
         # Learning runs in a thread of its own, not in an executor callback: the executor's thread only takes
@@ -446,14 +446,14 @@ class SchemeNode(Node):
         """The body scheme for control_node: with the structure, after the joint fit that ends an exploration near a
         posture, and once a second when a joint fit changed it (:meth:`_publish_refit`)."""
         learner = self.learner
-        self._snapshot_scheme = scheme = learner.body_scheme
+        self._snapshot_fit = learner.fitted_at
         self.pub_snapshot.publish(conversions.snapshot_msg(
-            self.get_clock().now().nanoseconds * 1e-9, self.frame_id, learner.step, scheme, self.joint_names,
-            self.settings.action_lower, self.settings.action_upper, learner.root_pose))
+            self.get_clock().now().nanoseconds * 1e-9, self.frame_id, learner.step, learner.body_scheme,
+            self.joint_names, self.settings.action_lower, self.settings.action_upper, learner.root_pose))
 
     def _publish_refit(self):
-        """The snapshot again if the body scheme is not the one last published (a joint fit refitted it)."""
-        if self.learner.body_scheme is not self._snapshot_scheme:
+        """The snapshot again if a joint fit ran since the last one was published."""
+        if self.learner.fitted_at != self._snapshot_fit:
             self._publish_snapshot()
 
     def _publish_diagnostics(self):
@@ -544,6 +544,7 @@ class SchemeNode(Node):
             return response
         with self._learner_lock:
             self.learner = learner
+            self.explorer.cancel(learner.step, f"the learner was loaded from {path}")
             self._publish_structure(force=True)
         response.success, response.message = True, f"loaded step {learner.step} from {path}"
         return response
@@ -562,6 +563,7 @@ class SchemeNode(Node):
     def _on_reset(self, request, response):
         with self._learner_lock:
             self.learner = self.settings.new_learner()
+            self.explorer.cancel(0, "the learner was reset")
             self._publish_structure(force=True)
         response.success, response.message = True, "learner reset: bootstrapping from scratch"
         return response

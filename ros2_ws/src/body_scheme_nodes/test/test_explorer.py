@@ -51,9 +51,13 @@ def ros(monkeypatch):
         return SchemeExplorer(node, settings, 0.02, lambda: snapshots.append(True))
 
     def received(n, messages=answers):
-        """The first ``n`` answers (or other ``messages``), after spinning until they came or 5 s passed."""
+        """The answers (or other ``messages``) after spinning until ``n`` came or 5 s passed, then 0.2 s more (so
+        that one too many would show)."""
         deadline = time.monotonic() + 5.0
         while len(messages) < n and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        settle = time.monotonic() + 0.2
+        while time.monotonic() < settle:
             executor.spin_once(timeout_sec=0.05)
         return messages
 
@@ -130,5 +134,26 @@ def test_no_feasible_posture_near_it_is_answered_and_exploration_goes_on(ros, le
     explorer, learner = make(), BodySchemeLearner.from_state(learned.to_state())
     explorer._on_explore_near(request([0.1, 0.2], sec=1))
     explorer.policy.feasible = lambda C: np.zeros(len(C), dtype=bool)  # e.g. a collision screen refusing all
-    explorer.after_learning(learner, 0.0, np.zeros(2))
-    assert "no feasible posture" in received(1)[0].outcome and explorer._focus is None
+    for k in range(2):  # tried again at the next samples
+        explorer.after_learning(learner, float(k), np.zeros(2))
+    assert received(0) == [] and explorer._focus is not None
+    explorer.after_learning(learner, 2.0, np.zeros(2))
+    answers = received(1)
+    assert len(answers) == 1 and "no feasible posture" in answers[0].outcome and explorer._focus is None
+
+
+def test_a_reset_cancels_the_exploration_under_way_and_a_learner_without_a_scheme_has_no_joint_fit(ros, learned):
+    make, received, _ = ros
+    explorer, learner = make(), BodySchemeLearner.from_state(learned.to_state())
+    explorer._on_explore_near(request([0.1, 0.2], samples=1, sec=1))
+    explorer.after_learning(learner, 0.0, np.zeros(2))  # its one suggestion was drawn: the joint fit is next
+    explorer._on_explore_near(request([0.3, 0.4], sec=2))  # taken up, not started
+    explorer.cancel(0, "the learner was reset")
+    answers = received(2)
+    assert sorted(a.header.stamp.sec for a in answers) == [1, 2]
+    assert all(a.outcome == "cancelled: the learner was reset" for a in answers)
+    fresh = BodySchemeLearner(TREE.marker_ids, TREE.n_actions)
+    explorer._on_explore_near(request([0.1, 0.2], samples=1, sec=3))
+    explorer.after_learning(fresh, 0.0, np.zeros(2))
+    explorer.after_learning(fresh, 1.0, np.zeros(2))
+    assert received(3)[2].outcome == "no joint fit: the learner has no body scheme"

@@ -232,7 +232,7 @@ class NearFocus:
     actions : array-like, shape (m,)
         The posture to explore near (an IK answer whose predicted error is too large).
     n_samples : int
-        Suggestions near it (>= 1).
+        Suggestions near it, 1 to :attr:`MAX_SAMPLES`.
     radius : float
         Fraction of each joint's range around it (> 0, at most 1).
 
@@ -242,12 +242,16 @@ class NearFocus:
         On a posture that is not a finite vector, or bad settings.
     """
 
+    #: The most suggestions one focus may ask for.
+    MAX_SAMPLES = 1000
+
     def __init__(self, actions, n_samples=5, radius=0.1):
         self.actions = np.asarray(actions, dtype=float)
         if self.actions.ndim != 1 or not np.all(np.isfinite(self.actions)):
             raise InvalidInputError(f"the posture to explore near must be a finite vector, got {actions!r}")
-        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
-            raise InvalidInputError(f"n_samples must be an integer >= 1, got {n_samples!r}")
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) \
+                or not 1 <= n_samples <= self.MAX_SAMPLES:
+            raise InvalidInputError(f"n_samples must be an integer from 1 to {self.MAX_SAMPLES}, got {n_samples!r}")
         if not (_positive(radius) and radius <= 1.0):
             raise InvalidInputError(f"radius must be a number in (0, 1], got {radius!r}")
         self.radius = float(radius)

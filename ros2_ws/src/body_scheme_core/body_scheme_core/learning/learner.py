@@ -280,6 +280,13 @@ class BodySchemeLearner(JointFitSteps):
                 and not self._lack_of_fit)
 
     @property
+    def fitted_at(self):
+        """The step of the last joint fit and the tree it fitted, or None: changes exactly when the joint fit
+        changes :attr:`body_scheme` without a new tree (e.g. to republish it)."""
+        cal = self._calibrated
+        return None if cal is None else (cal.step, cal.tree)
+
+    @property
     def calibration_rms(self):
         """Root mean square normalised residual of the last joint fit (about 1 when the noise model holds), or NaN."""
         return math.nan if self._calibrated is None else self._calibrated.rms

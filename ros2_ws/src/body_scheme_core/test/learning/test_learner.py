@@ -552,3 +552,23 @@ def test_a_moved_root_marker_is_detected_and_the_scheme_recovers():
     assert not _kinds(events, "mismatch_detected", 60, 150)
     for part in robot.marker_ids:
         assert _position_error(learner, session, range(240, 260), part) < 0.044
+
+
+def test_fitted_at_changes_exactly_when_a_joint_fit_runs():
+    """``fitted_at`` is None before the first joint fit, then (step, tree) of the last one: unchanged by a step
+    without a fit, changed by a fit on demand after a step that had none (what scheme_node republishes the body scheme
+    on)."""
+    tree = planar_2dof()
+    session = make_session(tree, 80, 3)
+    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions, action_lower=tree.action_lower,
+                                action_upper=tree.action_upper)
+    assert learner.fitted_at is None
+    seen = set()
+    for t in range(80):
+        learner.update(session.actions[t], session.observations[t])
+        seen.add(learner.fitted_at)
+    step, fitted_tree = learner.fitted_at
+    assert step < learner.step and len(seen - {None}) >= 2 and fitted_tree == tuple(learner._tree)
+    before = learner.fitted_at
+    learner.recalibrate()
+    assert learner.fitted_at != before and learner.fitted_at[0] == learner.step - 1
