@@ -89,12 +89,10 @@ class ExploreSettings:
     def __init__(self, enabled, samples, radius, timeout):
         if not isinstance(enabled, bool):
             raise InvalidInputError(f"explore_when_unsure must be true or false, got {enabled!r}")
-        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= NearFocus.MAX_SAMPLES:
-            raise InvalidInputError(f"explore_samples must be an integer from 1 to {NearFocus.MAX_SAMPLES}, got "
-                                    f"{samples!r}")
-        if not (isinstance(radius, float) and 0.0 < radius <= 1.0):
-            raise InvalidInputError(f"explore_radius must be a number in (0, 1] (of each joint's range), got "
-                                    f"{radius!r}")
+        try:  # scheme_node checks them as NearFocus does: refused here at start-up rather than per request
+            NearFocus([0.0], samples, radius)
+        except InvalidInputError as exc:
+            raise InvalidInputError(f"explore_samples, explore_radius: {exc}") from None
         if not (isinstance(timeout, float) and np.isfinite(timeout) and timeout > 0):
             raise InvalidInputError(f"explore_timeout must be a number > 0 (s), got {timeout!r}")
         self.enabled, self.samples, self.radius, self.timeout = enabled, samples, radius, timeout

@@ -124,12 +124,13 @@ class SchemeExplorer:
             if self._focus is not None:
                 self._answer(self._focus[0], learner.step, "replaced by a newer request")
             self._focus, self._misses = requested, 0
-        scheme = learner.body_scheme if learner.phase != "bootstrapping" else None
+        body = learner.body_scheme  # provisional while bootstrapping: good enough for the view, not for the score
+        scheme = body if learner.phase != "bootstrapping" else None
         self.policy.noise = learner.noise.sigma_trans / math.sqrt(3.0)  # the camera as the learner knows it now
         in_view = None
         camera = self.camera
-        if camera is not None and learner.body_scheme is not None:
-            in_view = in_camera_view(learner.body_scheme, learner.root_pose, *camera, margin=VIEW_MARGIN)
+        if camera is not None and body is not None:
+            in_view = in_camera_view(body, learner.root_pose, *camera, margin=VIEW_MARGIN)
         if self._focus is None:
             command = self.policy.suggest(scheme, current=actions, feasible=in_view)
         else:

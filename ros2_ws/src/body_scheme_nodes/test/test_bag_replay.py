@@ -1,7 +1,5 @@
 """bag_replay in-process: restamping, backpressure, and refusing bad parameters and broken bags."""
 
-import os
-import random
 import time
 
 import pytest
@@ -28,18 +26,6 @@ def session_and_bag(tmp_path_factory):
     """A 20-step planar session (commands every 0.1 s, observations 5 ms later) and its bag."""
     session = record_session("planar_2dof", N_STEPS, seed=2)
     return session, write_session(session, tmp_path_factory.mktemp("bags") / "planar")
-
-
-@pytest.fixture
-def context(monkeypatch):
-    """An rclpy context on a domain of this test alone (localhost only)."""
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=random.Random(os.getpid() + time.monotonic_ns()).randint(101, 200))
-    try:
-        yield context
-    finally:
-        rclpy.try_shutdown(context=context)
 
 
 class Listener:

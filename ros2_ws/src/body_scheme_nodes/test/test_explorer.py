@@ -1,8 +1,6 @@
 """scheme_node's exploration topics (explorer.py) with the real rclpy, in-process: requests to explore near a
 posture are served, replaced or refused, and each is answered once."""
 
-import os
-import random
 import time
 
 import numpy as np
@@ -32,11 +30,8 @@ def learned():
 
 
 @pytest.fixture
-def ros(monkeypatch):
+def ros(context):
     """A node with a SchemeExplorer factory, and the answers it published."""
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=random.Random(os.getpid() + time.monotonic_ns()).randint(101, 200))
     node = rclpy.create_node("explorer_test", context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -65,7 +60,6 @@ def ros(monkeypatch):
     yield make, received, snapshots
     executor.shutdown()
     node.destroy_node()
-    rclpy.try_shutdown(context=context)
 
 
 def request(positions, samples=3, radius=0.05, names=None, sec=1):

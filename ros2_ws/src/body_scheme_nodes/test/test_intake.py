@@ -1,7 +1,5 @@
 """BatchIntake with the real rclpy: the executor never dispatches it; take() returns every waiting message at once."""
 
-import os
-import random
 import time
 
 import pytest
@@ -13,17 +11,13 @@ from body_scheme_nodes.intake import BatchIntake
 
 
 @pytest.fixture
-def node(monkeypatch):
-    """A node in an rclpy context on a domain of this test alone (localhost only)."""
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=random.Random(os.getpid() + time.monotonic_ns()).randint(101, 200))
+def node(context):
+    """A node in an rclpy context on a domain of this test alone (conftest)."""
     node = rclpy.create_node("intake_test", context=context)
     try:
         yield node
     finally:
         node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def _publish(node, intake, n):

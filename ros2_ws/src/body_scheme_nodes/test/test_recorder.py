@@ -1,7 +1,5 @@
 """GraphRecorder writes each topic's QoS into the bag, as ``ros2 bag record`` does (issue 20)."""
 
-import os
-import random
 import time
 
 import rclpy
@@ -12,10 +10,7 @@ from std_msgs.msg import String
 from body_scheme_nodes.recorder import LATCHED_QOS, GraphRecorder
 
 
-def test_latched_topics_are_recorded_with_their_qos_so_a_replay_latches_them(tmp_path, monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=random.Random(os.getpid() + time.monotonic_ns()).randint(101, 200))
+def test_latched_topics_are_recorded_with_their_qos_so_a_replay_latches_them(tmp_path, context):
     node = rclpy.create_node("recorder_test", context=context)
     try:
         node.create_publisher(String, "description", LATCHED_QOS).publish(String(data="latched before recording"))
@@ -29,7 +24,6 @@ def test_latched_topics_are_recorded_with_their_qos_so_a_replay_latches_them(tmp
         recorder.close()
     finally:
         node.destroy_node()
-        rclpy.try_shutdown(context=context)
     info = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     qos = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"]
            for t in info["topics_with_message_count"]}
