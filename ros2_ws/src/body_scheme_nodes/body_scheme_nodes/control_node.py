@@ -89,8 +89,8 @@ class ExploreSettings:
     def __init__(self, enabled, samples, radius, timeout):
         if not isinstance(enabled, bool):
             raise InvalidInputError(f"explore_when_unsure must be true or false, got {enabled!r}")
-        try:  # scheme_node checks them as NearFocus does: refused here at start-up rather than per request
-            NearFocus([0.0], samples, radius)
+        try:  # scheme_node checks each request so: refused here at start-up rather than per request
+            NearFocus.check_settings(samples, radius)
         except InvalidInputError as exc:
             raise InvalidInputError(f"explore_samples, explore_radius: {exc}") from None
         if not (isinstance(timeout, float) and np.isfinite(timeout) and timeout > 0):

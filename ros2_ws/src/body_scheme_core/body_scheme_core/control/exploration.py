@@ -249,14 +249,20 @@ class NearFocus:
         self.actions = np.asarray(actions, dtype=float)
         if self.actions.ndim != 1 or not np.all(np.isfinite(self.actions)):
             raise InvalidInputError(f"the posture to explore near must be a finite vector, got {actions!r}")
-        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) \
-                or not 1 <= n_samples <= self.MAX_SAMPLES:
-            raise InvalidInputError(f"n_samples must be an integer from 1 to {self.MAX_SAMPLES}, got {n_samples!r}")
-        if not (_positive(radius) and radius <= 1.0):
-            raise InvalidInputError(f"radius must be a number in (0, 1], got {radius!r}")
+        self.check_settings(n_samples, radius)
         self.radius = float(radius)
         #: Suggestions still to draw near :attr:`actions`.
         self.left = int(n_samples)
+
+    @classmethod
+    def check_settings(cls, n_samples, radius):
+        """Raise :class:`InvalidInputError` unless ``n_samples`` and ``radius`` are valid (e.g. to check a node's
+        parameters at start-up rather than per request)."""
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) \
+                or not 1 <= n_samples <= cls.MAX_SAMPLES:
+            raise InvalidInputError(f"n_samples must be an integer from 1 to {cls.MAX_SAMPLES}, got {n_samples!r}")
+        if not (_positive(radius) and radius <= 1.0):
+            raise InvalidInputError(f"radius must be a number in (0, 1], got {radius!r}")
 
     @property
     def done(self):
