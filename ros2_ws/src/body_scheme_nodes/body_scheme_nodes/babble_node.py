@@ -16,7 +16,8 @@ arm without its gripper; give scheme_node the same list). The ``control_msgs``
 It stops by itself (a trajectory to where the arm is: the controller holds it there) when scheme_node's /diagnostics
 status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning stalled), when the camera
 goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s), or when the joint states do (none for
-``joint_state_timeout`` s).
+``joint_state_timeout`` s). After a pause of babble_node itself (a busy machine) the watchdogs wait one tick, so the
+messages that arrived during the pause are read first.
 
 Subscriptions
 -------------
@@ -62,6 +63,9 @@ from .spin import run_node
 MAX_DRAWS = 100
 #: s to wait for a camera frame stamped after the action when the camera watchdog is off (camera_timeout 0).
 FRAME_WAIT = 3.0
+#: s between two ticks of the loop past which this process was paused (a busy machine): the executor runs the tick
+#: before the messages that queued meanwhile, so the watchdogs judge on the next tick, after those are read.
+LATE_TICK = 0.5
 
 
 class BabbleNode(Node):
@@ -103,6 +107,7 @@ class BabbleNode(Node):
         self.settled_stamp = -np.inf  # stamp (s) of the last action signal
         self.suggestion = None  # (stamp s, command in the driver's joint order) of scheme_node's latest suggestion
         self.idle_since = None  # monotonic time the loop became ready for the next step
+        self.last_tick = None  # monotonic time of the loop's last tick
         self.error_since = None  # monotonic time the watched status turned ERROR (None: it is not)
 
         work = MutuallyExclusiveCallbackGroup()
@@ -181,6 +186,8 @@ class BabbleNode(Node):
 
     def _on_timer(self):
         now = time.monotonic()
+        late = self.last_tick is not None and now - self.last_tick > LATE_TICK
+        self.last_tick = now
         if self.state in ("stopped", "paused", "done") and self.driver.goal is None:
             return
         if self.state == "waiting":
@@ -188,7 +195,7 @@ class BabbleNode(Node):
                 self.get_logger().info("waiting for /joint_states", throttle_duration_sec=5.0)
                 return
             self.state, self.started = "idle", now
-        if self.state != "stopped":
+        if self.state != "stopped" and not late:
             why = self._quiet(now)
             if why:
                 self._stop(why)

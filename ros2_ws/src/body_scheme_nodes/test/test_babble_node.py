@@ -16,6 +16,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from body_scheme_core.errors import InvalidInputError
+from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_nodes.babble_node import BabbleNode
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "babble_node.yaml"
@@ -126,6 +127,24 @@ def test_joint_states_that_go_quiet_stop_the_babbling():
         assert node.state == "idle" and node._quiet(time.monotonic()) == ""
         time.sleep(0.1)
         assert "joint states are quiet" in node._quiet(time.monotonic())
+
+
+def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_frames_first():
+    """A tick long after the previous one (the process was paused) does not judge the camera's silence: the frame
+    that waited in the queue meanwhile is read first and babbling goes on; a silence seen by a tick on time stops it."""
+    with babble_node([Parameter("camera_timeout", value=0.2)]) as node:
+        node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
+        node._on_timer()
+        assert node.state == "idle"
+        node.last_camera = node.last_tick = time.monotonic() - 2.0  # paused for 2 s
+        node._on_timer()
+        assert node.state == "idle"
+        node._on_camera(MarkerPoses())  # the frame that waited in the queue
+        node._on_timer()
+        assert node.state == "idle"
+        node.last_camera = time.monotonic() - 2.0  # no pause, a silent camera
+        node._on_timer()
+        assert node.state == "stopped" and "camera is quiet" in node.stop_reason
 
 
 @pytest.mark.parametrize("name, value, message", [
