@@ -16,8 +16,8 @@ arm without its gripper; give scheme_node the same list). The ``control_msgs``
 It stops by itself (a trajectory to where the arm is: the controller holds it there) when scheme_node's /diagnostics
 status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning stalled), when the camera
 goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s), or when the joint states do (none for
-``joint_state_timeout`` s). After a pause of babble_node itself (a busy machine) the watchdogs wait one tick, so the
-messages that arrived during the pause are read first.
+``joint_state_timeout`` s). After a pause of babble_node itself (a busy machine) the loop waits one tick (no watchdog
+verdict, no command), so the messages that arrived during the pause are read first.
 
 Subscriptions
 -------------
@@ -64,7 +64,8 @@ MAX_DRAWS = 100
 #: s to wait for a camera frame stamped after the action when the camera watchdog is off (camera_timeout 0).
 FRAME_WAIT = 3.0
 #: s between two ticks of the loop past which this process was paused (a busy machine): the executor runs the tick
-#: before the messages that queued meanwhile, so the watchdogs judge on the next tick, after those are read.
+#: before the messages that queued meanwhile, so such a tick does nothing and the next one, after those are read,
+#: judges the watchdogs and sends.
 LATE_TICK = 0.5
 
 
@@ -188,6 +189,8 @@ class BabbleNode(Node):
         now = time.monotonic()
         late = self.last_tick is not None and now - self.last_tick > LATE_TICK
         self.last_tick = now
+        if late:
+            return  # after a pause: read what queued meanwhile before judging the watchdogs or sending anything
         if self.state in ("stopped", "paused", "done") and self.driver.goal is None:
             return
         if self.state == "waiting":
@@ -195,7 +198,7 @@ class BabbleNode(Node):
                 self.get_logger().info("waiting for /joint_states", throttle_duration_sec=5.0)
                 return
             self.state, self.started = "idle", now
-        if self.state != "stopped" and not late:
+        if self.state != "stopped":
             why = self._quiet(now)
             if why:
                 self._stop(why)

@@ -130,15 +130,18 @@ def test_joint_states_that_go_quiet_stop_the_babbling():
 
 
 def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_frames_first():
-    """A tick long after the previous one (the process was paused) does not judge the camera's silence: the frame
-    that waited in the queue meanwhile is read first and babbling goes on; a silence seen by a tick on time stops it."""
+    """A tick long after the previous one (the process was paused) neither judges the camera's silence nor sends:
+    the frame that waited in the queue meanwhile is read first and babbling goes on; a silence seen by a tick on time
+    stops it."""
     with babble_node([Parameter("camera_timeout", value=0.2)]) as node:
         node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
         node._on_timer()
         assert node.state == "idle"
+        node.driver.goal = None  # the first tick's move is over
         node.last_camera = node.last_tick = time.monotonic() - 2.0  # paused for 2 s
+        sent = node.counts["actions"], node.driver.goal
         node._on_timer()
-        assert node.state == "idle"
+        assert node.state == "idle" and (node.counts["actions"], node.driver.goal) == sent  # no verdict, no command
         node._on_camera(MarkerPoses())  # the frame that waited in the queue
         node._on_timer()
         assert node.state == "idle"
