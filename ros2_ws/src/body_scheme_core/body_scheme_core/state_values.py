@@ -16,7 +16,7 @@ from .errors import ModelFileError
 from .limits import MAX_INTEGER
 
 __all__ = ["integer", "number", "optional_number", "boolean", "listing", "mapping", "part_id",
-           "finite_array", "integer_array"]
+           "finite_array", "integer_array", "covariance"]
 
 
 
@@ -78,6 +78,17 @@ def finite_array(value, shape, name):
     if not np.all(np.isfinite(arr)):
         raise ModelFileError(f"{name} contains NaN or inf")
     return arr
+
+
+def covariance(value, size, name):
+    """A ``(size, size)`` covariance: finite, symmetric and positive semi-definite, each up to rounding."""
+    cov = finite_array(value, (size, size), name)
+    scale = max(1.0, float(np.abs(cov).max(initial=0.0)))
+    if not np.allclose(cov, cov.T, rtol=0.0, atol=1e-9 * scale):
+        raise ModelFileError(f"{name} is not symmetric")
+    if size and np.linalg.eigvalsh(0.5 * (cov + cov.T))[0] < -1e-9 * scale:
+        raise ModelFileError(f"{name} is not positive semi-definite")
+    return cov
 
 
 def integer_array(value, shape, name, minimum, maximum=MAX_INTEGER):

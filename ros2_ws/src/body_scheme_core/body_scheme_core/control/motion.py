@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import InvalidInputError
 
-__all__ = ["trajectory_duration", "path_samples", "SafetyLimits", "SettleDetector"]
+__all__ = ["trajectory_duration", "path_samples", "MAX_PATH_SAMPLES", "SafetyLimits", "SettleDetector"]
 
 
 def trajectory_duration(start, goal, max_velocity, max_acceleration, min_duration=0.1):
@@ -55,14 +55,32 @@ def trajectory_duration(start, goal, max_velocity, max_acceleration, min_duratio
     return max(float(t.max(initial=0.0)), float(min_duration))
 
 
-def path_samples(start, goal, max_step=0.05):
+#: Most postures :func:`path_samples` returns: a path that needs more (1e6 rad between start and goal) is refused,
+#: so no input makes a move's checks unbounded.
+MAX_PATH_SAMPLES = 10_000
+
+
+def path_samples(start, goal, max_step=0.05, max_samples=MAX_PATH_SAMPLES):
     """Postures along the straight joint-space path from ``start`` to ``goal`` (what a controller's interpolation
     passes through), no joint moving more than ``max_step`` (rad, m) between two; ``start`` excluded, ``goal``
-    included. Shape (k, m), k >= 1."""
+    included. Shape (k, m), 1 <= k <= ``max_samples``.
+
+    Raises
+    ------
+    InvalidInputError
+        For non-finite or mismatched postures, or a path that needs more than ``max_samples`` postures.
+    """
     start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
     if not (max_step > 0):
         raise InvalidInputError(f"max_step must be > 0, got {max_step!r}")
-    n = max(1, int(np.ceil(np.max(np.abs(goal - start), initial=0.0) / max_step)))
+    if start.shape != goal.shape or not (np.all(np.isfinite(start)) and np.all(np.isfinite(goal))):
+        raise InvalidInputError(f"start and goal must be finite postures of one shape, got {start.shape}, "
+                                f"{goal.shape}")
+    with np.errstate(over="ignore"):
+        steps = np.max(np.abs(goal - start), initial=0.0) / max_step
+    if not steps <= max_samples:
+        raise InvalidInputError(f"a path of {steps:.3g} steps of {max_step} is longer than {max_samples} postures")
+    n = max(1, int(np.ceil(steps)))
     return start + np.linspace(0.0, 1.0, n + 1)[1:, None] * (goal - start)
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..calibration import PartConsistency
 from ..errors import BodySchemeError, InvalidInputError, ModelFileError
+from ..limits import MAX_COORDINATE
 from ..prediction import BodyScheme
 from ..state_values import boolean, finite_array, integer, listing, mapping, number, optional_number, part_id
 from .adaptation import Adaptation
@@ -247,10 +248,12 @@ def _actions(value, n_actions, name):
 
 
 def _rigid(value, name):
-    """A finite 4x4 rigid transform."""
+    """A finite 4x4 rigid transform whose translation is within :data:`~body_scheme_core.limits.MAX_COORDINATE`."""
     pose = finite_array(value, (4, 4), name)
     if rigidity_problem(pose) is not None:
         raise ModelFileError(f"{name} is not a rigid transform: {rigidity_problem(pose)}")
+    if np.abs(pose[:3, 3]).max() > MAX_COORDINATE:
+        raise ModelFileError(f"{name} lies beyond {MAX_COORDINATE:g} m")
     return pose
 
 

@@ -13,8 +13,8 @@ import threading
 import numpy as np
 
 from ..errors import ModelFileError
-from ..models import MODEL_CLASSES, model_from_dict
-from ..state_values import finite_array, integer, listing, mapping, part_id
+from ..models import MODEL_CLASSES, RigidJointModel, model_from_dict
+from ..state_values import integer, listing, mapping, part_id
 from .quality import class_rank, nesting_matrix
 
 __all__ = ["TREE", "MEMORY", "CANDIDATE", "TrackedModel", "nested_models", "Journal"]
@@ -172,16 +172,20 @@ class TrackedModel:
                                       == (kind, parent, child, actions)):
             raise ModelFileError(f"{name}: the stored model {model.describe()} is not the fitted {kind} model of "
                                  f"{parent}->{child} with actions {list(actions)}")
-        prior = data["prior"]
-        if prior is not None:
-            params, cov = listing(prior, f"{name} prior", 2)
-            k = len(listing(params, f"{name} prior parameters"))
-            prior = (finite_array(params, (k,), f"{name} prior parameters"),
-                     finite_array(cov, (k, k), f"{name} prior covariance"))
+        prior = None if data["prior"] is None else _prior(data["prior"], model, name)
         counts = {k: integer(data[k], f"{name} {k}", minimum=-1 if k in ("slot", "last_used", "target") else 0)
                   for k in ("row", "slot", "n_train", "created", "last_used", "target", "since")}
         return cls(model_id, parent, child, actions, kind, role, model=model, origin=_origin(data["origin"], name),
                    prior=prior, **counts)
+
+
+def _prior(value, model, name):
+    """A rigid model's prior ``(params, cov)``, read as the model's own parameters are
+    (:meth:`RigidJointModel.read_params`: the storage layout and the covariance of a local increment)."""
+    if not isinstance(model, RigidJointModel):
+        raise ModelFileError(f"{name}: a prior needs the fitted rigid-joint model it belongs to")
+    params, cov = listing(value, f"{name} prior", 2)
+    return model.read_params(params, cov, f"{name} prior")
 
 
 def _origin(value, name):

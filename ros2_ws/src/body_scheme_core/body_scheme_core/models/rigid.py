@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import InvalidInputError, ModelFileError
 from ..limits import MAX_COORDINATE
-from ..state_values import finite_array, integer, number
+from ..state_values import covariance, finite_array, integer, number
 from ..transforms import check_transform
 from .base import LocalModel, check_action_batch, check_observations
 from .rigid_fit import DEFAULT_F_SCALE, fit_rms, least_squares_fit
@@ -214,17 +214,26 @@ class RigidJointModel(LocalModel):
                          "n_samples": self.n_samples_, "rms": self.rms_})
         return data
 
+    def read_params(self, params, cov, name):
+        """``(params, cov)`` of this model's form read from a state file: parameters in the storage layout
+        (``N_STORED``, within :data:`~body_scheme_core.limits.MAX_COORDINATE`, valid for the form) and the
+        covariance of a local increment (``N_PARAMS`` square); ``ModelFileError`` otherwise."""
+        form = self.form
+        params = finite_array(params, (form.N_STORED,), f"{name} params")
+        if np.abs(params).max(initial=0.0) > MAX_COORDINATE:
+            raise ModelFileError(f"{name} parameters beyond {MAX_COORDINATE:g} (m, rad or scale)")
+        try:
+            params = form.validate(params)
+        except (ValueError, InvalidInputError) as exc:
+            raise ModelFileError(f"{name} params: {exc}") from None
+        return params, covariance(cov, form.N_PARAMS, f"{name} param_cov")
+
     @classmethod
     def from_dict(cls, data):
         try:
             model = cls._unfitted_from_dict(data)
             if "params" in data:
-                form, p = model.form, model.form.N_PARAMS
-                params = finite_array(data["params"], (form.N_STORED,), f"{cls.kind} model params")
-                cov = finite_array(data["param_cov"], (p, p), f"{cls.kind} model param_cov")
-                if np.abs(params).max(initial=0.0) > MAX_COORDINATE:
-                    raise ModelFileError(f"{cls.kind} model parameters beyond {MAX_COORDINATE:g} (m, rad or scale)")
-                params = form.validate(params)
+                params, cov = model.read_params(data["params"], data["param_cov"], f"{cls.kind} model")
                 n, rms = integer(data["n_samples"], "n_samples"), number(data["rms"], "rms", 0.0)
                 model._set_fit(params, cov, n, rms)
         except ModelFileError:

@@ -48,6 +48,14 @@ def test_path_samples_step_at_most_max_step_and_end_at_the_goal():
         path_samples([0.0], [1.0], max_step=0.0)
 
 
+@pytest.mark.parametrize("start", [1e308, 1e6, float("nan")])
+def test_a_path_from_an_implausible_posture_is_refused_not_enumerated(start):
+    """A start 1e308 away overflowed and 1e6 away asked for 2x10^7 postures (1.8 GB): both are refused at once."""
+    with pytest.raises(InvalidInputError):
+        path_samples([start, 0.0], [0.0, 0.0], max_step=0.05)
+    assert path_samples([0.0], [400.0], max_step=0.05).shape == (8000, 1)  # long, within MAX_PATH_SAMPLES
+
+
 def test_safety_limits_keep_a_margin_and_the_workspace_box():
     """Commands within the margin of a limit, or putting a point outside the box, are refused and say why."""
     limits = SafetyLimits([-1.0, -1.0], [1.0, 1.0], margin=0.1, workspace=[[-1, -1, 0], [1, 1, 1]],

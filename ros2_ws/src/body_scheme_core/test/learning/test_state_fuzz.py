@@ -2,23 +2,25 @@
 ``load_state`` or load into a learner that then works: what scheme_node calls on a freshly loaded learner
 (``edge_status``, ``body_scheme``, ``predict``, ``noise.axis_sigmas``, ``trained_range``, ``learned_tree`` and
 ``learned_urdf``, ``encode_state``), 50 ``update`` steps of the same robot's session (refusals of inputs,
-``InvalidInputError``, are fine; ``LearnerStepError`` or anything else is not), and the state it then saves loads again.
+``InvalidInputError``, are fine; ``LearnerStepError`` or anything else is not), and the state it then saves loads
+again.
 
-The states come from a real run: the 2-DOF planar robot bootstraps, then both joints block one after the other; the
-states are taken while the tree is of candidates, while an edge is in mismatch and its replacement is refined (memory,
-replacement candidates in both batches, the joint fit, the learned noise, a rejected observation), and while parts are
-not explained by the joint fit. Every mutation is one document: a random field (fields are drawn uniformly by their
-place in the layout, list indices ignored, so a rare field is hit as often as a pose entry) and an operator on numbers
-(0, -1, 1, sign, 0.5 for an int, an int for a float, int64-sized and 5000-digit integers, 1e308), types (string,
-"inf", null, true, lists, dicts), structure (delete or add a key, duplicate, drop, truncate, reverse or empty a list,
-swap two values of the same type or of the same field from different places), deep nesting, or the text (truncate,
-flip a bit, change a digit, delete or insert a character).
+The states come from a real run: the 2-DOF planar robot bootstraps, then both joints block one after the other and are
+repaired; the states are taken while the tree is of candidates, while an edge is in mismatch and its replacement is
+refined (memory, replacement candidates in both batches, the joint fit, the learned noise, a rejected observation),
+while parts are not explained by the joint fit, and after a remembered model was reinstated (its prior). Every
+mutation is one document: a random field (fields are drawn uniformly by their place in the layout, list indices
+ignored, so a rare field is hit as often as a pose entry) and an operator on numbers (0, -1, 1, sign, 0.5 for an int,
+an int for a float, int64-sized and 5000-digit integers, 1e308), types (string, "inf", null, true, lists, dicts),
+structure (delete or add a key, duplicate, drop, truncate, reverse or empty a list, swap two values of the same type
+or of the same field from different places), deep nesting, or the text (truncate, flip a bit, change a digit, delete
+or insert a character).
 
 The mutations are shared among two processes (``BODY_SCHEME_FUZZ_WORKERS``); each may take :data:`CPU_BUDGET` CPU
-seconds and the loop at most :data:`MEMORY_BUDGET` more memory. More mutations:
-``python ros2_ws/src/body_scheme_core/test/learning/test_state_fuzz.py 5000 [seed]`` prints every failure, or the
-environment variables ``BODY_SCHEME_FUZZ_MUTATIONS`` and ``BODY_SCHEME_FUZZ_SEED`` for the pytest run. Mutation ``i`` of
-a seed is always the same document (:func:`mutation`), so a failure's ``#i`` reproduces it.
+seconds and the loop at most :data:`MEMORY_BUDGET` more memory. More mutations: ``python
+ros2_ws/src/body_scheme_core/test/learning/test_state_fuzz.py 5000 [seed]`` prints every failure, or the environment
+variables ``BODY_SCHEME_FUZZ_MUTATIONS`` and ``BODY_SCHEME_FUZZ_SEED`` for the pytest run. Mutation ``i`` of a seed is
+always the same document (:func:`mutation`), so a failure's ``#i`` reproduces it.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from body_scheme_core.learning.config import BodySchemeConfig
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import encode_state, load_state, save_state
 from body_scheme_core.prediction.learned_body import learned_tree, learned_urdf
-from body_scheme_core.world import Fault, make_session, planar_2dof
+from body_scheme_core.world import REPAIR, Fault, make_session, planar_2dof
 
 N_MUTATIONS = int(os.environ.get("BODY_SCHEME_FUZZ_MUTATIONS", "1000"))
 SEED = int(os.environ.get("BODY_SCHEME_FUZZ_SEED", "0"))
@@ -65,7 +67,8 @@ N_PRINTED = 30
 # The session and the learner the states come from (small: every loaded learner runs 50 steps).
 N_SESSION = 200
 CONFIG = {"train_window": 15, "test_window": 8, "history_length": 30, "root_window": 8, "memory_size": 2}
-FAULTS = ((60, Fault("block_joint", action_index=1, angle=0.4)), (64, Fault("block_joint", action_index=0, angle=-0.3)))
+FAULTS = ((60, Fault("block_joint", action_index=1, angle=0.4)), (64, Fault("block_joint", action_index=0, angle=-0.3)),
+          (110, REPAIR))
 OUTLIER_STEP = 50  # marker 3 seen 40 m away: a rejected observation (``rejected``)
 
 HUGE_INTEGER = "7" * 5000  # Python refuses to convert it; JSON has no limit
@@ -154,6 +157,8 @@ def _non_trivial(state):
         names.append("gp_batch slots")
     if any(slot is not None for slot in state["rigid_batch"].get("slots", [])):
         names.append("rigid_batch slots")
+    if any(e["prior"] is not None for e in state["entries"]):
+        names.append("priors")
     return set(names)
 
 
@@ -161,9 +166,9 @@ def build_states(tmp_path):
     """The real states (:class:`Base`) and the robot's session, from one run of the learner.
 
     The learner bootstraps on the planar 2-DOF robot, sees one observation 40 m away, then joint 2 and joint 1 block
-    at steps 60 and 64. A state is saved (``save_state``) the first time the learner is bootstrapping with a tree of
-    candidates, has an edge in mismatch while another's replacement is refined, and has parts the joint fit does not
-    explain.
+    at steps 60 and 64 and are repaired at 110. A state is saved (``save_state``) the first time the learner is
+    bootstrapping with a tree of candidates, has an edge in mismatch while another's replacement is refined, has
+    parts the joint fit does not explain, and has reinstated a remembered model (which carries a prior).
     """
     robot = planar_2dof()
     session = make_session(robot, N_SESSION, seed=3, sigma_trans=0.01, sigma_rot=math.radians(3.0), visibility=0.9,
@@ -174,6 +179,7 @@ def build_states(tmp_path):
         "bootstrapping": lambda s: s["bootstrapping"] and s["tree"] is not None and s["calibration"] is not None,
         "refining": lambda s: s["mismatch"] and s["refining"] and s["rejected"],
         "unexplained": lambda s: (s["unexplained"] or s["lack_of_fit"]) and s["mismatch"],
+        "reinstated": lambda s: any(e["prior"] is not None for e in s["entries"]),
     }
     bases = {}
     for k in range(N_SESSION - N_STEPS):
@@ -193,7 +199,7 @@ def build_states(tmp_path):
             break
     covered = set().union(*(_non_trivial(b.document["state"]) for b in bases.values()))
     needed = {"mismatch", "refining", "failed", "calibration", "rejected", "memory models", "candidate models",
-              "tree models", "gp_batch slots", "rigid_batch slots"}
+              "tree models", "gp_batch slots", "rigid_batch slots", "priors"}
     assert needed <= covered, f"the run no longer makes states with {sorted(needed - covered)}; adjust it"
     return list(bases.values()), Robot(tuple(robot.marker_ids), tuple(robot.action_joint_names),
                                        np.asarray(session.actions), session.observations)
