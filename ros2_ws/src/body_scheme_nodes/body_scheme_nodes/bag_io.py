@@ -63,7 +63,7 @@ except ImportError:
 
 __all__ = ["BagError", "BagMessage", "MESSAGE_CLASSES", "SESSION_TOPICS", "SESSION_FORMAT", "SESSION_FORMAT_VERSION",
            "bag_topics", "read_messages", "session_info", "read_session", "write_session", "typestore",
-           "name_the_distro"]
+           "name_the_distro", "cdr_bytes"]
 
 #: Topic -> message type of every topic a session bag may hold.
 SESSION_TOPICS = {
@@ -334,7 +334,7 @@ def write_session(session, path):
         def write(topic, stamp_ns, msg):
             if hasattr(msg, "header"):
                 msg.header.stamp = _time(stamp_ns)
-            writer.write(connections[topic], int(stamp_ns), serialize_message(msg))
+            writer.write(connections[topic], int(stamp_ns), cdr_bytes(msg, SESSION_TOPICS[topic], store))
 
         start = int(session.command_stamps[0]) if session.n_steps else 0
         write("/session/info", start, String(data=json.dumps(_info(session))))
@@ -355,6 +355,22 @@ def write_session(session, path):
         writer.close()
     name_the_distro(path)
     return path
+
+
+def cdr_bytes(msg, msgtype, store):
+    """The CDR bytes of rclpy message ``msg`` of type ``msgtype`` (``sensor_msgs/msg/JointState``), as every bag
+    reader takes them.
+
+    rclpy's ``serialize_message`` of the PyPI wheels returns bytes past the end of the CDR stream (164 for a 6-joint
+    JointState of 156, the extra ones uninitialised), which rosbags' reader and the mcap ROS 2 decoder refuse ("CDR
+    message size mismatch"). The stream is read back with rosbags' deserializer, which says where it ends, and cut
+    there.
+    """
+    raw = serialize_message(msg)
+    msgdef = store.get_msgdef(msgtype)
+    deserialize = msgdef.deserialize_cdr_le if raw[1] else msgdef.deserialize_cdr_be
+    _, end = deserialize(memoryview(raw)[4:], 0, msgdef.cls, store)
+    return raw[:4 + end]
 
 
 #: The ROS distribution our bags are written for (rosbags writes its own name into ``metadata.yaml``).
