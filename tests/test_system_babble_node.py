@@ -85,7 +85,7 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
         # sim_node renders on the same 2 cores as scheme_node and tracker_node: in CI its joint states paused for
         # 3 s, and babble_node saw no observations for 4 s.
         "camera_timeout": 10.0, "joint_state_timeout": 10.0,
-        "watch_diagnostics": "/alarm: body scheme"})  # the test's stand-in for scheme_node's status
+        "watch_diagnostics": "/alarm"})  # the test's stand-in for scheme_node's status
     # Resumed once the test sees babble_node's publishers (else the first goal can go out before discovery).
     assert spin_until(lambda: ros_node.count_publishers("joint_trajectory_controller/joint_trajectory") >= 1
                       and ros_node.count_publishers("joint_commands") >= 1, timeout=30), babble.output()
@@ -118,19 +118,27 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     assert spin_until(lambda: len(watcher.trajectories) > n + 2, timeout=10)
 
     # Stop: one point where the arm is (a JointTrajectoryController rejects an empty trajectory), then nothing; the
-    # arm stays there.
+    # arm stays there. A hostile joint state at 50 rad just before is refused: the hold stays within the limits.
     n = len(watcher.trajectories)
+    hostile = ros_node.create_publisher(JointState, "/joint_states", 10)
+    for _ in range(5):
+        hostile.publish(JointState(name=names, position=[50.0] + [0.0] * (len(names) - 1)))
+        spin_until(lambda: False, timeout=0.05)
     assert _call(ros_node, spin_until, "stop").success
     assert spin_until(lambda: watcher.babbling.get("state") == "stopped", timeout=5)
     spin_until(lambda: False, timeout=1.5)
     hold = watcher.trajectories[-1]
     assert len(watcher.trajectories) > n and len(hold.points) == 1
+    limits = (tree.action_lower + MARGIN - 1e-9, tree.action_upper - MARGIN + 1e-9)
+    assert np.all(hold.points[0].positions >= limits[0]) and np.all(hold.points[0].positions <= limits[1])
+    assert int(watcher.babbling["driver.joint_states_out_of_range"]) >= 1, watcher.babbling
     n = len(watcher.trajectories)
     spin_until(lambda: False, timeout=1.5)
     assert len(watcher.trajectories) == n
     assert np.allclose(watcher.joint_states[-1].position, hold.points[0].positions, atol=0.02)
 
-    # A watched status that stays ERROR stops it (published by the test as scheme_node would publish its own).
+    # A watched status that stays ERROR stops it (published by the test as scheme_node would publish its own), though
+    # a second robot's scheme_node, whose status name contains this one's, says OK in between.
     assert _call(ros_node, spin_until, "resume").success
     assert spin_until(lambda: len(watcher.trajectories) > n + 1 and watcher.babbling.get("state") == "idle",
                       timeout=10)
@@ -138,9 +146,12 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     error = DiagnosticArray(status=[DiagnosticStatus(name="/alarm: body scheme", level=DiagnosticStatus.ERROR,
                                                      message="2 local model(s) invalid (adapting)",
                                                      values=[KeyValue(key="step", value="1")])])
+    other_robot = DiagnosticArray(status=[DiagnosticStatus(name="/robot2/alarm: body scheme",
+                                                           level=DiagnosticStatus.OK)])
     deadline = time.monotonic() + 10
     while watcher.babbling.get("state") != "stopped" and time.monotonic() < deadline:
         alarm.publish(error)
+        alarm.publish(other_robot)
         spin_until(lambda: False, timeout=0.2)
     assert watcher.babbling.get("state") == "stopped" and "ERROR" in watcher.babbling["message"], watcher.babbling
     assert watcher.babbling["level"] == DiagnosticStatus.ERROR

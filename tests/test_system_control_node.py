@@ -297,3 +297,72 @@ def test_an_unsure_answer_is_answered_again_when_exploring_is_refused_or_unanswe
     assert spin_until(lambda: len(results) == 4, timeout=20), control.output()
     assert "exploring 3 postures near it" in results[2].reason
     assert results[3].reason.startswith("not explored (no answer from scheme_node within 6.0 s)"), results[3].reason
+
+
+def test_every_target_is_answered_or_counted_and_every_command_is_within_the_limits(start_node, ros_node,
+                                                                                    spin_until):
+    """3,000 targets at once (2,805 got no IKResult before): each one taken is answered (solved, refused or "busy"),
+    each one DDS overwrote is counted (lost.ik_target_messages), each one over max_message_bytes is refused unread;
+    they add up to what was sent. A start command of 50 rad (anyone may publish one) never makes an interpolated
+    command leave the joint limits."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    tree = planar_2dof()
+    end_effector = max(tree.marker_ids)
+    process = start_node("body_scheme_nodes", "control_node", {"part_id": end_effector, "tolerance": 0.002,
+                                                                "trajectory_steps": 4, "max_message_bytes": 65536})
+    results, commands, status = [], [], {}
+    ros_node.create_subscription(IKResult, "ik_result", results.append, 5000)
+    ros_node.create_subscription(JointState, "joint_commands", commands.append, 100)
+
+    def on_diagnostics(msg):
+        for s in msg.status:
+            if s.name == "/control_node: control":
+                status.clear()
+                status.update({kv.key: kv.value for kv in s.values})
+
+    ros_node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    targets = ros_node.create_publisher(IKTarget, "ik_target", 5000)
+    others = ros_node.create_publisher(JointState, "joint_commands", 10)
+    snapshots = ros_node.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
+    assert spin_until(lambda: targets.get_subscription_count() > 0 and status, timeout=30), process.output()
+
+    # The limits: someone else's command far outside them is the start of the next interpolation.
+    world2root = default_world2root()
+    scheme = BodyScheme(tree.marker_ids, tree.root_marker, engineered_models(tree))
+    snapshots.publish(conversions.snapshot_msg(0.0, "camera", 1, scheme, tree.action_joint_names,
+                                               tree.action_lower, tree.action_upper, world2root))
+    spin_until(lambda: False, timeout=1.0)
+    others.publish(conversions.joint_state_msg(0.0, tree.action_joint_names, [50.0, -7.0]))
+    spin_until(lambda: False, timeout=0.5)
+    commands.clear()
+    target = IKTarget(part_id=-1)
+    target.header.frame_id = "camera"
+    target.position.x, target.position.y, target.position.z = (float(v) for v in (
+        world2root @ tree.marker_poses(np.array([0.4, -0.7]))[end_effector])[:3, 3])
+    targets.publish(target)
+    assert spin_until(lambda: len(commands) == 4, timeout=20), process.output()
+    for command in commands:
+        _, a = conversions.actions_from_joint_state(command, tree.action_joint_names)
+        assert np.all(a >= tree.action_lower) and np.all(a <= tree.action_upper), a
+
+    # The flood, and three targets too large to read.
+    results.clear()
+    for _ in range(3000):
+        targets.publish(target)
+    huge = IKTarget(part_id=-1)
+    huge.header.frame_id = "x" * 100_000
+    for _ in range(3):
+        targets.publish(huge)
+
+    def accounted():
+        if not status:
+            return False
+        taken, lost = int(status["received"]), int(status["lost.ik_target_messages"])
+        answered = int(status["requests"]) - 1 + int(status["busy"])  # solved or busy, the flood's
+        return (taken + lost + int(status["rejected.oversized_message"]) == 3004
+                and len(results) == taken - 1 == answered)
+
+    assert spin_until(accounted, timeout=120), (status, len(results), process.output()[-2000:])
+    assert int(status["rejected.oversized_message"]) == 3 and process.running()
+    assert sum(r.reason.startswith("busy") for r in results) == int(status["busy"])

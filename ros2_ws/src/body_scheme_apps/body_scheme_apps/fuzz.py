@@ -1,4 +1,4 @@
-"""``fuzz``: scheme_node under hostile input over DDS, every refusal counted exactly, learning unharmed.
+"""``fuzz``: scheme_node, control_node and babble_node under hostile input over DDS, every message accounted for.
 
     python -m body_scheme_apps.fuzz [--messages 10000] [--steps 600] [--seed 0] [--out out/fuzz/fuzz.json]
 
@@ -9,12 +9,19 @@ NaN and non-unit quaternions, empty and mismatched arrays, unknown, negative, re
 names, stamps in the future, in the past, zero and going backwards, and bursts of them. The valid traffic's ignored
 fields (JointState velocity and effort, pose covariances) carry NaN, inf and 1e300 too.
 
-Every hostile message is built so that the node's reaction is certain, and the plan adds up what the node must count
-(``rejected.*``, ``restamped.*``, the learning steps). The run passes when the node is alive, took in every message
-(``received.*``), counts exactly the plan's figures with nothing else refused or shed, and learnt the same tree (pairs
-and model kinds) as the same settings learn in-process from the valid samples alone. Figures: printed, and written as
-JSON (``ok``, ``published_messages``, ``hostile_messages``, ``expected``, ``counted``, ``differences``,
-``structure``, ``baseline_structure``).
+The other inputs of the graph get their share (:data:`OTHER_INPUTS`): requests to explore near a posture and
+CameraInfos that no camera could have (scheme_node, with exploration on), IK targets that control_node must refuse
+(NaN, unknown parts, other frames; its commands remapped away from scheme_node's), and joint states 50 rad or 1e308
+beyond the limits, malformed or too large (babble_node, paused), each with messages too large to read.
+
+Every hostile message is built so that the node's reaction is certain, and the plan adds up what each node must
+count (``rejected.*``, ``restamped.*``, the learning steps, the driver's ``joint_states_*``, control_node's answers).
+The run passes when the nodes are alive, every message sent was taken, lost in DDS (counted) or refused unread
+(counted) (received + lost + refused = sent), the counts are exactly the plan's with nothing else refused or shed,
+every IK target taken was answered, and scheme_node learnt the same tree (pairs and model kinds) as the same settings
+learn in-process from the valid samples alone. Figures: printed, and written as JSON (``ok``, ``published_messages``,
+``hostile_messages``, ``expected``, ``counted``, ``differences``, ``other_nodes``, ``structure``,
+``baseline_structure``, ``diagnostics_max_gap_s`` per node).
 """
 
 from __future__ import annotations
@@ -35,15 +42,16 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovariance
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import CameraInfo, JointState
 from std_msgs.msg import Header
 
 from body_scheme_apps.bench_output import report
 from body_scheme_apps.live_demo import domain_id
 from body_scheme_core.world import make_session, planar_2dof
-from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses
+from body_scheme_msgs.msg import BodySchemeStructure, ExploreNear, IKResult, IKTarget, MarkerPoses
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
+from body_scheme_nodes.message_feed import MESSAGE_KINDS
 from body_scheme_nodes.settings import SchemeSettings
 
 __all__ = ["PERIOD", "CASES", "Plan", "make_plan", "run_fuzz", "main"]
@@ -156,8 +164,78 @@ PAIRS = {
     "pair_unknown_and_negative_ids": (lambda t, n, a: _command(t, n, a), lambda t: _observations(t, [
         (99, _pose()), (-5, _pose()), (2**40, _pose())]), {"rejected.unknown_id": 3}, 1),
 }
+
+
+# ---------------------------------------------------------------------- the other nodes' inputs
+def _explore_near(t, names, positions, samples=3, radius=0.05):
+    return ExploreNear(header=_header(t), joint_names=list(names), positions=[float(v) for v in positions],
+                       samples=samples, radius=radius)
+
+
+def _camera_info(width, height, fx, cx, cy, frame="camera"):
+    return CameraInfo(header=_header(0.0), width=width, height=height, k=[fx, 0.0, cx, 0.0, fx, cy, 0.0, 0.0, 1.0])
+
+
+def _target(t, part, position, frame="camera"):
+    msg = IKTarget(header=_header(t), part_id=part)
+    msg.header.frame_id = frame
+    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in position)
+    return msg
+
+
+#: Topics of the other nodes' inputs: topic key -> (message type, topic, the node that counts it).
+OTHER_TOPICS = {"explore_near": (ExploreNear, "body_scheme/explore_near", "scheme_node"),
+                "camera_info": (CameraInfo, "camera/camera_info", "scheme_node"),
+                "ik_target": (IKTarget, "ik_target", "control_node"),
+                "joint_states": (JointState, "/joint_states", "babble_node")}
+#: ``max_message_bytes`` of the three nodes in the run: a message larger than this is refused unread.
+OTHER_MAX_BYTES = 1 << 16
+_LARGE = "x" * (OTHER_MAX_BYTES + 1)
+#: Case -> (topic key, build(t, joint names, valid actions) -> message, {node: {counter: n}}). Each is refused: none
+#: changes what scheme_node learns (control_node answers without a command, babble_node is paused).
+OTHER_INPUTS = {
+    "explore_near_unknown_joint": ("explore_near", lambda t, n, a: _explore_near(t, [n[0], "wrist_of_another"], a),
+                                   {"scheme_node": {"rejected.bad_explore_near": 1}}),
+    "explore_near_nan": ("explore_near", lambda t, n, a: _explore_near(t, n, [NAN, a[1]]),
+                         {"scheme_node": {"rejected.bad_explore_near": 1}}),
+    "explore_near_zero_samples": ("explore_near", lambda t, n, a: _explore_near(t, n, a, samples=0),
+                                  {"scheme_node": {"rejected.bad_explore_near": 1}}),
+    "explore_near_radius_5": ("explore_near", lambda t, n, a: _explore_near(t, n, a, radius=5.0),
+                              {"scheme_node": {"rejected.bad_explore_near": 1}}),
+    "explore_near_too_large": ("explore_near", lambda t, n, a: _explore_near(t, [_LARGE], [0.0]),
+                               {"scheme_node": {"rejected.oversized_message": 1}}),
+    "camera_info_1x1_f1e300": ("camera_info", lambda t, n, a: _camera_info(1, 1, 1e300, 0.5, 0.5),
+                               {"scheme_node": {"rejected.bad_camera_info": 1}}),
+    "camera_info_uncalibrated": ("camera_info", lambda t, n, a: _camera_info(640, 480, 0.0, 320.0, 240.0),
+                                 {"scheme_node": {"rejected.bad_camera_info": 1}}),
+    "camera_info_principal_point_off": ("camera_info", lambda t, n, a: _camera_info(640, 480, 500.0, -1e6, 240.0),
+                                        {"scheme_node": {"rejected.bad_camera_info": 1}}),
+    "camera_info_too_large": ("camera_info", lambda t, n, a: CameraInfo(header=Header(frame_id=_LARGE)),
+                              {"scheme_node": {"rejected.oversized_message": 1}}),
+    "ik_target_nan": ("ik_target", lambda t, n, a: _target(t, -1, [NAN, 0.0, 1.0]), {"control_node": {"received": 1}}),
+    "ik_target_unknown_part": ("ik_target", lambda t, n, a: _target(t, 99, [0.0, 0.0, 1.0]),
+                               {"control_node": {"received": 1}}),
+    "ik_target_other_frame": ("ik_target", lambda t, n, a: _target(t, -1, [0.0, 0.0, 1.0], frame="world"),
+                              {"control_node": {"received": 1}}),
+    "ik_target_too_large": ("ik_target", lambda t, n, a: _target(t, -1, [0.0, 0.0, 1.0], frame=_LARGE),
+                            {"control_node": {"rejected.oversized_message": 1}}),
+    "joint_states_50_rad": ("joint_states", lambda t, n, a: _command(t, n, [50.0, a[1]]),
+                            {"babble_node": {"driver.joint_states_out_of_range": 1}}),
+    "joint_states_1e308": ("joint_states", lambda t, n, a: _command(t, n, [a[0], -1e308]),
+                           {"babble_node": {"driver.joint_states_out_of_range": 1}}),
+    "joint_states_nan": ("joint_states", lambda t, n, a: _command(t, n, [NAN, a[1]]),
+                         {"babble_node": {"driver.joint_states_rejected": 1}}),
+    "joint_states_unknown_joint": ("joint_states", lambda t, n, a: _command(t, ["shoulder_of_another"], [0.0]),
+                                   {"babble_node": {"driver.joint_states_rejected": 1}}),
+    "joint_states_too_large": ("joint_states", lambda t, n, a: _command(t, [_LARGE], [0.0]),
+                               {"babble_node": {"driver.joint_states_oversized": 1}}),
+    "joint_states_valid": ("joint_states", lambda t, n, a: _command(t, n, a),
+                           {"babble_node": {"driver.joint_states": 1}}),
+}
+#: One of the other inputs every this many slots, the cases in turn.
+OTHER_EVERY = 2
 #: Every case name (for the report).
-CASES = sorted([*REFUSED_ANYWHERE, *BACKWARDS, *IN_SLOT, *PAIRS, *OVERSIZED, "zero_stamp_command",
+CASES = sorted([*REFUSED_ANYWHERE, *BACKWARDS, *IN_SLOT, *PAIRS, *OVERSIZED, *OTHER_INPUTS, "zero_stamp_command",
                 "zero_stamp_observations"])
 
 
@@ -185,7 +263,8 @@ class Plan:
     """What to publish when (offsets from the start, s) and what the node must then count."""
 
     messages: list = field(default_factory=list)  # (offset s, kind, build(t0) -> message), in publishing order
-    expected: Counter = field(default_factory=Counter)
+    expected: Counter = field(default_factory=Counter)  # scheme_node's counters
+    other_expected: dict = field(default_factory=lambda: {"control_node": Counter(), "babble_node": Counter()})
     cases: Counter = field(default_factory=Counter)  # hostile messages by case
     learning_steps: int = 0
     valid_samples: list = field(default_factory=list)  # (actions, observations) the learner must see
@@ -220,6 +299,12 @@ def make_plan(session, n_messages, seed=0):
             kind, build, counts = cases[name]
             plan.add(mid - 0.01 + 1e-5 * j, kind, lambda t0, t=mid, b=build, a=a: b(t0 + t, names, a), name)
             plan.expected.update(counts)
+        if k % OTHER_EVERY == 0:  # in turn: every case in a short run, a CameraInfo (best effort) now and then
+            name = sorted(OTHER_INPUTS)[(k // OTHER_EVERY) % len(OTHER_INPUTS)]
+            topic, build, counts = OTHER_INPUTS[name]
+            plan.add(mid + 0.01, topic, lambda t0, t=mid, b=build, a=a: b(t0 + t, names, a), name)
+            for node_name, node_counts in counts.items():
+                (plan.expected if node_name == "scheme_node" else plan.other_expected[node_name]).update(node_counts)
         slot = rng.choice(["none", "observations", "pair"], p=[0.2, 0.4, 0.4])
         if slot == "observations":
             name = str(rng.choice(sorted(IN_SLOT)))
@@ -279,7 +364,31 @@ def fuzz_parameters(tree):
             "action_upper": [float(v) for v in tree.action_upper],
             "pairing_grace": 0.2, "learner.train_window": 20,
             # Nothing may be shed for load here: the count must be exact, however slow the machine.
-            "max_sample_age": 600.0, "max_pending_samples": 100000, "max_inbox": 100000}
+            "max_sample_age": 600.0, "max_pending_samples": 100000, "max_inbox": 100000,
+            # Exploration on, so that its requests and CameraInfos are read (it changes nothing the learner does).
+            "exploration": True, "exploration_candidates": 8, "exploration_camera_info": "camera/camera_info",
+            "max_message_bytes": OTHER_MAX_BYTES}
+
+
+def other_nodes(tree):
+    """``{name: (parameters, ros_args)}`` of control_node and babble_node in the run: paused or answering only, their
+    commands remapped away from scheme_node's."""
+    return {
+        "control_node": ({"part_id": int(max(tree.marker_ids)), "max_message_bytes": OTHER_MAX_BYTES},
+                         ("-r", "joint_commands:=/fuzz/control_node/joint_commands")),
+        "babble_node": ({"robot": "planar_2dof", "start_paused": True, "collision_check": False,
+                         "watch_diagnostics": "", "camera_timeout": 0.0, "joint_state_timeout": 0.0,
+                         "max_message_bytes": OTHER_MAX_BYTES},
+                        ("-r", "joint_commands:=/fuzz/babble_node/joint_commands")),
+    }
+
+
+#: Each other node's counters that add up to the messages sent to it: taken (by kind), lost in DDS, refused unread.
+ACCOUNTS = {"control_node": ("received", "lost.ik_target_messages", "rejected.oversized_message"),
+            "babble_node": ("driver.joint_states", "driver.joint_states_rejected", "driver.joint_states_out_of_range",
+                            "driver.joint_states_oversized", "driver.joint_states_lost")}
+STATUS = {"scheme_node": "/scheme_node: body scheme", "control_node": "/control_node: control",
+          "babble_node": "/babble_node: babbling"}
 
 
 def baseline_structure(settings, samples):
@@ -299,33 +408,45 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
     baseline = baseline_structure(SchemeSettings.from_parameters(parameters), plan.valid_samples)
     domain = domain_id(env) if domain is None else domain
     with tempfile.TemporaryDirectory() as tmp, monitor_node("fuzz", domain) as (node, executor):
-        process = NodeProcess("body_scheme_nodes", "scheme_node", parameters, log_dir or tmp, env=env)
-        last, structure, arrivals = {}, [], []
+        processes = {"scheme_node": NodeProcess("body_scheme_nodes", "scheme_node", parameters, log_dir or tmp,
+                                                env=env)}
+        for name, (node_parameters, ros_args) in other_nodes(tree).items():
+            processes[name] = NodeProcess("body_scheme_nodes", name, node_parameters, log_dir or tmp, env=env,
+                                          ros_args=ros_args)
+        statuses = {name: {} for name in STATUS}
+        arrivals = {name: [] for name in STATUS}
+        last, structure, answers = statuses["scheme_node"], [], []
 
         def on_diagnostics(msg):
-            for status in msg.status:
-                if status.name == "/scheme_node: body scheme":
-                    arrivals.append(conversions.seconds_from_stamp(msg.header.stamp))  # the node's clock
-            for status in msg.status:
-                if status.name == "/scheme_node: body scheme":
-                    last.clear()
-                    last.update({kv.key: kv.value for kv in status.values})
+            for name, status_name in STATUS.items():
+                for status in msg.status:
+                    if status.name == status_name:
+                        arrivals[name].append(conversions.seconds_from_stamp(msg.header.stamp))  # the node's clock
+                        statuses[name].clear()
+                        statuses[name].update({kv.key: kv.value for kv in status.values})
 
-        node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 100)
         node.create_subscription(BodySchemeStructure, "body_scheme/structure", structure.append, LATCHED)
+        node.create_subscription(IKResult, "ik_result", answers.append, 10000)
         publishers = {"command": node.create_publisher(JointState, "joint_commands", 1000),
                       "observations": node.create_publisher(MarkerPoses, "observations", 1000)}
+        publishers.update({topic: node.create_publisher(msg_type, name, 1000)
+                           for topic, (msg_type, name, _) in OTHER_TOPICS.items()})
         published = Counter()
         try:
             deadline = time.monotonic() + 60
-            while not (last and structure) and time.monotonic() < deadline:  # up and discovered
+            while not (all(statuses.values()) and structure and publishers["camera_info"].get_subscription_count()
+                       and all(p.get_subscription_count() for p in publishers.values())) \
+                    and time.monotonic() < deadline:  # up and discovered
                 executor.spin_once(timeout_sec=0.05)
-            if not (last and structure):
-                raise RuntimeError(f"scheme_node did not come up within 60 s:\n{process.output()}")
+            if not (all(statuses.values()) and structure):
+                raise RuntimeError("the nodes did not come up within 60 s:\n" + "\n".join(
+                    p.output()[-2000:] for p in processes.values()))
             t0 = node.get_clock().now().nanoseconds * 1e-9 + 0.2
             start = time.monotonic() + 0.2
-            del arrivals[:-1]
-            for offset, kind, build in plan.messages:
+            for times in arrivals.values():
+                del times[:-1]
+            for offset, kind, build in plan.messages:  # kind: a message kind of scheme_node or an OTHER_TOPICS key
                 while time.monotonic() < start + offset:
                     executor.spin_once(timeout_sec=max(0.0, min(0.005, start + offset - time.monotonic())))
                 publishers[kind].publish(build(t0))
@@ -335,7 +456,10 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
             def done():
                 return (int(last.get("step", -1)) >= plan.learning_steps
                         and all(int(last.get(k, 0)) >= v for k, v in plan.expected.items())
-                        and all(int(last.get(f"received.{k}", 0)) >= v for k, v in published.items()))
+                        and all(int(last.get(f"received.{k}", 0)) >= published[k] for k in MESSAGE_KINDS)
+                        and all(sum(int(statuses[n].get(k, 0)) for k in keys) >= published[_topic_of(n)]
+                                for n, keys in ACCOUNTS.items())
+                        and len(answers) >= int(statuses["control_node"].get("received", 0)))
 
             deadline = time.monotonic() + timeout
             while not done() and time.monotonic() < deadline:
@@ -343,44 +467,74 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
             settle = time.monotonic() + 2.5  # one more diagnostics message: nothing else arrives late
             while time.monotonic() < settle:
                 executor.spin_once(timeout_sec=0.1)
-            alive = process.running()
-            gaps = np.diff(arrivals)  # by the node's stamps: its responsiveness, not this process's
+            alive = {name: p.running() for name, p in processes.items()}
+            gaps = {name: float(np.diff(times).max(initial=0.0)) for name, times in arrivals.items()}  # node clocks
         finally:
-            process.stop()
-            output = process.output()
+            for p in processes.values():
+                p.stop()
+            output = "\n".join(f"----- {name} -----\n{p.output()[-3000:]}" for name, p in processes.items())
 
     counted = {k: int(v) for k, v in last.items() if k.startswith(("rejected.", "restamped.", "shed."))
                and k != "rejected_total" and int(v)}
     expected = dict(plan.expected)
     differences = {k: {"expected": expected.get(k, 0), "counted": counted.get(k, 0)}
                    for k in sorted(set(expected) | set(counted)) if expected.get(k, 0) != counted.get(k, 0)}
-    received = {k: int(last.get(f"received.{k}", 0)) for k in published}
+    received = {k: int(last.get(f"received.{k}", 0)) for k in MESSAGE_KINDS}
+    # scheme_node's requests: each taken (and answered, exploration.near_requests), none lost.
+    explore_requests = int(last.get("exploration.near_requests", 0)) + int(last.get("lost.explore_near_messages", 0))
+    received["explore_near"] = explore_requests + plan.cases["explore_near_too_large"]
+    other = {name: _other_node_report(name, statuses[name], plan.other_expected[name], published[_topic_of(name)])
+             for name in ACCOUNTS}
+    other["control_node"]["answered"] = len(answers)
+    answered_all = len(answers) == int(statuses["control_node"].get("received", -1))
     learnt = sorted((e.parent_id, e.child_id, e.kind) for e in structure[-1].edges) if structure else []
     result = {
-        "ok": bool(alive and not differences and received == dict(published) and learnt == baseline
-                   and int(last.get("step", -1)) == plan.learning_steps),
-        "node_alive": alive, "published_messages": sum(published.values()),
+        "ok": bool(all(alive.values()) and not differences and received == {k: published[k] for k in received}
+                   and int(last.get("lost.explore_near_messages", 0)) == 0 and learnt == baseline
+                   and int(last.get("step", -1)) == plan.learning_steps and answered_all
+                   and all(not accounts["differences"] for accounts in other.values())),
+        "node_alive": all(alive.values()), "nodes_alive": alive, "published_messages": sum(published.values()),
         "hostile_messages": sum(plan.cases.values()), "published": dict(published), "received": received,
         "learning_steps": {"expected": plan.learning_steps, "counted": int(last.get("step", -1))},
-        "expected": expected, "counted": counted, "differences": differences,
+        "expected": expected, "counted": counted, "differences": differences, "other_nodes": other,
         "structure": [list(e) for e in learnt], "baseline_structure": [list(e) for e in baseline],
-        "diagnostics_max_gap_s": float(gaps.max()),
+        "diagnostics_max_gap_s": gaps["scheme_node"], "diagnostics_max_gap_s_by_node": gaps,
         "cases": dict(sorted(plan.cases.items())),
     }
     if not result["ok"]:
-        result["node_output_tail"] = output[-4000:]
+        result["node_output_tail"] = output[-9000:]
     return result
 
 
+def _topic_of(node_name):
+    return next(topic for topic, (_, _, name) in OTHER_TOPICS.items() if name == node_name)
+
+
+def _other_node_report(name, status, expected, sent):
+    """control_node's or babble_node's accounts: what it counted of each expected counter, what it took, lost and
+    refused unread, and the differences from the plan (none lost: the plan's figures are exact)."""
+    keys = ACCOUNTS[name]
+    counted = {k: int(status.get(k, 0)) for k in sorted(set(expected) | set(keys))}
+    differences = {k: {"expected": expected.get(k, 0), "counted": counted[k]} for k in counted
+                   if counted[k] != expected.get(k, 0)}
+    accounted = sum(counted[k] for k in keys)
+    if accounted != sent:
+        differences["sent"] = {"expected": sent, "counted": accounted}
+    return {"sent": sent, "counted": counted, "differences": differences}
+
+
 def _table(result):
-    lines = [f"scheme_node fuzz: {result['published_messages']} messages, {result['hostile_messages']} hostile "
-             f"({len(result['cases'])} kinds); node alive: {result['node_alive']}",
-             f"  received {result['received']} of {result['published']}",
+    lines = [f"fuzz: {result['published_messages']} messages, {result['hostile_messages']} hostile "
+             f"({len(result['cases'])} kinds); nodes alive: {result['nodes_alive']}",
+             f"  scheme_node received {result['received']} of {result['published']}",
              "  learning steps {counted} (expected {expected})".format(**result["learning_steps"]),
              f"  counts {'exact' if not result['differences'] else 'DIFFER: ' + str(result['differences'])}",
-             f"  structure {result['structure']} (without fuzz: {result['baseline_structure']})",
-             f"  /diagnostics max gap {result['diagnostics_max_gap_s']:.2f} s (target <= 2)",
-             f"  {'PASSED' if result['ok'] else 'FAILED'}"]
+             f"  structure {result['structure']} (without fuzz: {result['baseline_structure']})"]
+    for name, accounts in result["other_nodes"].items():
+        state = "exact" if not accounts["differences"] else f"DIFFER: {accounts['differences']}"
+        lines.append(f"  {name}: sent {accounts['sent']}, counted {accounts['counted']}: {state}")
+    gaps = ", ".join(f"{n} {g:.2f} s" for n, g in result["diagnostics_max_gap_s_by_node"].items())
+    lines += [f"  /diagnostics max gap {gaps} (target <= 2)", f"  {'PASSED' if result['ok'] else 'FAILED'}"]
     return "\n".join(lines)
 
 

@@ -5,7 +5,13 @@ The arm may be a real one or sim_node (which accepts the same topic). What is ch
 (:meth:`ArmDriver.refusal`): the joint limits shrunk by a margin and the workspace box
 (:class:`~body_scheme_core.control.motion.SafetyLimits`), and self-collision and ground contact along the straight
 joint-space path from the arm's position (:class:`~body_scheme_sim.babbling.CollisionScreen`, pybullet from the URDF).
-Refused goals are counted by reason and never sent.
+Refused goals are counted by reason and never sent. The one goal sent without those checks, :meth:`ArmDriver.halt`'s,
+stays where the arm is, clamped within the limits less the margin.
+
+Every joint state is checked before it is used: a commanded joint's position beyond its limits by more than
+:data:`JOINT_STATE_SLACK` of its range (a broken encoder, a hostile publisher: 50 rad, 1e308) is refused whole and
+counted (``joint_states_out_of_range``), so no reading can make a halt leave the limits or a move's path check
+unbounded.
 """
 
 from __future__ import annotations
@@ -22,11 +28,18 @@ from body_scheme_core.control import SafetyLimits, SettleDetector, path_samples,
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
 
 from . import conversions
+from .intake import BatchIntake
 
 __all__ = ["ArmDriver", "declare_driver_parameters", "driver_from_parameters"]
 
 #: Largest joint step (rad, m) between two postures checked along a move's path.
 PATH_STEP = 0.05
+#: s between two takes of the joint states, and the depth of their queue (a second of joint states at 100 Hz).
+JOINT_STATE_PERIOD = 0.01
+JOINT_STATE_DEPTH = 100
+#: Fraction of a joint's range a reported position may lie beyond its limits (encoders overshoot a little; more is a
+#: broken reading).
+JOINT_STATE_SLACK = 0.1
 
 
 def declare_driver_parameters(node):
@@ -39,7 +52,11 @@ def declare_driver_parameters(node):
         ("robot", "powercube_6dof"), ("controller", "joint_trajectory_controller"),
         ("joint_states_topic", "/joint_states"), ("max_velocity", 1.0), ("max_acceleration", 2.0),
         ("limit_margin", 0.05), ("collision_check", True), ("settle_tolerance", 0.01), ("settle_still", 0.002),
-        ("settle_window", 0.1), ("settle_timeout", 2.0))}
+        ("settle_window", 0.1), ("settle_timeout", 2.0), ("max_message_bytes", 1 << 20))}
+    if isinstance(values["max_message_bytes"], bool) or not isinstance(values["max_message_bytes"], int) or \
+            not 1 <= values["max_message_bytes"] <= 1 << 30:
+        raise InvalidInputError(f"max_message_bytes must be an integer from 1 to {1 << 30}, got "
+                                f"{values['max_message_bytes']!r}")
     values["package_path"] = declare_list_parameter(node, "package_path", str)
     values["workspace"] = declare_list_parameter(node, "workspace", float)
     values["joint_names"] = declare_list_parameter(node, "joint_names", str)
@@ -62,7 +79,8 @@ def driver_from_parameters(node, values):
         if values["collision_check"] else None
     return ArmDriver(node, tree, values["joint_names"] or tree.action_joint_names, values["limit_margin"],
                      np.reshape(workspace, (2, 3)) if workspace else None, screen, values["max_velocity"],
-                     values["max_acceleration"], settle, values["controller"], values["joint_states_topic"])
+                     values["max_acceleration"], settle, values["controller"], values["joint_states_topic"],
+                     values["max_message_bytes"])
 
 
 class ArmDriver:
@@ -87,11 +105,14 @@ class ArmDriver:
     controller : str
         The ``JointTrajectoryController``'s name: goals go to ``<controller>/joint_trajectory``.
     joint_states_topic : str
+    max_message_bytes : int
+        A larger joint state is refused unread (``joint_states_oversized``).
     """
 
     def __init__(self, node, tree, joint_names, limit_margin, workspace, screen, max_velocity, max_acceleration,
-                 settle, controller, joint_states_topic):
+                 settle, controller, joint_states_topic, max_message_bytes=1 << 20):
         self.node = node
+        self.clock = None  # the node's clock (s) unless a test injects its own
         self.robot_joints = tuple(tree.action_joint_names)
         self.joint_names = tuple(joint_names)
         unknown = sorted(set(self.joint_names) - set(self.robot_joints))
@@ -106,7 +127,11 @@ class ArmDriver:
 
         self.safety = SafetyLimits(tree.action_lower[self._index], tree.action_upper[self._index], limit_margin,
                                    workspace, link_origins if workspace is not None else None)
-        self.screen, self.settle = screen, settle
+        slack = JOINT_STATE_SLACK * (tree.action_upper - tree.action_lower)
+        #: Plausible reported positions of every joint of the robot (action order): the limits widened by the slack.
+        self.plausible = (tree.action_lower - slack, tree.action_upper + slack)
+        self.joint_state_problem = ""  # why the last refused joint state was refused
+        self.screen, self.settle, self.max_message_bytes = screen, settle, max_message_bytes
         self.max_velocity, self.max_acceleration = max_velocity, max_acceleration
         trajectory_duration(np.zeros(1), np.ones(1), max_velocity, max_acceleration)  # validates the limits now
         self._counts = Counter()
@@ -115,10 +140,13 @@ class ArmDriver:
         self._held = np.zeros(len(self.robot_joints))  # the robot's last known posture (action order)
         self._lock = threading.Lock()
         self.pub_trajectory = node.create_publisher(JointTrajectory, f"{controller}/joint_trajectory", 10)
-        node.create_subscription(JointState, joint_states_topic, self._on_joint_states, 50)
+        # Taken in batches every JOINT_STATE_PERIOD: a joint state DDS overwrote in a flood is counted, not lost
+        # unseen (body_scheme_nodes.intake).
+        self._joint_states = BatchIntake(node, JointState, joint_states_topic, JOINT_STATE_DEPTH, max_message_bytes)
+        node.create_timer(JOINT_STATE_PERIOD, self.take_joint_states)
 
     def _now(self):
-        return self.node.get_clock().now().nanoseconds * 1e-9
+        return self.clock() if self.clock is not None else self.node.get_clock().now().nanoseconds * 1e-9
 
     def _count(self, key):
         with self._lock:
@@ -126,10 +154,22 @@ class ArmDriver:
 
     @property
     def counts(self):
-        """A copy of the counters: ``sent``, ``settled``, ``settle_timeouts``, ``halted``, ``refused.<reason>``
-        (joint limit, workspace, collision), ``joint_states`` received and ``joint_states_rejected``."""
+        """A copy of the counters: ``sent``, ``settled``, ``settle_timeouts``, ``halted`` (with a goal: where the arm
+        is), ``halted_without_goal`` (no joint state yet), ``refused.<reason>`` (joint limit, workspace, collision,
+        malformed), ``joint_states`` taken, ``joint_states_rejected`` (malformed), ``joint_states_out_of_range``,
+        ``joint_states_oversized`` (over ``max_message_bytes``, refused unread) and ``joint_states_lost`` (overwritten
+        in DDS before they were taken)."""
         with self._lock:
             return dict(self._counts)
+
+    def take_joint_states(self):
+        """Take the joint states waiting in DDS (a timer every :data:`JOINT_STATE_PERIOD`)."""
+        for msg, _ in self._joint_states.take():
+            self._on_joint_states(msg)
+        refused = len(self._joint_states.take_refused())
+        with self._lock:
+            self._counts["joint_states_oversized"] += refused
+            self._counts["joint_states_lost"] = self._joint_states.lost
 
     def _on_joint_states(self, msg):
         try:
@@ -137,13 +177,23 @@ class ArmDriver:
         except BodySchemeError:
             self._count("joint_states_rejected")
             return
+        lower, upper = (bound[self._index] for bound in self.plausible)
+        outside = np.flatnonzero((positions < lower) | (positions > upper))
+        if outside.size:
+            k = outside[0]
+            with self._lock:
+                self._counts["joint_states_out_of_range"] += 1
+                self.joint_state_problem = (f"{self.joint_names[k]} reported at {positions[k]:.4g}, beyond its limits "
+                                            f"[{lower[k]:.4g}, {upper[k]:.4g}] (with {JOINT_STATE_SLACK:.0%} slack)")
+            return
         by_name = dict(zip(msg.name, msg.position, strict=False))
         with self._lock:
             self._reading = (self._now(), positions)
             self._held[self._index] = positions
             for name in self._others:
-                if name in by_name and np.isfinite(by_name[name]):
-                    self._held[self.robot_joints.index(name)] = by_name[name]
+                j = self.robot_joints.index(name)
+                if name in by_name and self.plausible[0][j] <= by_name[name] <= self.plausible[1][j]:
+                    self._held[j] = by_name[name]
             self._counts["joint_states"] += 1
 
     @property
@@ -173,7 +223,10 @@ class ArmDriver:
         if why is not None:
             return why
         start = self.positions if start is None else np.asarray(start, dtype=float)
-        path = path_samples(goal if start is None else start, goal, PATH_STEP)
+        try:
+            path = path_samples(goal if start is None else start, goal, PATH_STEP)
+        except InvalidInputError:  # a start beyond any plausible posture: nothing is sent from there
+            return "malformed"
         if start is not None and not self.safety.outside_box(start):
             if any(self.safety.outside_box(a) for a in path[:-1]):
                 return "workspace"
@@ -220,15 +273,20 @@ class ArmDriver:
         return goal
 
     def halt(self):
-        """Stop the arm where it is: a one-point trajectory to its last reported position (a
-        ``JointTrajectoryController`` rejects an empty trajectory), over ``4 v / a``: the controller's cubic from full
-        speed back to rest there starts with a deceleration of ``4 v / T``, within the acceleration limit."""
+        """Stop the arm where it is: a one-point trajectory to its last reported position clamped within the joint
+        limits less the margin (a ``JointTrajectoryController`` rejects an empty trajectory), over ``4 v / a``: the
+        controller's cubic from full speed back to rest there starts with a deceleration of ``4 v / T``, within the
+        acceleration limit. Before the first joint state nothing is sent (``halted_without_goal``). Returns the goal
+        sent, or None."""
         positions = self.positions
         self.goal = None
+        if positions is None:
+            self._count("halted_without_goal")
+            return None
         self._count("halted")
-        if positions is not None:
-            self.pub_trajectory.publish(self._trajectory(positions, max(0.1, 4.0 * self.max_velocity /
-                                                                         self.max_acceleration)))
+        hold = np.clip(positions, self.safety.lower, self.safety.upper)
+        self.pub_trajectory.publish(self._trajectory(hold, max(0.1, 4.0 * self.max_velocity / self.max_acceleration)))
+        return hold
 
     def close(self):
         if self.screen is not None:

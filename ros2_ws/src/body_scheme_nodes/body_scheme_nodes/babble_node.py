@@ -13,16 +13,19 @@ and ``dwell`` seconds have passed. ``joint_names`` limits the commanded joints t
 arm without its gripper; give scheme_node the same list). The ``control_msgs``
 ``FollowJointTrajectory`` action is not used: control_msgs is not on the PyPI route (docs/your-robot.md).
 
-It stops by itself (a trajectory to where the arm is: the controller holds it there) when scheme_node's /diagnostics
-status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning stalled), when the camera
-goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s), or when the joint states do (none for
-``joint_state_timeout`` s). After a pause of babble_node itself (a busy machine) the loop waits one tick (no watchdog
-verdict, no command), so the messages that arrived during the pause are read first.
+It stops by itself (a trajectory to where the arm is, clamped within the limits: the controller holds it there) when
+scheme_node's /diagnostics status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning
+stalled), when the camera goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s), or when the joint
+states do (none usable for ``joint_state_timeout`` s: a joint state beyond the limits is refused, and the stop names
+it). ``watch_diagnostics`` names that scheme_node (relative to babble_node's namespace, like a topic): its status
+``<node>: body scheme`` is matched exactly, so another robot's scheme_node in the same domain never masks an ERROR.
+After a pause of babble_node itself (a busy machine) the loop waits one tick (no watchdog verdict, no command), so the
+messages that arrived during the pause are read first.
 
 Subscriptions
 -------------
 /joint_states : sensor_msgs/JointState              (``joint_states_topic``)
-/diagnostics : diagnostic_msgs/DiagnosticArray      statuses whose name contains ``watch_diagnostics``
+/diagnostics : diagnostic_msgs/DiagnosticArray      the status ``<watch_diagnostics, resolved>: body scheme``
 observations : body_scheme_msgs/MarkerPoses         (``camera_topic``) the camera watchdog
 body_scheme/exploration_command : sensor_msgs/JointState   ``mode: active``: scheme_node's suggestions
 
@@ -57,6 +60,8 @@ from body_scheme_msgs.msg import MarkerPoses
 
 from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
+from .intake import create_sized_subscription
+from .scheme_diagnostics import status_name
 from .spin import run_node
 
 #: Random draws per step before the step is skipped (counted) because every draw was refused.
@@ -69,17 +74,30 @@ FRAME_WAIT = 3.0
 LATE_TICK = 0.5
 
 
+def watched_status(node_name, namespace):
+    """The exact /diagnostics status name babble_node watches for scheme_node ``node_name`` (relative names resolve
+    in ``namespace``, as topics do); "" for "" (never)."""
+    if not node_name:
+        return ""
+    if not all(part.isidentifier() for part in node_name.lstrip("/").split("/")):
+        raise InvalidInputError(f"watch_diagnostics must be a node name (e.g. scheme_node, /robot2/scheme_node) or "
+                                f"\"\", got {node_name!r}")
+    full = node_name if node_name.startswith("/") else f"{namespace.rstrip('/')}/{node_name}"
+    return status_name(full)
+
+
 class BabbleNode(Node):
     """See the module docstring."""
 
     def __init__(self, **node_options):
         super().__init__("babble_node", **node_options)
+        self.monotonic = time.monotonic  # the watchdogs' clock (s); tests inject their own
         p = self.declare_parameter
         self.action_topic = p("action_topic", "joint_commands").value
         self.dwell = p("dwell", 0.3).value
         self.steps = p("steps", 0).value
         seed = p("seed", 0).value
-        self.watch = p("watch_diagnostics", "scheme_node: body scheme").value
+        self.watch = watched_status(p("watch_diagnostics", "scheme_node").value, self.get_namespace())
         self.error_hold = p("error_hold", 2.0).value
         camera_topic = p("camera_topic", "observations").value
         self.camera_timeout = p("camera_timeout", 3.0).value
@@ -114,11 +132,15 @@ class BabbleNode(Node):
         work = MutuallyExclusiveCallbackGroup()
         self.pub_action = self.create_publisher(JointState, self.action_topic, 100)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10, callback_group=work)
-        self.create_subscription(MarkerPoses, camera_topic, self._on_camera, 10, callback_group=work)
+        max_bytes = self.driver.max_message_bytes
+
+        def subscribe(msg_type, topic, callback):  # larger messages are refused unread (counted: oversized)
+            create_sized_subscription(self, msg_type, topic, callback, 10, max_bytes, self._oversized, work)
+
+        subscribe(DiagnosticArray, "/diagnostics", self._on_diagnostics)
+        subscribe(MarkerPoses, camera_topic, self._on_camera)
         if self.mode == "active":
-            self.create_subscription(JointState, "body_scheme/exploration_command", self._on_suggestion, 10,
-                                     callback_group=work)
+            subscribe(JointState, "body_scheme/exploration_command", self._on_suggestion)
         for name, handler in (("pause", self._on_pause), ("resume", self._on_resume), ("stop", self._on_stop)):
             self.create_service(Trigger, f"~/{name}", handler, callback_group=work)
         self.create_timer(update_period, self._on_timer, callback_group=work)
@@ -126,8 +148,12 @@ class BabbleNode(Node):
         self.get_logger().info(f"babble_node ready: joints {list(self.driver.joint_names)}, {self.state}")
 
     # -- inputs -----------------------------------------------------------------------------------------------------
+    def _oversized(self, size):
+        self.counts["rejected.oversized_message"] += 1
+        self.get_logger().warn(f"rejected input (oversized_message): {size} bytes", throttle_duration_sec=5.0)
+
     def _on_camera(self, msg):
-        self.last_camera = time.monotonic()
+        self.last_camera = self.monotonic()
         self.last_frame_stamp = max(self.last_frame_stamp, conversions.seconds_from_stamp(msg.header.stamp))
 
     def _on_suggestion(self, msg):
@@ -142,12 +168,12 @@ class BabbleNode(Node):
         if not self.watch:
             return
         for status in msg.status:
-            if self.watch not in status.name:
+            if status.name != self.watch:
                 continue
             if status.level != DiagnosticStatus.ERROR:
                 self.error_since = None
                 continue
-            now = time.monotonic()
+            now = self.monotonic()
             self.error_since = now if self.error_since is None else self.error_since
             if now - self.error_since >= self.error_hold and self.state not in ("stopped", "done"):
                 self._stop(f"{status.name} reported ERROR for {now - self.error_since:.1f} s: {status.message}")
@@ -167,7 +193,7 @@ class BabbleNode(Node):
             return response
         self.state, self.stop_reason = ("idle" if self.started is not None else "waiting"), ""
         self.error_since = None  # the watched status must stay ERROR for error_hold again
-        now = time.monotonic()
+        now = self.monotonic()
         self.last_camera = now if self.last_camera is not None else None  # a fresh watchdog period
         self.started = now if self.started is not None else None
         response.success, response.message = True, f"resumed (was {previous})"
@@ -186,7 +212,7 @@ class BabbleNode(Node):
         self.get_logger().warn(f"babbling stopped: {reason}")
 
     def _on_timer(self):
-        now = time.monotonic()
+        now = self.monotonic()
         late = self.last_tick is not None and now - self.last_tick > LATE_TICK
         self.last_tick = now
         if late:
@@ -262,7 +288,9 @@ class BabbleNode(Node):
                 return f"the camera is quiet: nothing on the camera topic for {now - quiet_since:.1f} s"
         age = self.driver.joint_state_age()
         if self.joint_state_timeout > 0 and age is not None and age > self.joint_state_timeout:
-            return f"the joint states are quiet: none for {age:.1f} s"
+            refused = self.driver.joint_state_problem
+            return f"the joint states are quiet: none usable for {age:.1f} s" + (
+                f" (the last refused: {refused})" if refused else "")
         return ""
 
     def _publish_diagnostics(self):

@@ -5,6 +5,11 @@
   written in place (through a temporary file beside the target), so the link stays a link.
 - A lock file ``<checkpoint>.lock`` (``flock``, released by the kernel when the process dies, also on ``kill -9``) is
   held for the node's lifetime: a second node on the same checkpoint refuses to start, naming the first one's pid.
+  The lock file is opened where it is, never through a symlink (``O_NOFOLLOW``), and must be a regular file of one
+  name; a checkpoint with several names (hard links) is refused too, since two lock files could then guard one
+  file. Any of these, or a lock that cannot be made (a directory, a FIFO, a read-only place), is one
+  :class:`CheckpointError`: one FATAL line at start. :func:`lock_holder` tells ``~/save`` that a file is another
+  node's checkpoint, which it then never overwrites.
 - Temporary files of our own writes (``.<name>.<random>.tmp``) that a kill left behind are removed at start: the
   checkpoint's own (we hold its lock), and in the state directory those that hold a state file's beginning (or
   nothing) and are older than :data:`ORPHAN_AGE` (a running node's save takes well under a second).
@@ -15,6 +20,7 @@
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 import pathlib
@@ -27,7 +33,7 @@ from body_scheme_core.learning import write_state_text
 
 from .state_files import SIGNATURE, check_loadable
 
-__all__ = ["CheckpointError", "Checkpoint", "remove_orphans", "ORPHAN_AGE"]
+__all__ = ["CheckpointError", "Checkpoint", "lock_holder", "remove_orphans", "ORPHAN_AGE"]
 
 #: A temporary file of another writer in the state directory is an orphan once it is this old (s).
 ORPHAN_AGE = 60.0
@@ -54,8 +60,15 @@ class Checkpoint:
         if info is not None and not stat.S_ISREG(info.st_mode):
             kind = "a directory" if stat.S_ISDIR(info.st_mode) else "not a regular file"
             raise CheckpointError(f"checkpoint_path {str(path)!r} is {kind}; it must be a state file or not exist")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._lock = _lock(pathlib.Path(f"{self.path}.lock"))
+        if info is not None and info.st_nlink > 1:
+            raise CheckpointError(f"checkpoint_path {str(path)!r} has {info.st_nlink} names (hard links): another node "
+                                  f"may use it under another name; give this node a file of its own")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise CheckpointError(f"checkpoint_path {str(path)!r}: its directory cannot be made "
+                                  f"({error.strerror})") from None
+        self._lock = _lock(_lock_path(self.path))
         self.removed_orphans = remove_orphans(self.path.parent, own=self.path.name)
 
     def exists(self):
@@ -94,9 +107,29 @@ class Checkpoint:
             self._lock = None
 
 
+def _lock_path(path):
+    return pathlib.Path(f"{path}.lock")
+
+
+def _open_lock(path, flags):
+    """A descriptor of the lock file ``path``, opened where it is (``O_NOFOLLOW``): a regular file of one name, or
+    CheckpointError."""
+    try:
+        fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644)
+    except OSError as error:
+        why = "it is a symlink (a lock is never followed)" if error.errno == errno.ELOOP else error.strerror
+        raise CheckpointError(f"the checkpoint's lock file {str(path)!r} cannot be used: {why}") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
+        os.close(fd)
+        kind = "not a regular file" if not stat.S_ISREG(info.st_mode) else f"a file of {info.st_nlink} names"
+        raise CheckpointError(f"the checkpoint's lock file {str(path)!r} cannot be used: it is {kind}")
+    return fd
+
+
 def _lock(path):
     """An exclusive ``flock`` on ``path`` (created), holding our pid; refused while another process holds it."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _open_lock(path, os.O_RDWR | os.O_CREAT)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -104,9 +137,32 @@ def _lock(path):
         os.close(fd)
         raise CheckpointError(f"checkpoint {str(path)[:-5]!r} is in use by another process (pid {holder}): two "
                               f"nodes must not share one checkpoint; give each its own checkpoint_path") from None
+    except OSError as error:
+        os.close(fd)
+        raise CheckpointError(f"the checkpoint's lock file {str(path)!r} cannot be locked: {error.strerror}") from None
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode(), 0)
     return fd
+
+
+def lock_holder(path):
+    """The pid (str) of the process that holds the lock of checkpoint ``path``, "unknown" if it cannot be read or
+    the lock file is not one we would make, or None when no node holds it. A process's own checkpoint counts as
+    held (flock locks belong to an open file, not a process)."""
+    lock = _lock_path(path)
+    if not os.path.lexists(lock):
+        return None
+    try:
+        fd = _open_lock(lock, os.O_RDONLY)
+    except CheckpointError:
+        return "unknown"
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+    finally:
+        os.close(fd)  # closing releases our shared lock
+    return None
 
 
 def remove_orphans(directory, own=None, now=None):

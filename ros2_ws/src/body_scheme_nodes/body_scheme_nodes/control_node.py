@@ -25,9 +25,12 @@ joint_commands : sensor_msgs/JointState
     The solution as a JointTrajectoryController goal, after babble_node's safety checks (joint limits less the
     margin, workspace box, collision screen).
 ik_result : body_scheme_msgs/IKResult
-    One per request, success or not, with the reason; with ``execute``, after the move: ``executed``, where the part
-    went (``reached``: seen by the camera after the move, else predicted at the joint states) and its distance from
-    the target.
+    One per request taken, success or not, with the reason; with ``execute``, after the move: ``executed``, where the
+    part went (``reached``: seen by the camera after the move, else predicted at the joint states) and its distance
+    from the target. Beyond ``max_pending_requests`` waiting, a request is answered at once "busy" (``busy``). The
+    targets are taken in batches from a queue of ``queue_depth``: a target DDS overwrote in a flood never reaches the
+    node and is counted instead (``lost.ik_target_messages``), one over ``max_message_bytes`` is refused unread
+    (``rejected.oversized_message``). So requests = answered + busy, and sent = requests + lost + refused.
 body_scheme/explore_near : body_scheme_msgs/ExploreNear  (``explore_when_unsure``)
     An answer that reaches the target but is not sure enough: scheme_node explores ``explore_samples`` postures near
     it, runs the joint fit and answers; the request is then solved again on the new snapshot and answered a second
@@ -54,6 +57,9 @@ explore_when_unsure : bool false     ask scheme_node (with ``exploration`` true)
                                      then solve again
 explore_samples : int 5, explore_radius : double 0.1 (of each joint's range), explore_timeout : double 60.0 s
 observe_timeout : double 1.0 s       execute: how long to wait for the camera to see the part after the move
+queue_depth : int 100                depth of the two target subscriptions (taken every 10 ms)
+max_pending_requests : int 100       requests waiting for a solve; more are answered "busy" at once
+max_message_bytes : int 1048576      a larger message on any subscription is refused unread (16x for the snapshot)
 robot, controller, joint_states_topic, max_velocity, max_acceleration, limit_margin, workspace, collision_check,
 package_path, settle_*               execute: as babble_node's (config/babble_node.yaml)
 """
@@ -78,6 +84,7 @@ from body_scheme_msgs.msg import ExploreNear, IKResult, IKTarget, MarkerPoses, M
 
 from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
+from .intake import BatchIntake, create_sized_subscription
 from .spin import run_node
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -117,11 +124,17 @@ class ControlNode(Node):
         self.stay_in_training_range = self.declare_parameter("stay_in_training_range", True).value
         self.execute = self.declare_parameter("execute", False).value
         self.observe_timeout = self.declare_parameter("observe_timeout", 1.0).value
+        queue_depth = self.declare_parameter("queue_depth", 100).value
+        self.max_pending = self.declare_parameter("max_pending_requests", 100).value
+        for name, value in (("queue_depth", queue_depth), ("max_pending_requests", self.max_pending)):
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 1 << 30:
+                raise InvalidInputError(f"{name} must be an integer from 1 to {1 << 30}, got {value!r}")
         self.explore = ExploreSettings(self.declare_parameter("explore_when_unsure", False).value,
                                        self.declare_parameter("explore_samples", 5).value,
                                        self.declare_parameter("explore_radius", 0.1).value,
                                        self.declare_parameter("explore_timeout", 60.0).value)
         driver_values = declare_driver_parameters(self)
+        max_bytes = driver_values["max_message_bytes"]
         self.driver = driver_from_parameters(self, driver_values) if self.execute else None
         self.moving = None  # execute: (IKResult, part, target, model) of the move under way
         self.settled_at = None  # execute: (time s, positions) the move settled at, until the part is seen
@@ -134,22 +147,27 @@ class ControlNode(Node):
         self.exploring = None  # (request ExploreNear, header, part, target, asked at) awaiting scheme_node's answer
         self.resolve = None  # (header, part, target, step, answered at): solve again once the snapshot is of step
         self.trajectory = deque()  # action vectors still to command
-        self.counts = {"requests": 0, "succeeded": 0, "failed": 0, "executed": 0, "explored": 0,
-                       "explore_refused": 0, "explore_timeouts": 0}
+        self.counts = {"received": 0, "requests": 0, "succeeded": 0, "failed": 0, "busy": 0, "executed": 0,
+                       "explored": 0, "explore_refused": 0, "explore_timeouts": 0}
+        self.oversized = 0  # messages refused unread for their size, under _lock (any callback's thread)
         self.last_outcome = "none yet"
         self.last_uncertainty = (float("nan"), float("nan"))  # position_std, error_bound (m) of the last answer
         self._lock = threading.Lock()
 
         work = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(ModelSnapshot, "body_scheme/snapshot", self._on_snapshot, LATCHED)
-        self.create_subscription(IKTarget, "ik_target", self._on_target, 10)
-        self.create_subscription(PointStamped, "ik_target/point", self._on_point, 10)
-        self.create_subscription(JointState, "joint_commands", self._on_command, 10)
+
+        def subscribe(msg_type, topic, callback, qos, limit=max_bytes):
+            create_sized_subscription(self, msg_type, topic, callback, qos, limit, self._oversized)
+
+        subscribe(ModelSnapshot, "body_scheme/snapshot", self._on_snapshot, LATCHED, 16 * max_bytes)
+        self.targets = {"ik_target": BatchIntake(self, IKTarget, "ik_target", queue_depth, max_bytes),
+                        "ik_target/point": BatchIntake(self, PointStamped, "ik_target/point", queue_depth, max_bytes)}
+        subscribe(JointState, "joint_commands", self._on_command, 10)
         if self.execute:
-            self.create_subscription(MarkerPoses, "observations", self._on_observations, 10)
+            subscribe(MarkerPoses, "observations", self._on_observations, 10)
         if self.explore.enabled:
             self.pub_explore = self.create_publisher(ExploreNear, "body_scheme/explore_near", 10)
-            self.create_subscription(ExploreNear, "body_scheme/explore_near/done", self._on_explored, 10)
+            subscribe(ExploreNear, "body_scheme/explore_near/done", self._on_explored, 10)
         self.pub_command = self.create_publisher(JointState, "joint_commands", 10)
         self.pub_result = self.create_publisher(IKResult, "ik_result", 10)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -187,16 +205,35 @@ class ControlNode(Node):
         with self._lock:
             self.seen.update({part: (stamp, pose) for part, pose in observed.items()})
 
-    def _on_target(self, msg):
-        part = self.default_part if msg.part_id < 0 else msg.part_id
-        p = msg.position
+    def _oversized(self, size):
         with self._lock:
-            self.requests.append((msg.header, int(part), [p.x, p.y, p.z], None))
+            self.oversized += 1
+        self.get_logger().warn(f"rejected input (oversized_message): {size} bytes", throttle_duration_sec=5.0)
 
-    def _on_point(self, msg):
-        p = msg.point
-        with self._lock:
-            self.requests.append((msg.header, int(self.default_part), [p.x, p.y, p.z], None))
+    def _take_targets(self):
+        """Take the waiting targets (IKTarget and PointStamped) into the request queue; beyond
+        ``max_pending_requests`` waiting, a request is answered "busy" at once."""
+        for topic, intake in self.targets.items():
+            for msg, _ in intake.take():
+                self.counts["received"] += 1
+                if topic == "ik_target":
+                    part, p = (self.default_part if msg.part_id < 0 else msg.part_id), msg.position
+                else:
+                    part, p = self.default_part, msg.point
+                with self._lock:
+                    full = len(self.requests) >= self.max_pending
+                    if not full:
+                        self.requests.append((msg.header, int(part), [p.x, p.y, p.z], None))
+                if full:
+                    self._answer_busy(msg.header, int(part), [p.x, p.y, p.z])
+            for size in intake.take_refused():
+                self._oversized(size)
+
+    def _answer_busy(self, header, part, target):
+        result = self._refusal(header, part, target)
+        result.reason = f"busy: {self.max_pending} requests are waiting already (max_pending_requests); send again"
+        self.counts["busy"] += 1
+        self.pub_result.publish(result)
 
     def _on_explored(self, msg):
         """scheme_node served (or refused) our request to explore near an unsure answer."""
@@ -215,6 +252,7 @@ class ControlNode(Node):
 
     # -- work in timers --------------------------------------------------------------------------------------------
     def _solve_pending(self):
+        self._take_targets()
         if self.moving is not None:
             self._watch_move()
             return
@@ -334,12 +372,16 @@ class ControlNode(Node):
         self.moving, self.settled_at = None, None
         self._report(result, part, target)
 
-    def _solve(self, header, part, target, model):
-        # Refused before any evaluation: residual NaN and no actions, whatever the reason.
+    @staticmethod
+    def _refusal(header, part, target):
+        """An answer refused before any evaluation: residual NaN and no actions, whatever the reason."""
         result = IKResult(header=header, part_id=part, success=False, residual=float("nan"),
-                          position_std=float("nan"), error_bound=float("nan"),
-                          reached_error=float("nan"))
+                          position_std=float("nan"), error_bound=float("nan"), reached_error=float("nan"))
         result.target.x, result.target.y, result.target.z = (float(v) for v in target)
+        return result
+
+    def _solve(self, header, part, target, model):
+        result = self._refusal(header, part, target)
         if not np.all(np.isfinite(target)):
             result.reason = "target contains NaN or inf"
             return result
@@ -356,8 +398,10 @@ class ControlNode(Node):
             return result
         if self.stay_in_training_range:
             lower, upper = trained_bounds(scheme, lower, upper)
+        # The start of the search and of the interpolated commands: the latest command (anyone's, so unchecked)
+        # within the limits, so every command sent lies within them.
         a0 = self.current if self.current is not None else (lower + upper) / 2.0
-        a0 = np.where(np.isfinite(a0), a0, 0.0)
+        a0 = np.clip(np.where(np.isfinite(a0), a0, (lower + upper) / 2.0), lower, upper)
         outcome = solve_ik(scheme, part, target, a0, lower, upper, tol=self.tolerance,
                            max_iterations=self.max_iterations, n_restarts=self.restarts, world2root=world2root,
                            confidence=self.confidence, prefer_certain=self.prefer_certain)
@@ -398,9 +442,14 @@ class ControlNode(Node):
             stale = self.max_age > 0 and age > self.max_age
             level = DiagnosticStatus.WARN if stale else DiagnosticStatus.OK
             message = "model snapshot stale" if stale else "ready"
+        with self._lock:
+            oversized = self.oversized
         values = dict(self.counts, model_age_s=age, last_outcome=self.last_outcome,
                       last_position_std_mm=1e3 * self.last_uncertainty[0],
                       last_error_bound_mm=1e3 * self.last_uncertainty[1])
+        values["rejected.oversized_message"] = oversized
+        for topic, intake in self.targets.items():
+            values[f"lost.{topic.replace('/', '_')}_messages"] = intake.lost
         if self.driver is not None:
             values.update({f"driver.{k}": v for k, v in self.driver.counts.items()})
         name = self.get_fully_qualified_name()  # node and namespace: two robots in one domain do not collide

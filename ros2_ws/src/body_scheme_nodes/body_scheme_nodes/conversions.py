@@ -22,6 +22,7 @@ from body_scheme_core.world import Fault
 from body_scheme_msgs.msg import BodySchemeStructure, LocalModelInfo, MarkerPoses, ModelSnapshot, SchemeEvent
 
 __all__ = [
+    "brief",
     "seconds_from_stamp",
     "stamp_from_seconds",
     "transform_from_pose_msg",
@@ -37,7 +38,7 @@ __all__ = [
     "IMAGE_ENCODINGS",
     "image_from_msg",
     "image_msg",
-    "camera_matrix_from_info",
+    "camera_from_info",
     "distortion_from_info",
     "tracked_poses_msgs",
     "camera_info_msg",
@@ -47,6 +48,12 @@ __all__ = [
 
 SNAPSHOT_FORMAT = "body_scheme/scheme"
 SNAPSHOT_FORMAT_VERSION = 1
+
+
+def brief(text, limit=300):
+    """``text`` cut to ``limit`` characters (with the length it had): what a log line or a reply may carry of a
+    message's content, so a hostile request is named, never echoed whole."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
 
 
 def seconds_from_stamp(stamp):
@@ -320,12 +327,39 @@ def image_msg(stamp, frame_id, image):
     return msg
 
 
-def camera_matrix_from_info(msg):
-    """The (3, 3) intrinsic matrix ``K`` of a ``sensor_msgs/CameraInfo``; an uncalibrated (zero) K raises."""
+#: Image sides (px) and focal lengths (in image sides: 0.1 is a 157 deg field of view, 100 a 0.6 deg one) a real
+#: camera can have; a CameraInfo outside them is a broken driver or a hostile publisher.
+IMAGE_SIDE = (8, 65536)
+FOCAL_IN_SIDES = (0.1, 100.0)
+
+
+def camera_from_info(msg):
+    """``(K, width, height)`` of a ``sensor_msgs/CameraInfo``, checked for a camera that can exist.
+
+    Raises
+    ------
+    InvalidInputError
+        For an uncalibrated (zero) or non-finite ``K``, an image side outside :data:`IMAGE_SIDE`, a focal length
+        outside :data:`FOCAL_IN_SIDES` of the image's larger side or pixels more than 5:1 from square, a principal
+        point outside the image, or a skew larger than the focal length.
+    """
     K = np.asarray(msg.k, dtype=float).reshape(3, 3)
-    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1.0):
-        raise InvalidInputError(f"CameraInfo.k is not a calibrated camera matrix: {K.ravel().tolist()}")
-    return K
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1.0
+            and not np.any(K[2, :2]) and K[1, 0] == 0.0):
+        raise InvalidInputError(f"CameraInfo.k is not a calibrated camera matrix: {np.round(K.ravel(), 6).tolist()}")
+    width, height = int(msg.width), int(msg.height)
+    if not (IMAGE_SIDE[0] <= width <= IMAGE_SIDE[1] and IMAGE_SIDE[0] <= height <= IMAGE_SIDE[1]):
+        raise InvalidInputError(f"CameraInfo has an image of {width} x {height} px (each side from {IMAGE_SIDE[0]} "
+                                f"to {IMAGE_SIDE[1]})")
+    fx, fy, cx, cy, side = K[0, 0], K[1, 1], K[0, 2], K[1, 2], max(width, height)
+    if not (FOCAL_IN_SIDES[0] * side <= min(fx, fy) and max(fx, fy) <= FOCAL_IN_SIDES[1] * side
+            and 0.2 <= fy / fx <= 5.0):
+        raise InvalidInputError(f"CameraInfo focal lengths {fx:.4g}, {fy:.4g} px are implausible for a {width} x "
+                                f"{height} image ({FOCAL_IN_SIDES[0]} to {FOCAL_IN_SIDES[1]} times its larger side)")
+    if not (0.0 < cx < width and 0.0 < cy < height) or abs(K[0, 1]) > fx:
+        raise InvalidInputError(f"CameraInfo principal point ({cx:.4g}, {cy:.4g}) or skew {K[0, 1]:.4g} is "
+                                f"implausible for a {width} x {height} image")
+    return K, width, height
 
 
 def distortion_from_info(msg):

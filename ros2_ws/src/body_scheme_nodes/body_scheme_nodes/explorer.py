@@ -6,7 +6,12 @@ After each learnt sample, :meth:`SchemeExplorer.after_learning` publishes the ne
 suggestions towards its posture (:class:`~body_scheme_core.control.exploration.NearFocus`); once the last of them is
 learnt, the joint fit runs, the body scheme snapshot is published and the request is answered on
 ``body_scheme/explore_near/done``. A request that cannot be served is answered at once with the reason: with
-exploration off, or with joints or values it cannot take (those are counted, ``rejected.bad_explore_near``).
+exploration off, or with joints or values it cannot take (those are counted, ``rejected.bad_explore_near``); an answer
+echoes the request's header, and its joints and positions only when it was served. Requests are taken in batches by
+scheme_node's intake timer (:meth:`SchemeExplorer.take_requests`): every request taken is answered, one larger than
+``max_message_bytes`` is refused unread (``rejected.oversized_message``) and one DDS overwrote in a flood is counted
+(``lost.explore_near_messages``). A CameraInfo must describe a camera that can exist
+(:func:`~body_scheme_nodes.conversions.camera_from_info`; else ``rejected.bad_camera_info``).
 
 The ``samples`` are the next samples learnt after the suggestions near the posture; a command babble_node drew at
 random when a suggestion came late (or anyone else's command) counts among them. A reset or a load of the learner
@@ -23,10 +28,11 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, JointState
 
 from body_scheme_core.control import ExplorationPolicy, NearFocus, in_camera_view
-from body_scheme_core.errors import BodySchemeError, InvalidInputError
+from body_scheme_core.errors import BodySchemeError
 from body_scheme_msgs.msg import ExploreNear
 
 from . import conversions
+from .intake import BatchIntake, create_sized_subscription
 
 #: Fraction of the image's width and height kept clear at each border by the exploration's view constraint.
 VIEW_MARGIN = 0.1
@@ -57,25 +63,33 @@ class SchemeExplorer:
                                             noise=noise)
             self.pub_command = node.create_publisher(JointState, "body_scheme/exploration_command", 10)
             if settings.exploration_camera_info:
-                node.create_subscription(CameraInfo, settings.exploration_camera_info, self._on_camera_info,
-                                         qos_profile_sensor_data)  # best effort: matches either publisher
+                create_sized_subscription(  # best effort: matches either publisher
+                    node, CameraInfo, settings.exploration_camera_info, self._on_camera_info, qos_profile_sensor_data,
+                    settings.max_message_bytes, lambda size: self._refuse("oversized_message", f"{size} byte "
+                                                                                              f"CameraInfo"))
         elif settings.exploration_camera_info:
             node.get_logger().warn("exploration_camera_info is set but exploration is false: it is ignored")
         self.pub_done = node.create_publisher(ExploreNear, "body_scheme/explore_near/done", 10)
-        node.create_subscription(ExploreNear, "body_scheme/explore_near", self._on_explore_near, 10)
+        self.requests = BatchIntake(node, ExploreNear, "body_scheme/explore_near", settings.service_queue_depth,
+                                    settings.max_message_bytes)
 
     # -- the executor's thread ---------------------------------------------------------------------------------------
     def _on_camera_info(self, msg):
-        """Keep the camera's intrinsics and image size for the view constraint; an uncalibrated camera or an empty
-        image is counted (``rejected.bad_camera_info``) and ignored."""
+        """Keep the camera's intrinsics and image size for the view constraint; a camera that cannot exist
+        (uncalibrated, an empty or 1 x 1 image, a focal length of 1e300) is counted (``rejected.bad_camera_info``) and
+        ignored: the last good one stays."""
         try:
-            K = conversions.camera_matrix_from_info(msg)
-            if msg.width < 1 or msg.height < 1:
-                raise InvalidInputError(f"CameraInfo has an empty image ({msg.width} x {msg.height})")
+            self.camera = conversions.camera_from_info(msg)
         except BodySchemeError as exc:
             self._refuse("bad_camera_info", exc)
-            return
-        self.camera = (K, int(msg.width), int(msg.height))
+
+    def take_requests(self):
+        """Take the waiting ExploreNear requests (the executor's thread, every ``update_period``); see the module
+        docstring."""
+        for msg, _ in self.requests.take():
+            self._on_explore_near(msg)
+        for size in self.requests.take_refused():
+            self._refuse("oversized_message", f"{size} byte ExploreNear request")
 
     def _on_explore_near(self, msg):
         """Take a request up (a newer one replaces it until the learning thread takes it), or answer why not."""
@@ -90,22 +104,26 @@ class SchemeExplorer:
             focus = NearFocus(actions, int(msg.samples), msg.radius)
         except BodySchemeError as exc:
             self._refuse("bad_explore_near", exc)
-            self._answer(msg, 0, f"refused: {exc}")
+            self._answer(msg, 0, f"refused: {conversions.brief(str(exc))}")
             return
         with self._lock:
             replaced, self._requested = self._requested, (msg, focus)
         if replaced is not None:
             self._answer(replaced[0], 0, "replaced by a newer request before it started")
 
-    def _refuse(self, code, exc):
+    def _refuse(self, code, why):
         with self._lock:
             self.rejected[code] += 1
-        self.node.get_logger().warn(f"rejected input ({code}): {exc}", throttle_duration_sec=5.0)
+        self.node.get_logger().warn(f"rejected input ({code}): {conversions.brief(str(why))}",
+                                    throttle_duration_sec=5.0)
 
     def _answer(self, request, step, outcome):
-        answer = ExploreNear(header=request.header, joint_names=list(request.joint_names),
-                             positions=list(request.positions), samples=request.samples, radius=request.radius,
-                             step=int(step), outcome=outcome)
+        """Publish the answer to ``request``: its header (by which the caller knows it) and the outcome; the
+        request's joints and positions only when it was served (``outcome`` ""): a refusal never echoes a request."""
+        answer = ExploreNear(header=request.header, samples=request.samples, radius=request.radius, step=int(step),
+                             outcome=outcome)
+        if not outcome:
+            answer.joint_names, answer.positions = list(request.joint_names), list(request.positions)
         with self._lock:
             self.counts["near_answered"] += 1
         self.pub_done.publish(answer)
@@ -179,6 +197,8 @@ class SchemeExplorer:
         with self._lock:
             values = {f"exploration.{k}": n for k, n in self.counts.items()}
             rejected = Counter(self.rejected)
+        values["lost.explore_near_messages"] = self.requests.lost
+        values["lost.explore_near_full_queue_takes"] = self.requests.full_queue_takes
         if self._focus is not None:
             values["exploration.near_samples_left"] = self._focus[1].left
         return rejected, values

@@ -14,18 +14,26 @@ With several publishers on the topic their numbers interleave and cannot be told
 the queue full is counted instead (:attr:`full_queue_takes`: something may have been overwritten).
 
 Messages are taken serialized: one larger than ``max_bytes`` is refused before it is deserialized (:attr:`oversized`),
-so a 300 MB message costs the node a copy, not a minute of Python objects.
+so a 300 MB message costs the node a copy, not a minute of Python objects. :func:`create_sized_subscription` does the
+same for a subscription the executor dispatches (a callback per message).
+
+Service requests are taken in batches too (:class:`RequestIntake`) and served in a thread of their own
+(:class:`ServiceWorker`): a batch of slow requests (50 ``~/load`` of large files) never holds the executor's thread,
+which keeps taking messages in and publishing /diagnostics.
 """
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
+from collections import Counter
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-__all__ = ["BatchIntake", "RequestIntake"]
+__all__ = ["BatchIntake", "RequestIntake", "ServiceWorker", "create_sized_subscription"]
 
 
 class _NeverDispatched(CallbackGroup):
@@ -152,3 +160,94 @@ class RequestIntake:
     def answer(self, header, response):
         """Send ``response`` to the caller of the request with ``header``."""
         self.service.send_response(response, header)
+
+
+def create_sized_subscription(node, msg_type, topic, callback, qos, max_bytes, refused, callback_group=None):
+    """A subscription of ``node`` whose messages larger than ``max_bytes`` (serialized) are never deserialized:
+    ``refused(size)`` is called for each of them, ``callback(msg)`` for the others."""
+
+    def on_serialized(raw):
+        if len(raw) > max_bytes:
+            refused(len(raw))
+            return
+        callback(deserialize_message(raw, msg_type))
+
+    return node.create_subscription(msg_type, topic, on_serialized, qos, callback_group=callback_group, raw=True)
+
+
+class ServiceWorker:
+    """Serves the requests of several :class:`RequestIntake` services in a thread of its own.
+
+    :meth:`take` (the executor's thread, every ``update_period``) takes every waiting request; at most
+    ``max_waiting`` per service wait for the thread, the others are answered at once with ``busy(name, waiting)``'s
+    response. The thread calls ``handler(request, response)`` for each in turn and sends its answer; an exception is
+    answered as a failure (``success`` false, the error in ``message``) and logged, never raised.
+
+    Parameters
+    ----------
+    services : dict of str to (RequestIntake, callable)
+    max_waiting : int
+    busy : callable
+        ``busy(name, waiting) -> str``: the message of a request answered busy.
+    log_error : callable
+        ``log_error(text)``.
+
+    """
+
+    def __init__(self, services, max_waiting, busy, log_error):
+        self.services, self.max_waiting, self.busy, self.log_error = services, max_waiting, busy, log_error
+        self._queue = queue.Queue()
+        self._lock = threading.Lock()
+        self._counts = Counter()
+        self._waiting = Counter()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._serve_forever, name="services", daemon=True)
+        self._thread.start()
+
+    def counters(self):
+        """``<name>.answered``, ``.failed`` and ``.busy`` so far, and ``<name>.waiting`` now (when any wait)."""
+        with self._lock:
+            return Counter(self._counts) + Counter({f"{name}.waiting": n for name, n in self._waiting.items()})
+
+    def take(self):
+        """Take every waiting request of every service (see the class docstring); the executor's thread."""
+        for name, (intake, _) in self.services.items():
+            for request, header in intake.take():
+                with self._lock:
+                    full = self._waiting[name] >= self.max_waiting
+                    if not full:
+                        self._waiting[name] += 1
+                    else:
+                        self._counts[f"{name}.busy"] += 1
+                if full:
+                    response = intake.service.srv_type.Response(success=False,
+                                                                message=self.busy(name, self.max_waiting))
+                    intake.answer(header, response)
+                else:
+                    self._queue.put((name, request, header))
+
+    def _serve_forever(self):
+        while (item := self._queue.get()) is not None and not self._stopping.is_set():
+            name, request, header = item
+            intake, handler = self.services[name]
+            response, outcome = intake.service.srv_type.Response(), "answered"
+            try:
+                response = handler(request, response)
+            except Exception as error:  # a request never takes the node down; said in the reply
+                response.success, response.message = False, f"{name} failed: {type(error).__name__}: {error}"
+                self.log_error(f"~/{name} failed: {type(error).__name__}: {error}")
+                outcome = "failed"
+            try:
+                intake.answer(header, response)
+            except Exception as error:  # the node is shutting down: nothing to answer to
+                self.log_error(f"~/{name}: the answer could not be sent: {error}")
+            with self._lock:
+                self._waiting[name] -= 1
+                self._counts[f"{name}.{outcome}"] += 1
+
+    def stop(self, timeout=5.0):
+        """Let the thread finish the request it serves (at most ``timeout`` s) and end; waiting requests are
+        dropped (the node is going away)."""
+        self._stopping.set()
+        self._queue.put(None)
+        self._thread.join(timeout)

@@ -13,7 +13,13 @@ from diagnostic_msgs.msg import DiagnosticStatus
 
 from . import conversions
 
-__all__ = ["scheme_level", "learner_values", "counter_values", "edge_statuses"]
+__all__ = ["status_name", "scheme_level", "learner_values", "counter_values", "edge_statuses"]
+
+
+def status_name(node_name):
+    """The name of scheme_node ``node_name``'s (fully qualified: ``/robot2/scheme_node``) body scheme status: what
+    babble_node's ``watch_diagnostics`` matches exactly."""
+    return f"{node_name}: body scheme"
 
 
 def scheme_level(learner, edges, stalled_for):

@@ -8,7 +8,8 @@ observations : body_scheme_msgs/MarkerPoses
     Marker poses from the tracker, in the camera frame.
 body_scheme/explore_near : body_scheme_msgs/ExploreNear
     A request (control_node's, when an IK answer is not sure enough) to explore near a posture: the next
-    ``samples`` suggestions are drawn there, then the joint fit runs (body_scheme_nodes.explorer).
+    ``samples`` suggestions are drawn there, then the joint fit runs (body_scheme_nodes.explorer). Every request
+    taken is answered; one over ``max_message_bytes`` is refused unread, one lost in DDS is counted.
 
 Publishers
 ----------
@@ -76,8 +77,9 @@ max_inbox : int 2000, max_pending_samples : int 500, max_sample_age : double 5.0
                                       predictions are at most about max_sample_age plus one learning step late
 max_message_bytes : int 1048576, max_joint_names : int 1000, max_markers : int 1000
                                       larger input messages are refused whole (rejected.oversized_message)
-service_queue_depth : int 100, max_requests_per_take : int 20
-                                      requests served per service each update_period; the rest answered "busy"
+service_queue_depth : int 100, max_waiting_requests : int 20
+                                      requests are served in a thread of their own, one after the other; at most
+                                      max_waiting_requests per service wait, the rest are answered "busy" at once
 learner.<field> : one per BodySchemeConfig field (sigma_trans, test_window, ...); thresholds 0.0 = 3 sigma,
                   learner.root -1 = lowest part id
 """
@@ -107,9 +109,9 @@ from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot
 from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
 from . import conversions, scheme_diagnostics, state_files, view
-from .checkpoint import Checkpoint
+from .checkpoint import Checkpoint, lock_holder
 from .explorer import SchemeExplorer
-from .intake import BatchIntake, RequestIntake
+from .intake import BatchIntake, RequestIntake, ServiceWorker
 from .message_feed import feed_message, learn_sample
 from .settings import SchemeSettings, parameter_defaults
 from .spin import run_node
@@ -149,7 +151,7 @@ class SchemeNode(Node):
         self.shed = Counter()
         self.received = Counter()  # messages taken in from the subscriptions, by kind
         self.refused_at_intake = Counter()  # messages over max_message_bytes, by the executor's thread under _lock
-        self.requests = Counter()  # requests answered and refused busy, by the executor's thread
+        self.oversized_observations = 0  # of those, observation messages (decided: body_scheme/progress counts them)
         self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
         self.restamped = Counter()
         self.last_input_time = self.last_learn_time = None  # node clock, s: the watchdog's inputs
@@ -176,12 +178,16 @@ class SchemeNode(Node):
         self.n_observation_messages = 0
         self._last_progress = None
         depth = self.settings.service_queue_depth
-        self._request_intakes = {name: (RequestIntake(self, srv_type, f"~/{name}", depth), handler)
-                          for name, srv_type, handler in (
-                              ("save", StatePath, self._on_save), ("load", StatePath, self._on_load),
-                              ("reset", Trigger, self._on_reset), ("get_urdf", GetRobotDescription, self._on_get_urdf))}
+        self._service_worker = ServiceWorker(
+            {name: (RequestIntake(self, srv_type, f"~/{name}", depth), handler) for name, srv_type, handler in (
+                ("save", StatePath, self._on_save), ("load", StatePath, self._on_load),
+                ("reset", Trigger, self._on_reset), ("get_urdf", GetRobotDescription, self._on_get_urdf))},
+            self.settings.max_waiting_requests,
+            lambda name, limit: f"busy: {limit} ~/{name} requests are waiting already (max_waiting_requests); call "
+                                f"again",
+            self.get_logger().error)
         self.create_timer(self.settings.update_period, self._take_messages)
-        self.create_timer(self.settings.update_period, self._answer_requests)
+        self.create_timer(self.settings.update_period, self._service_worker.take)
         self.create_timer(1.0, self._publish_diagnostics)
         if self.checkpoint is not None:
             self.create_timer(self.settings.checkpoint_period, self._checkpoint)
@@ -239,6 +245,7 @@ class SchemeNode(Node):
         now, wall = self._now(), time.time()
         # Both topics in the order DDS received them (as callbacks would have seen them), with receipt times on the
         # node clock: the wait in the queue counts towards a sample's age.
+        self.explorer.take_requests()
         batch = sorted(((received, kind, msg) for kind, intake in self._intake.items()
                         for msg, received in intake.take()), key=lambda item: item[0])
         with self._lock:
@@ -248,6 +255,7 @@ class SchemeNode(Node):
                 for size in intake.take_refused():
                     self.received[kind] += 1
                     self.refused_at_intake["oversized_message"] += 1
+                    self.oversized_observations += kind == "observations"
                     self.get_logger().warn(f"rejected input (oversized_message): {size} byte message on {kind} "
                                            f"(max_message_bytes {self.settings.max_message_bytes})",
                                            throttle_duration_sec=5.0)
@@ -261,27 +269,6 @@ class SchemeNode(Node):
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
-
-    # -- services: taken in batches, at most max_requests_per_take served per service, the rest answered busy ------
-    def _answer_requests(self):
-        limit = self.settings.max_requests_per_take
-        for name, (intake, handler) in self._request_intakes.items():
-            requests = intake.take()
-            for k, (request, header) in enumerate(requests):
-                response = intake.service.srv_type.Response()
-                if k < limit:
-                    try:
-                        response = handler(request, response)
-                    except Exception as error:  # a request never takes the node down; said in reply
-                        response.success, response.message = False, f"{name} failed: {type(error).__name__}: {error}"
-                        self.get_logger().error(f"~/{name} failed: {type(error).__name__}: {error}")
-                    self.requests[f"{name}.answered"] += 1
-                else:
-                    response.success = False
-                    response.message = (f"busy: {len(requests)} ~/{name} requests at once, {limit} served "
-                                        f"(max_requests_per_take); call again")
-                    self.requests[f"{name}.busy"] += 1
-                intake.answer(header, response)
 
     # -- the learning thread --------------------------------------------------------------------------------------
     def _learn_forever(self):
@@ -305,6 +292,7 @@ class SchemeNode(Node):
         self._stopping.set()
         self._wake.set()
         self._learning_thread.join()
+        self._service_worker.stop()
         if self.checkpoint is not None:
             self.checkpoint.close()
         super().destroy_node()
@@ -346,12 +334,14 @@ class SchemeNode(Node):
             self.shed["samples"] += 1
 
     def _publish_progress(self):
-        """Observation messages decided so far: those taken in by the learning thread or shed from the inbox, less
-        those the pairer holds and those whose samples wait to be learnt (one sample per observation message).
-        bag_replay's rate 0 keeps its messages in flight within this, so a replay waits for learning, not only for
-        intake."""
-        progress = (self.n_observation_messages + self.shed["observations_messages"] - self.pairer.waiting
-                    - len(self._pending))
+        """Observation messages decided so far: those taken in by the learning thread, shed from the inbox or
+        refused unread for their size, less those the pairer holds and those whose samples wait to be learnt (one
+        sample per observation message). bag_replay's rate 0 keeps its messages in flight within this, so a replay
+        waits for learning, not only for intake."""
+        with self._lock:
+            oversized = self.oversized_observations
+        progress = (self.n_observation_messages + self.shed["observations_messages"] + oversized
+                    - self.pairer.waiting - len(self._pending))
         if progress != self._last_progress:
             self._last_progress = progress
             self.pub_progress.publish(UInt64(data=progress))
@@ -482,14 +472,14 @@ class SchemeNode(Node):
         for kind, intake in self._intake.items():  # inside DDS, before the node saw them (body_scheme_nodes.intake)
             values[f"lost.{kind}_messages"] = intake.lost
             values[f"lost.{kind}_full_queue_takes"] = intake.full_queue_takes
-        values.update(scheme_diagnostics.counter_values({"services": self.requests}))
+        values.update(scheme_diagnostics.counter_values({"services": self._service_worker.counters()}))
         values["pending_samples"] = len(self._pending)
         values["pairing_waiting"] = self.pairer.waiting  # observations waiting for their command
         values.update(explored)
         name = self.get_fully_qualified_name()
         hardware_id = self.settings.hardware_id or name
-        array.status.append(conversions.diagnostic_status(f"{name}: body scheme", level, message, values,
-                                                          hardware_id))
+        array.status.append(conversions.diagnostic_status(scheme_diagnostics.status_name(name), level, message,
+                                                          values, hardware_id))
         array.status.extend(scheme_diagnostics.edge_statuses(name, edges, hardware_id))
         self.pub_diagnostics.publish(array)
 
@@ -512,6 +502,11 @@ class SchemeNode(Node):
         try:
             if request.path:
                 path = state_files.resolve(self.settings.state_directory, request.path)
+                own = self.checkpoint is not None and path == self.checkpoint.path
+                holder = None if own else lock_holder(path)
+                if holder is not None:
+                    raise state_files.StateFileError(f"{path.name!r} is the checkpoint of a running node (pid "
+                                                     f"{holder}); not overwritten")
                 state_files.check_overwritable(path)
                 path.parent.mkdir(parents=True, exist_ok=True)
             elif self.checkpoint is not None:

@@ -50,7 +50,7 @@ def parameter_defaults(n_joints=1):
         "tf_prefix": "", "view_period": 0.1, "exploration": False, "exploration_candidates": 64,
         "exploration_travel_weight": 0.0, "exploration_camera_info": "",
         "max_message_bytes": MessageLimits().max_bytes, "max_joint_names": MessageLimits().max_joint_names,
-        "max_markers": MessageLimits().max_markers, "service_queue_depth": 100, "max_requests_per_take": 20,
+        "max_markers": MessageLimits().max_markers, "service_queue_depth": 100, "max_waiting_requests": 20,
     }
     config = BodySchemeConfig()
     for field in dataclasses.fields(BodySchemeConfig):
@@ -66,7 +66,7 @@ def parameter_defaults(n_joints=1):
 #: Largest value of each integer setting: a queue depth is memory reserved per message, a byte limit memory per file.
 INTEGER_BOUNDS = {"max_state_bytes": 1 << 31, "queue_depth": 100_000, "max_inbox": 1_000_000,
                   "max_pending_samples": 1_000_000, "max_message_bytes": 1 << 30, "max_joint_names": 100_000,
-                  "max_markers": 1_000_000, "service_queue_depth": 10_000, "max_requests_per_take": 10_000}
+                  "max_markers": 1_000_000, "service_queue_depth": 10_000, "max_waiting_requests": 10_000}
 #: A TF frame prefix: names of letters, digits and underscores, joined by single slashes (no leading slash).
 TF_PREFIX = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*/?")
 #: Directories of the kernel and devices: no state, checkpoint or robot file lives there.
@@ -119,7 +119,7 @@ class SchemeSettings:
     max_joint_names: int = MessageLimits().max_joint_names
     max_markers: int = MessageLimits().max_markers
     service_queue_depth: int = 100
-    max_requests_per_take: int = 20
+    max_waiting_requests: int = 20
     exploration: bool = False
     exploration_candidates: int = 64
     exploration_travel_weight: float = 0.0

@@ -3,8 +3,9 @@
 Anyone in the ROS domain can call these services, so a requested name is resolved inside ``state_dir`` and refused
 if it leaves it (absolute paths elsewhere, ``..``, symlinks pointing out), if it is not a regular file (a FIFO would
 block the node, ``/dev/zero`` would eat its memory), if it is larger than ``max_bytes``, or, when saving, if an
-existing file there is not a body scheme state file (it is never overwritten). Error messages name only the request
-and the state directory, never anything about files outside it. No ROS imports.
+existing file there is not a body scheme state file or has several names (it is never overwritten); scheme_node
+also refuses to save over another running node's checkpoint (:func:`~body_scheme_nodes.checkpoint.lock_holder`).
+Error messages name only the request and the state directory, never anything about files outside it. No ROS imports.
 """
 
 from __future__ import annotations
@@ -61,13 +62,16 @@ def check_loadable(path, max_bytes=DEFAULT_MAX_BYTES):
 
 
 def check_overwritable(path):
-    """Refuse to replace an existing file that is not a body scheme state file, or anything but a regular file."""
+    """Refuse to replace an existing file that is not a body scheme state file, anything but a regular file, or a
+    file of several names (hard links: the others would keep the old state, e.g. a running node's checkpoint)."""
     try:
         info = os.stat(path)
     except FileNotFoundError:
         return
     if not stat.S_ISREG(info.st_mode):
         raise StateFileError(f"{path.name!r} exists and is not a regular file; not overwritten")
+    if info.st_nlink > 1:
+        raise StateFileError(f"{path.name!r} has {info.st_nlink} names (hard links); not overwritten")
     with open(path, "rb") as stream:
         head = stream.read(len(SIGNATURE))
     if head != SIGNATURE:

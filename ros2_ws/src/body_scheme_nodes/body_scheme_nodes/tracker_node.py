@@ -173,7 +173,7 @@ class TrackerNode(Node):
         """The tracker for this camera; rebuilt only when the intrinsics change."""
         key = (tuple(info.k), tuple(info.d), info.distortion_model)
         if key != self._camera_key:
-            self.tracker = MarkerTracker(conversions.camera_matrix_from_info(info),
+            self.tracker = MarkerTracker(conversions.camera_from_info(info)[0],
                                          conversions.distortion_from_info(info), **self.options)
             self._camera_key = key
         return self.tracker

@@ -11,13 +11,14 @@ import pybullet_data
 import pytest
 import rclpy
 import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_msgs.msg import MarkerPoses
-from body_scheme_nodes.babble_node import BabbleNode
+from body_scheme_nodes.babble_node import BabbleNode, watched_status
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "babble_node.yaml"
 BUILT_IN = {"use_sim_time", "start_type_description_service"}
@@ -121,12 +122,16 @@ def test_resume_before_the_first_joint_state_waits_for_it():
 
 def test_joint_states_that_go_quiet_stop_the_babbling():
     """The arm reported once and then nothing for joint_state_timeout: the reason names the joint states."""
-    with babble_node([Parameter("joint_state_timeout", value=0.05), Parameter("camera_timeout", value=0.0)]) as node:
+    clock = [50.0]
+    with babble_node([Parameter("joint_state_timeout", value=3.0), Parameter("camera_timeout", value=0.0)]) as node:
+        node.monotonic = node.driver.clock = lambda: clock[0]
         node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
         node._on_timer()
-        assert node.state == "idle" and node._quiet(time.monotonic()) == ""
-        time.sleep(0.1)
-        assert "joint states are quiet" in node._quiet(time.monotonic())
+        assert node.state == "idle" and node._quiet(clock[0]) == ""
+        clock[0] += 2.9
+        assert node._quiet(clock[0]) == ""
+        clock[0] += 0.2
+        assert "joint states are quiet: none usable for 3.1 s" in node._quiet(clock[0])
 
 
 def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_frames_first():
@@ -148,6 +153,52 @@ def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_f
         node.last_camera = time.monotonic() - 2.0  # no pause, a silent camera
         node._on_timer()
         assert node.state == "stopped" and "camera is quiet" in node.stop_reason
+
+
+def test_a_joint_state_beyond_the_limits_is_refused_and_a_halt_stays_within_them():
+    """50 rad, -7 rad and 1e308 are refused (counted, named in the stop), never a crash; the halt after them holds the
+    last usable posture clamped within the limits less the margin; before any usable joint state it sends nothing."""
+    with babble_node([Parameter("camera_timeout", value=0.0)]) as node:
+        driver, names = node.driver, list(node.driver.joint_names)
+        assert driver.halt() is None and driver.counts["halted_without_goal"] == 1
+        driver._on_joint_states(JointState(name=names, position=[1.48, 0.0, 0.0, 0.0, 0.0, -1.5]))
+        for bad in (50.0, -7.0, 1e308, 1e6):
+            driver._on_joint_states(JointState(name=names, position=[bad] + [0.0] * 5))
+        assert driver.counts["joint_states_out_of_range"] == 4 and "joint1 reported at 1e+06" in \
+            driver.joint_state_problem
+        node._on_timer()  # the loop's next move starts from the last usable posture
+        hold = node.driver.halt()
+        assert np.allclose(hold, [1.45, 0.0, 0.0, 0.0, 0.0, -1.45])
+        assert np.all(hold >= driver.safety.lower) and np.all(hold <= driver.safety.upper)
+
+
+def test_a_move_from_an_implausible_start_is_refused_not_enumerated():
+    """The path check from a start 1e308 or 1e6 rad away is refused at once (it overflowed, or asked the collision
+    screen for 2x10^7 postures)."""
+    with babble_node() as node:
+        goal = np.zeros(6)
+        for start in (1e308, 1e6):
+            assert node.driver.refusal(goal, start=np.full(6, start)) == "malformed"
+
+
+def test_the_watched_status_is_this_robots_scheme_node_by_its_exact_name():
+    """watch_diagnostics resolves like a topic in babble_node's namespace; a second robot's OK status (whose name
+    contains this one's) does not reset the hold of this robot's ERROR."""
+    assert watched_status("scheme_node", "/") == "/scheme_node: body scheme"
+    assert watched_status("scheme_node", "/robot1") == "/robot1/scheme_node: body scheme"
+    assert watched_status("/robot2/scheme_node", "/robot1") == "/robot2/scheme_node: body scheme"
+    assert watched_status("", "/robot1") == ""
+    with pytest.raises(InvalidInputError, match="watch_diagnostics"):
+        watched_status("scheme_node: body scheme", "/")
+    clock = [100.0]
+    with babble_node([Parameter("error_hold", value=1.0)]) as node:
+        node.monotonic = lambda: clock[0]
+        error = DiagnosticStatus(name="/scheme_node: body scheme", level=DiagnosticStatus.ERROR, message="invalid")
+        other = DiagnosticStatus(name="/robot2/scheme_node: body scheme", level=DiagnosticStatus.OK)
+        for _ in range(3):
+            node._on_diagnostics(DiagnosticArray(status=[error, other]))
+            clock[0] += 0.6
+        assert node.state == "stopped" and "ERROR" in node.stop_reason
 
 
 @pytest.mark.parametrize("name, value, message", [

@@ -8,7 +8,7 @@ import pytest
 
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import encode_state, load_state
-from body_scheme_nodes.checkpoint import ORPHAN_AGE, Checkpoint, CheckpointError, remove_orphans
+from body_scheme_nodes.checkpoint import ORPHAN_AGE, Checkpoint, CheckpointError, lock_holder, remove_orphans
 
 
 def _state_text():
@@ -45,6 +45,46 @@ def test_a_second_checkpoint_on_the_same_file_is_refused_until_the_first_is_clos
         Checkpoint(tmp_path / "state.json")
     first.close()
     Checkpoint(tmp_path / "state.json").close()
+
+
+def test_a_lock_file_is_never_followed_and_every_lock_failure_is_a_checkpoint_error(tmp_path, monkeypatch):
+    """A symlinked lock file (a user's file became our pid before), a directory or a FIFO in its place, a lock that
+    cannot be made: each is a CheckpointError (one FATAL line at start), and the user's file is untouched."""
+    users = tmp_path / "users_file.txt"
+    users.write_text("mine")
+    (tmp_path / "a.json.lock").symlink_to(users)
+    with pytest.raises(CheckpointError, match="symlink"):
+        Checkpoint(tmp_path / "a.json")
+    assert users.read_text() == "mine"
+    (tmp_path / "b.json.lock").mkdir()
+    with pytest.raises(CheckpointError, match="b.json.lock"):
+        Checkpoint(tmp_path / "b.json")
+    os.mkfifo(tmp_path / "c.json.lock")
+    with pytest.raises(CheckpointError, match="not a regular file"):
+        Checkpoint(tmp_path / "c.json")
+
+    def read_only(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(os, "open", read_only)
+    with pytest.raises(CheckpointError, match="Permission denied"):
+        Checkpoint(tmp_path / "d.json")
+
+
+def test_a_checkpoint_of_several_names_is_refused_and_a_held_one_is_named(tmp_path):
+    """A hard link to a checkpoint would let two lock files guard one file: refused. lock_holder names the process
+    that holds a checkpoint (what ~/save asks before it writes), and nobody once it is closed."""
+    first = Checkpoint(tmp_path / "arm.json")
+    try:
+        first.write(_state_text())
+        os.link(tmp_path / "arm.json", tmp_path / "alias.json")
+        with pytest.raises(CheckpointError, match="2 names"):
+            Checkpoint(tmp_path / "alias.json")
+        assert lock_holder(tmp_path / "arm.json") == str(os.getpid())
+        assert lock_holder(tmp_path / "alias.json") is None and lock_holder(tmp_path / "none.json") is None
+    finally:
+        first.close()
+    assert lock_holder(tmp_path / "arm.json") is None
 
 
 def test_orphaned_temporary_files_of_our_writes_are_removed_and_nothing_else(tmp_path):

@@ -151,3 +151,41 @@ def test_a_reset_cancels_the_exploration_under_way_and_a_learner_without_a_schem
     explorer.after_learning(fresh, 0.0, np.zeros(2))
     explorer.after_learning(fresh, 1.0, np.zeros(2))
     assert received(3)[2].outcome == "no joint fit: the learner has no body scheme"
+
+
+def test_every_request_sent_is_answered_counted_lost_or_refused_unread_and_no_refusal_echoes_it(ros):
+    """A flood of 300 requests, one too large to read and one naming 20,000 joints (an 80 MB request froze the node
+    14 s, and its refusal echoed it whole): answered + lost + refused = sent; the refusal names the request by its
+    header, carries no arrays and says why in a few hundred characters."""
+    make, received, _ = ros
+    explorer = make()
+    node = explorer.node
+    publisher = node.create_publisher(ExploreNear, "body_scheme/explore_near", 1000)
+    deadline = time.monotonic() + 10
+    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    big = request([0.0] * 20_000, names=[f"joint_{k}" for k in range(20_000)], sec=7)
+    publisher.publish(big)
+    huge = request([0.0] * 200_000, sec=8)  # 1.6 MB: over max_message_bytes
+    publisher.publish(huge)
+    deadline = time.monotonic() + 10
+    while explorer.diagnostics()[0]["oversized_message"] == 0 and time.monotonic() < deadline:
+        explorer.take_requests()  # the two are taken before the flood could overwrite them
+        time.sleep(0.01)
+    refusal = next(a for a in received(1) if a.header.stamp.sec == 7)
+    assert list(refusal.joint_names) == [] and list(refusal.positions) == [] and len(refusal.outcome) < 400
+    assert refusal.outcome.startswith("refused: JointState"), refusal.outcome
+    for k in range(300):
+        publisher.publish(request([0.1, 0.2], sec=100 + k))
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        explorer.take_requests()
+        rejected, values = explorer.diagnostics()
+        if values["exploration.near_requests"] + values["lost.explore_near_messages"] + \
+                rejected["oversized_message"] == 302:
+            break
+        time.sleep(0.01)
+    rejected, values = explorer.diagnostics()  # each request replaced the one before: only the newest waits
+    assert rejected["oversized_message"] == 1 and rejected["bad_explore_near"] == 1
+    assert values["exploration.near_answered"] == values["exploration.near_requests"] - 1 > 0
+    assert values["exploration.near_requests"] + values["lost.explore_near_messages"] + 1 == 302

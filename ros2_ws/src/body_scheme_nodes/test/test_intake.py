@@ -125,3 +125,52 @@ def test_requests_are_taken_in_batches_and_each_caller_gets_its_answer(node):
         executor.spin_once(timeout_sec=0.01)
     executor.shutdown()
     assert [f.result().message for f in futures] == [str(k) for k in range(50)]
+
+
+def test_slow_requests_are_served_in_a_thread_of_their_own_and_the_excess_is_answered_busy(node):
+    """ServiceWorker: take() hands requests to the service thread and returns at once, however slow the handler (50
+    slow ~/load requests held the executor's thread 25 s before); at most max_waiting wait, the rest are answered
+    busy at once; every caller gets an answer, and a handler's exception is a failed answer."""
+    import threading
+
+    from rclpy.qos import QoSProfile
+    from std_srvs.srv import SetBool
+
+    from body_scheme_nodes.intake import RequestIntake, ServiceWorker
+
+    release, served_in = threading.Event(), set()
+
+    def slow(request, response):
+        release.wait(30)
+        served_in.add(threading.current_thread().name)
+        if not request.data:
+            raise RuntimeError("bad request")
+        response.success, response.message = True, "served"
+        return response
+
+    worker = ServiceWorker({"slow": (RequestIntake(node, SetBool, "slow", 100), slow)}, 3,
+                           lambda name, limit: f"busy ({limit})", lambda text: None)
+    try:
+        clients = [node.create_client(SetBool, "slow", qos_profile=QoSProfile(depth=100)) for _ in range(10)]
+        assert all(client.wait_for_service(timeout_sec=10) for client in clients)
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        futures, deadline = [], time.monotonic() + 30
+        for k, client in enumerate(clients):  # one by one: the first three wait, the first of them fails
+            futures.append(client.call_async(SetBool.Request(data=k != 0)))
+            while sum(worker.counters().values()) <= k and time.monotonic() < deadline:
+                worker.take()  # returns although the handler blocks
+                executor.spin_once(timeout_sec=0.01)
+        assert worker.counters() == {"slow.busy": 7, "slow.waiting": 3}
+        release.set()
+        while not all(f.done() for f in futures) and time.monotonic() < deadline:
+            worker.take()
+            executor.spin_once(timeout_sec=0.01)
+        executor.shutdown()
+        messages = sorted(f.result().message for f in futures)
+        assert messages == ["busy (3)"] * 7 + ["served"] * 2 + ["slow failed: RuntimeError: bad request"]
+        assert worker.counters() == {"slow.busy": 7, "slow.answered": 2, "slow.failed": 1}  # none waits
+        assert served_in == {"services"}
+    finally:
+        release.set()
+        worker.stop()

@@ -86,7 +86,7 @@ def test_camera_info_message_carries_k_and_p():
     K = Camera().K
     msg = conversions.camera_info_msg(12.5, "camera", 640, 480, K)
     assert (msg.width, msg.height, msg.header.frame_id) == (640, 480, "camera")
-    np.testing.assert_array_equal(conversions.camera_matrix_from_info(msg), K)
+    np.testing.assert_array_equal(conversions.camera_from_info(msg)[0], K)
     np.testing.assert_array_equal(np.reshape(msg.p, (3, 4)), np.c_[K, np.zeros(3)])
     assert conversions.distortion_from_info(msg) is None
     assert conversions.seconds_from_stamp(msg.header.stamp) == 12.5

@@ -66,3 +66,6 @@ def test_a_foreign_file_is_never_overwritten_a_state_file_is(state_dir):
     check_overwritable(ours)  # ours: may be replaced
     check_loadable(ours)
     assert load_state(ours).part_ids == (1, 2) or list(load_state(ours).part_ids) == [1, 2]
+    os.link(ours, state_dir / "alias.json")  # a second name: the other keeps the old state, so it is not replaced
+    with pytest.raises(StateFileError, match="2 names"):
+        check_overwritable(ours)

@@ -53,14 +53,28 @@ def test_inconsistent_image_messages_are_rejected():
 
 
 def test_camera_info_gives_intrinsics_and_rejects_uncalibrated():
-    """camera_matrix_from_info reads K; an all-zero K (uncalibrated camera) raises."""
-    info = CameraInfo(k=K.ravel().tolist(), d=[0.0] * 5, distortion_model="plumb_bob")
-    np.testing.assert_array_equal(conversions.camera_matrix_from_info(info), K)
-    assert conversions.distortion_from_info(info) is None
+    """camera_from_info reads K and the image size; an all-zero K (uncalibrated camera) raises."""
+    info = CameraInfo(k=K.ravel().tolist(), d=[0.0] * 5, distortion_model="plumb_bob", width=640, height=480)
+    camera = conversions.camera_from_info(info)
+    np.testing.assert_array_equal(camera[0], K)
+    assert camera[1:] == (640, 480) and conversions.distortion_from_info(info) is None
     info.d = [0.1, 0.0, 0.0, 0.0, 0.0]
     np.testing.assert_array_equal(conversions.distortion_from_info(info), info.d)
     with pytest.raises(InvalidInputError, match="calibrated"):
-        conversions.camera_matrix_from_info(CameraInfo())
+        conversions.camera_from_info(CameraInfo())
+
+
+@pytest.mark.parametrize("width, height, k, match", [
+    (1, 1, [500.0, 0, 0.5, 0, 500.0, 0.5, 0, 0, 1], "image of 1 x 1"),
+    (640, 480, [1e300, 0, 320, 0, 1e300, 240, 0, 0, 1], "focal lengths"),
+    (640, 480, [2.0, 0, 320, 0, 2.0, 240, 0, 0, 1], "focal lengths"),
+    (640, 480, [500.0, 0, -1e6, 0, 500.0, 240, 0, 0, 1], "principal point"),
+    (640, 480, [500.0, 0, 320, 0, 5000.0, 240, 0, 0, 1], "focal lengths"),
+    (0, 480, [500.0, 0, 320, 0, 500.0, 240, 0, 0, 1], "image of 0 x 480")])
+def test_a_camera_that_cannot_exist_is_refused(width, height, k, match):
+    """A 1 x 1 image, a focal length of 1e300 or 2 px, a principal point far outside the image, 10:1 pixels."""
+    with pytest.raises(InvalidInputError, match=match):
+        conversions.camera_from_info(CameraInfo(k=k, width=width, height=height))
 
 
 # ---------------------------------------------------------------------- tracker_node configuration
