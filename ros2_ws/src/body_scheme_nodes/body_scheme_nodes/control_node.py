@@ -159,7 +159,8 @@ class ControlNode(Node):
         def subscribe(msg_type, topic, callback, qos, limit=max_bytes):
             create_sized_subscription(self, msg_type, topic, callback, qos, limit, self._oversized)
 
-        subscribe(ModelSnapshot, "body_scheme/snapshot", self._on_snapshot, LATCHED, 16 * max_bytes)
+        # The snapshot is taken with the targets, first: a target sent right after a snapshot is solved on it.
+        self.snapshots = BatchIntake(self, ModelSnapshot, "body_scheme/snapshot", LATCHED, 16 * max_bytes)
         self.targets = {"ik_target": BatchIntake(self, IKTarget, "ik_target", queue_depth, max_bytes),
                         "ik_target/point": BatchIntake(self, PointStamped, "ik_target/point", queue_depth, max_bytes)}
         subscribe(JointState, "joint_commands", self._on_command, 10)
@@ -211,8 +212,12 @@ class ControlNode(Node):
         self.get_logger().warn(f"rejected input (oversized_message): {size} bytes", throttle_duration_sec=5.0)
 
     def _take_targets(self):
-        """Take the waiting targets (IKTarget and PointStamped) into the request queue; beyond
-        ``max_pending_requests`` waiting, a request is answered "busy" at once."""
+        """Take the newest snapshot, then the waiting targets (IKTarget and PointStamped) into the request queue;
+        beyond ``max_pending_requests`` waiting, a request is answered "busy" at once."""
+        for msg, _ in self.snapshots.take():
+            self._on_snapshot(msg)
+        for size in self.snapshots.take_refused():
+            self._oversized(size)
         for topic, intake in self.targets.items():
             for msg, _ in intake.take():
                 self.counts["received"] += 1

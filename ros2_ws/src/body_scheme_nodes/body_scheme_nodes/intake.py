@@ -57,8 +57,8 @@ class BatchIntake:
     node : rclpy.node.Node
     msg_type : type
     topic : str
-    depth : int
-        Queue depth (reliable, keep last).
+    depth : int or QoSProfile
+        Queue depth (reliable, keep last), or the whole profile (e.g. transient local for a latched topic).
     max_bytes : int or None
         Largest serialized message taken; a larger one is refused whole (counted in :attr:`oversized`).
 
@@ -75,7 +75,7 @@ class BatchIntake:
     def __init__(self, node, msg_type, topic, depth, max_bytes=None):
         self.subscription = node.create_subscription(msg_type, topic, self._not_dispatched, depth,
                                                      callback_group=_NeverDispatched())
-        self.depth, self.max_bytes = depth, max_bytes
+        self.depth, self.max_bytes = getattr(depth, "depth", depth), max_bytes
         self.lost = self.full_queue_takes = 0
         self.oversized = []
         self._last_sequence = None
