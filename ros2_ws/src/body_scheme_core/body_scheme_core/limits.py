@@ -6,7 +6,8 @@ machine's memory or overflowing a count.
 
 from __future__ import annotations
 
-__all__ = ["MAX_PARTS", "MAX_ACTIONS", "MAX_ACTION", "MAX_COORDINATE", "MAX_WINDOW", "MAX_NOISE", "MAX_INTEGER"]
+__all__ = ["MAX_PARTS", "MAX_ACTIONS", "MAX_ACTION", "MAX_COORDINATE", "MAX_WINDOW", "MAX_NOISE", "MAX_INTEGER",
+           "MAX_CHAIN_JOINTS"]
 
 #: Most parts (markers) and actions (joints) of one learner: two arms and a torso with hands have about 40 of each.
 MAX_PARTS = 100
@@ -24,3 +25,5 @@ MAX_NOISE = 10.0
 #: Largest count, step or id: a step a millisecond for 285,000 years, exact as a double, and a sum of a few of them
 #: still fits an int64.
 MAX_INTEGER = 2**53
+#: Most joints in one chain local model (a 7-DOF arm with a torso lift and joints to spare).
+MAX_CHAIN_JOINTS = 12

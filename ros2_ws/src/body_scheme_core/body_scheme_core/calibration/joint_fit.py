@@ -224,8 +224,7 @@ class _Problem:
         self.groups = {}
         for k in self.free:
             self.groups.setdefault(scheme.models[k].form, []).append(k)
-        self.x = {k: (actions[:, scheme.models[k].actions[0]] if scheme.models[k].actions else np.zeros(n))
-                  for k in self.free}
+        self.x = {k: scheme.models[k].form_input(actions) for k in self.free}
         self.edge_of = {k: e for e, (_, _, k, _) in enumerate(self.edges)}
         self.fixed_Z = {}
 

@@ -17,7 +17,7 @@ from .challengers import Challengers
 from .detection import Detection
 from .memory import Memory
 from .repair import Repair
-from .tracked import MEMORY
+from .tracked import CANDIDATE, MEMORY
 
 __all__ = ["Adaptation"]
 
@@ -57,6 +57,7 @@ class Adaptation(Detection, Repair, Challengers, Memory):
         self.mismatch = {} if mismatch is None else mismatch
         self.refining = {} if refining is None else dict(refining)
         self.failed = {} if failed is None else dict(failed)
+        self._chain_samples = {}  # failed chain id -> samples its replacements were last fitted on (Repair)
 
     def step(self, tree, a, chain, chain_at, step, events):
         """One step after bootstrapping: evaluate and train, detect mismatches, repair the edges in mismatch.
@@ -94,6 +95,10 @@ class Adaptation(Detection, Repair, Challengers, Memory):
         if learning:
             index, targets = chain.for_entries(learning, own=True)
             pool.train([learning[k].id for k in index], a, targets, step)
+        fitted = [e for e in pool.tracked.values() if e.role == CANDIDATE and e.slot < 0]  # chain replacements
+        if fitted:
+            index, targets = chain.for_entries(fitted, own=True)
+            pool.evaluate([fitted[k] for k in index], a, targets, step, cusum=False)
         changes = self._refine_choices(tree, step, events) + self._challenge(tree, step, events)
         # After those changes: detection sees the tree as it is now (a replaced model is no edge of it any more).
         self._detect(tree, alarms, step, events)

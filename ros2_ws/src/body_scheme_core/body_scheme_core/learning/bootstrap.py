@@ -12,6 +12,12 @@ frozen. After every step the candidates that are invalid with high confidence ar
 beats (dominance rule) is searched layer by layer, with the classes of a layer ordered by their rank
 (:func:`~body_scheme_core.learning.quality.model_cost`).
 
+Parts that no layer connects (a tool whose marker is the only one past six joints, and the base) are connected by a
+*chain* (:class:`~body_scheme_core.models.chain.ChainModel`): its joints, their order and their types are identified
+from the recorded samples in which few actions moved (:func:`~body_scheme_core.learning.chain_search.identify_chain`,
+:meth:`Bootstrap.connect_with_chains`), and it is then tested like any candidate, prequentially, before the search
+may take it. A chain of k actions is in layer k, where a GP of as many actions would be.
+
 Bootstrapping ends when a valid tree exists, its models are frozen and every candidate is frozen (or the tree has
 been stable for ``bootstrap_patience`` steps): all other candidates are dropped and the tree's models become fitted
 models, refined from then on by the joint fit of the learner. ``docs/core/learning-and-adaptation.md``, Sec. 3-4,
@@ -26,15 +32,27 @@ import networkx as nx
 import numpy as np
 
 from ..events import Event, format_errors
+from ..models import ChainModel
+from .chain_search import ORDER_SAMPLES, ChainNotIdentified, identify_chain
 from .quality import model_cost
 from .structure import enumerate_candidates, kinds_for, select_spanning_tree
-from .tracked import TREE
+from .tracked import CANDIDATE, TREE
 
 __all__ = ["Bootstrap", "SUSPECT_RATIO"]
 
 #: A tree model whose window mean error ratio exceeds this in either channel when bootstrapping would end has its
 #: pair's next layer instantiated first (:meth:`Bootstrap.expand_suspects`); right models stay below about half.
 SUSPECT_RATIO = 0.6
+#: A pair's chain is identified again once this many more samples observed both its parts (excursions may have
+#: come, and a chain found already learns from more data).
+CHAIN_RETRY = 10
+
+
+def _order_decided(model):
+    """Whether a fitted candidate's joints' order was decided by data (always, but for a chain identified from too
+    few samples in which several of its joints moved: it is identified again as they come)."""
+    return not isinstance(model, ChainModel) or len(model.actions) < 2 or \
+        model.order_evidence >= ORDER_SAMPLES * len(model.actions)
 
 
 class Bootstrap:
@@ -73,6 +91,7 @@ class Bootstrap:
         self.raced = 0
         self._pair_index = None
         self._layers = None  # {(parent, child): highest complexity instantiated}, see _instantiated_layers
+        self._chain_tried = {}  # (parent, child) -> samples of both parts at the last identification
 
     @staticmethod
     def add_candidates(pool, part_ids, n_actions, config):
@@ -118,11 +137,105 @@ class Bootstrap:
             return tree, False
         # Candidates are enumerated in the canonical direction of their pair, so the targets need no flip.
         pool.train(ls.ids[sel], a, relative.targets(pair[sel]), step)
+        self._test_fitted(a, relative, step)
         self.race(tree)
         tree = self.search(tree, step, events)
         if tree is None and self.expand(step, events):
             tree = self.search(tree, step, events)
+        if (tree is None or self._undecided(tree)) and self.connect_with_chains(step, events):
+            tree = self.search(tree, step, events)
         return tree, True
+
+    def _undecided(self, tree):
+        """Whether the tree holds a chain whose joints' order the data has not decided yet."""
+        return any(not _order_decided(self.pool.tracked[i].model) for i in tree
+                   if self.pool.tracked[i].slot < 0)
+
+    def _fitted(self):
+        """Candidates with a fitted model (chains), in pool order."""
+        return [e for e in self.pool.tracked.values() if e.role == CANDIDATE and e.slot < 0]
+
+    def _test_fitted(self, a, relative, step):
+        """Fitted candidates predict this step's relative observation of their pair (prequential: they were
+        identified from earlier samples), in its canonical direction."""
+        fitted = self._fitted()
+        if not fitted:
+            return
+        pair = np.array([self.pairs.index(e.parent, e.child) for e in fitted], dtype=np.intp)
+        sel = np.flatnonzero(relative.row[pair] >= 0)
+        if sel.size:
+            self.pool.evaluate([fitted[k] for k in sel], a, relative.targets(pair[sel]), step,
+                               cusum=np.zeros(sel.size, dtype=bool))
+
+    def connect_with_chains(self, step, events):
+        """Where the eligible candidates (chains whose joints' order is not decided yet left out) cannot connect the
+        parts, identify a chain between the two parts of each pair of components that were observed together most
+        (:func:`identify_chain`), from the recorded steps; a chain found is tracked as a fitted candidate of the pair
+        (replacing that pair's earlier chain). Up to ``config.max_chain_joints`` joints; 0 turns chains off. Returns
+        whether a chain was added."""
+        c = self.config
+        if c.max_chain_joints < 1 or len(self.history) == 0:
+            return False
+        pool = self.pool
+        ls = pool.learning()
+        _, valid, _, _ = self._eligible(ls)
+        graph = nx.Graph()
+        graph.add_nodes_from(self.pairs.part_ids)
+        graph.add_edges_from((pool.tracked[int(i)].parent, pool.tracked[int(i)].child) for i in ls.ids[valid])
+        graph.add_edges_from((p, q) for p, q, key, _, _ in self._eligible_fitted()
+                             if _order_decided(pool.tracked[key].model))
+        components = [sorted(members) for members in nx.connected_components(graph)]
+        if len(components) < 2:
+            return False
+        seen = [set(obs) for _, _, obs in self.history]
+        added = False
+        for first, second in itertools.combinations(components, 2):
+            counts = {(u, v): sum(u in s and v in s for s in seen) for u in first for v in second}
+            (u, v), n = max(counts.items(), key=lambda item: (item[1], item[0]))
+            parent, child = (u, v) if self.pairs.part_index[u] < self.pairs.part_index[v] else (v, u)
+            if n < self._chain_tried.get((parent, child), 0) + CHAIN_RETRY:
+                continue
+            self._chain_tried[(parent, child)] = n
+            index = self.pairs.index(parent, child)
+            A, Z, S = [], [], []
+            for _, a, obs in self.history:
+                relative = self.pairs.observe({p: obs[p] for p in (parent, child) if p in obs})
+                if relative.row[index] >= 0:
+                    targets = relative.targets(np.array([index]))
+                    A.append(a)
+                    Z.append(targets.Z[0])
+                    S.append(targets.sigma[0])
+            try:
+                model = identify_chain(np.array(A), np.array(Z), np.array(S), parent, child,
+                                       range(pool.n_actions), sigma_trans=c.prior_sigma_trans,
+                                       sigma_rot=c.prior_sigma_rot)
+            except ChainNotIdentified:
+                continue
+            if len(model.actions) > c.max_chain_joints or len(model.actions) < 2:
+                continue  # one action: the layers' own candidates of that pair say it better
+            old = [e for e in self._fitted() if {e.parent, e.child} == {parent, child}]
+            if old:
+                pool.remove(*old)
+            entry = pool.add_fitted([model], CANDIDATE, origin="chain", last_used=step)[0]
+            entry.n_train = len(A)
+            events.append(Event(step, "model_sampled",
+                                f"parts {parent} and {child} are not connected by the candidates of layers up to "
+                                f"{c.max_complexity}: identified {entry.describe()} from {len(A)} recorded steps "
+                                f"({', '.join(model.types)}; fit rms {model.rms_:.2f} sigma)",
+                                parent=parent, child=child, model=entry.describe()))
+            added = True
+        return added
+
+    def _eligible_fitted(self, exclude=()):
+        """``(parent, child, id, layer, cost)`` of the valid fitted candidates (chains), for the tree search."""
+        fitted = [e for e in self._fitted() if e.id not in set(exclude)]
+        if not fitted:
+            return []
+        pool = self.pool
+        st, valid = pool.window_stats([e.row for e in fitted], [e.n_train for e in fitted])
+        layer = np.array([e.complexity for e in fitted], dtype=float)
+        cost = model_cost(layer, st.trans_ratio, st.rot_ratio, np.array([e.rank for e in fitted]))
+        return [(e.parent, e.child, e.id, int(layer[k]), float(cost[k])) for k, e in enumerate(fitted) if valid[k]]
 
     def race(self, tree):
         """Drop the candidates that are invalid with high confidence
@@ -270,6 +383,8 @@ class Bootstrap:
         cost = model_cost(ls.layer, st.trans_ratio, st.rot_ratio, ls.rank)
         eligible = [(pool.tracked[i].parent, pool.tracked[i].child, int(i), int(ls.layer[k]), float(cost[k]))
                     for k, i in enumerate(ls.ids) if valid[k]]
+        eligible += self._eligible_fitted(exclude)
+        cost_of = {key: c for _, _, key, _, c in eligible}
         keys = select_spanning_tree(parts, eligible)
         if events is None:
             return keys
@@ -282,10 +397,12 @@ class Bootstrap:
                 self.tree_since = step
             return None
         if tree is None or set(keys) != set(tree):
-            pos = {int(i): k for k, i in enumerate(ls.ids)}
-            desc = "; ".join(f"{pool.tracked[i].describe()} cost {cost[pos[i]]:.2f} "
-                             f"({format_errors(st.trans_error[pos[i]], st.rot_error[pos[i]])})" for i in keys)
-            total = float(sum(cost[pos[i]] for i in keys))
+            entries = [pool.tracked[i] for i in keys]
+            stats, _ = pool.window_stats([e.row for e in entries], [pool.n_now(e) for e in entries])
+            desc = "; ".join(f"{e.describe()} cost {cost_of[e.id]:.2f} "
+                             f"({format_errors(stats.trans_error[k], stats.rot_error[k])})"
+                             for k, e in enumerate(entries))
+            total = float(sum(cost_of[i] for i in keys))
             if tree is None and not self.found:
                 kind, what = "structure_found", "first valid spanning tree"
             else:
@@ -336,7 +453,9 @@ class Bootstrap:
         ls = pool.learning()
         n_now = pool.sizes(ls)
         pos = {int(i): k for k, i in enumerate(ls.ids)}
-        tree_frozen = all(n_now[pos[i]] >= c.train_window for i in tree)
+        # A fitted candidate (a chain) learns no more: it is frozen once its joints' order was decided by data.
+        tree_frozen = all(n_now[pos[i]] >= c.train_window if i in pos else _order_decided(pool.tracked[i].model)
+                          for i in tree)
         all_frozen = bool(np.all(n_now >= c.train_window))
         stable = step - self.tree_since >= c.bootstrap_patience
         if not (tree_frozen and (all_frozen or stable)):
@@ -354,7 +473,7 @@ class Bootstrap:
         why = "all candidates are frozen" if all_frozen else f"the tree was stable for {step - self.tree_since} steps"
         events.append(Event(step, "bootstrap_finished",
                             f"bootstrapping finished after {step + 1} steps ({why}): kept the {len(kept)} tree "
-                            f"models ({', '.join(e.describe() for e in kept)}), trained on {c.train_window} samples "
-                            f"each; dropped {n_dropped} other candidates; the tree's models keep learning through "
-                            f"the joint fit"))
+                            f"models ({', '.join(f'{e.describe()} on {e.n_train} samples' for e in kept)}); "
+                            f"dropped {n_dropped} other candidates; the tree's models keep learning through the "
+                            f"joint fit"))
         return True

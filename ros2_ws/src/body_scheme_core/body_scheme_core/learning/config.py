@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass
 
 from ..errors import InvalidInputError
-from ..limits import MAX_NOISE, MAX_WINDOW
+from ..limits import MAX_CHAIN_JOINTS, MAX_NOISE, MAX_WINDOW
 from ..models import (
     DEFAULT_LENGTH_SCALE,
     DEFAULT_SIGMA_ROT,
@@ -30,7 +30,8 @@ _INTEGERS = {"test_window": (1, MAX_WINDOW), "train_window": (1, MAX_WINDOW), "m
              "max_complexity": (0, 100), "bootstrap_patience": (1, 10**6), "reinstate_min_samples": (1, MAX_WINDOW),
              "memory_size": (0, 1000), "history_length": (1, 10**5), "calibration_period": (1, 10**6),
              "replacement_max_relative": (0, 100), "replacement_patience": (1, 10**6), "bridge_patience": (1, 10**6),
-             "root_window": (1, 10**5), "race_samples": (0, MAX_WINDOW), "race_min_train": (1, MAX_WINDOW)}
+             "root_window": (1, 10**5), "race_samples": (0, MAX_WINDOW), "race_min_train": (1, MAX_WINDOW),
+             "max_chain_joints": (0, MAX_CHAIN_JOINTS)}
 #: Bounds of the number settings (all must be finite; the lower bound is exclusive where it is 0 and the setting
 #: divides or scales).
 _NUMBERS = {"validity_sigmas": (0.0, 100.0), "gp_length_scale": (0.0, 1e3), "gp_signal_std_trans": (0.0, 1e3),
@@ -160,6 +161,14 @@ class BodySchemeConfig:
         the validity threshold, each predicted after at least ``race_min_train`` training samples, is dropped
         (:meth:`~body_scheme_core.learning.validity.ValidityMonitor.hopeless`; counted in ``raced``). 0 (the default):
         no racing; 3 with lazy layers is what the bootstrap bench measures.
+    max_chain_joints : int
+        Parts that no layer up to ``max_complexity`` connects (a tool observed past six joints) are connected by a
+        chain of at most this many joints, identified from the samples in which few actions moved
+        (:mod:`~body_scheme_core.learning.chain_search`); 0: no chains.
+    sensor_root : bool
+        The root part (``root``, required) is the camera or tracker itself, rigid with the robot's base: its pose is
+        the identity at every step, given to the learner whether or not anything observed it, so no base marker is
+        needed. Off: the root is a part the camera observes.
     """
 
     sigma_trans: float | str = "auto"
@@ -202,6 +211,8 @@ class BodySchemeConfig:
     race_samples: int = 0
     race_ratio: float = 2.0
     race_min_train: int = 5
+    max_chain_joints: int = MAX_CHAIN_JOINTS
+    sensor_root: bool = False
 
     def __post_init__(self):
         for name in ("sigma_trans", "sigma_rot"):
@@ -221,7 +232,7 @@ class BodySchemeConfig:
                 raise InvalidInputError(f"{name} must be below 1, got {getattr(self, name)!r}")
         if not self.cusum_clip > self.cusum_drift:
             raise InvalidInputError(f"cusum_clip ({self.cusum_clip!r}) must exceed cusum_drift ({self.cusum_drift!r})")
-        for name in ("fit_joint_scale", "gp_optimize", "lazy_layers"):
+        for name in ("fit_joint_scale", "gp_optimize", "lazy_layers", "sensor_root"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidInputError(f"{name} must be true or false, got {getattr(self, name)!r}")
         kinds = self.candidate_kinds
@@ -237,6 +248,8 @@ class BodySchemeConfig:
                 f"min_test_samples ({self.min_test_samples}) must not exceed test_window ({self.test_window})")
         if self.root is not None and (isinstance(self.root, bool) or not isinstance(self.root, int)):
             raise InvalidInputError(f"root must be a part id or null, got {self.root!r}")
+        if self.sensor_root and self.root is None:
+            raise InvalidInputError("sensor_root needs root: the part id that stands for the camera or tracker")
 
     @property
     def prior_sigma_trans(self):

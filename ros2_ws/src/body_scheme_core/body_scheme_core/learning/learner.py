@@ -372,6 +372,8 @@ class BodySchemeLearner(JointFitSteps):
         step = self.step
         events = []
         obs = self._accept(a, observations, step, events)
+        if self.config.sensor_root:
+            obs[self.root] = np.eye(4)  # the root is the sensor: its own pose in its frame, exactly
         if stamp is not None:
             self.last_stamp = stamp
         self._root_pose.add(a, obs)

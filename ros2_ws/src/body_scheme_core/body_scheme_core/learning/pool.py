@@ -419,7 +419,10 @@ class ModelPool:
 
     # ------------------------------------------------------------------ freezing
     def freeze(self, entry):
-        """Freeze a learning entry: fit a model on its slot (rigid candidates re-weighted robustly), free the slot."""
+        """Freeze a learning entry: fit a model on its slot (rigid candidates re-weighted robustly), free the slot.
+        A fitted candidate (a chain) is frozen already."""
+        if entry.slot < 0:
+            return entry.model
         batch = self._batch(entry)
         model = batch.to_model(entry.slot, entry.parent, entry.child)
         entry.n_train = int(batch.size([entry.slot])[0])

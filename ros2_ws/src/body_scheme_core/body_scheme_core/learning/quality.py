@@ -48,8 +48,9 @@ _E_MAX = math.nextafter(1.0, 0.0)
 #: Penalty per class rank, in mean threshold ratios (see the module docstring).
 RANK_PENALTY = 0.1
 #: Rank of each local-model class within its complexity layer: fewer parameters first (static 6, prismatic 9,
-#: revolute 11, a GP one per training sample and output). Engineered models are a specification, not a candidate.
-CLASS_RANKS = {"static": 0, "prismatic": 0, "revolute": 1, "gp": 2, "engineered": 0}
+#: revolute 11, a chain of k joints about 4 k + 6, a GP one per training sample and output). Engineered models are a
+#: specification, not a candidate.
+CLASS_RANKS = {"static": 0, "prismatic": 0, "revolute": 1, "chain": 1, "gp": 2, "engineered": 0}
 N_RANKS = 3
 #: What a class can represent, for one set of actions: static < prismatic, revolute < GP (prismatic and revolute
 #: are different forms, neither nests the other). Engineered models nest nothing and are nested by nothing.

@@ -21,11 +21,17 @@ import numpy as np
 from ..errors import ModelFileError
 from ..events import Event, format_errors
 from ..state_values import integer, listing, part_id
+from .chain_search import chain_replacements
 from .quality import model_cost, nests, relative_complexity
 from .structure import action_subsets, kinds_for, replacement_candidates
-from .tracked import MEMORY, TREE, TrackedModel, nested_models
+from .tracked import CANDIDATE, MEMORY, TREE, TrackedModel, nested_models
 
 __all__ = ["Repair", "Change", "Replacement", "tree_halves", "bridge_relative_complexity"]
+
+#: Chain-consistent samples since the change point before a failed chain's replacements are fitted, and how many
+#: more before they are fitted again.
+CHAIN_MIN_SAMPLES = 8
+CHAIN_RETRY = 8
 
 
 class Change(NamedTuple):
@@ -47,6 +53,19 @@ class Replacement(NamedTuple):
     cost: float
     n_valid: int
     n_sampled: int
+
+
+def _chain_change(failed, new):
+    """What a chain's replacement says about the body: which joint stopped moving it, or that its geometry changed
+    ("" for other models)."""
+    if failed.kind != "chain" or new.kind != "chain":
+        return ""
+    gone = [a for a in failed.actions if a not in new.actions]
+    if len(gone) == 1 and len(new.actions) == len(failed.actions) - 1:
+        return f"; joint a{gone[0]} of the chain no longer moves it (blocked)"
+    if new.actions == failed.actions:
+        return "; the chain's joints are the same, its geometry changed (a bent link or a moved marker)"
+    return ""
 
 
 def tree_halves(part_ids, edges):
@@ -100,6 +119,8 @@ class Repair:
             change = self._reinstate_from_memory(tree, failed, mismatch, halves, step, events)
             if change is not None:
                 return change
+        if failed.kind == "chain":
+            self._sample_chains(failed, mismatch, chain_at, step, events)
         candidates = pool.candidates_of(failed.id)
         if not candidates and mismatch.sampled_at < 0:
             self._sample(failed, mismatch, chain, chain_at, halves, step, events, mismatch.tau, bridges=False,
@@ -213,6 +234,42 @@ class Repair:
                             f"samples since step {start} (replayed from history)",
                             parent=failed.parent, child=failed.child, model=failed.describe()))
 
+    def _sample_chains(self, failed, mismatch, chain_at, step, events):
+        """A failed chain's replacements, fitted on its pair's chain-consistent targets since the change point once
+        there are enough of them, and again every ``CHAIN_RETRY`` more (:func:`chain_replacements`: the chain fitted
+        again for a bent link or a moved marker, and the chain without each joint for a blocked one). They replace
+        the earlier chain replacements of the edge and are judged on the samples that follow."""
+        pool = self.pool
+        A, Z, S = [], [], []
+        for rec_step, a, obs in self.history:
+            if rec_step < mismatch.tau:
+                continue
+            index, targets = chain_at(a, obs).for_entries([failed], own=True)
+            if index.size:
+                A.append(a)
+                Z.append(targets.Z[0])
+                S.append(targets.sigma[0])
+        tried = self._chain_samples.get(failed.id, 0)
+        if len(A) < max(CHAIN_MIN_SAMPLES, tried + CHAIN_RETRY):
+            return
+        self._chain_samples[failed.id] = len(A)
+        replacements = chain_replacements(failed.model, np.array(A), np.array(Z), np.array(S))
+        if not replacements:
+            return
+        for e in pool.candidates_of(failed.id):
+            if e.kind == "chain":
+                pool.remove(e)
+        added = pool.add_fitted(replacements, CANDIDATE, origin="replacement", last_used=step, since=mismatch.tau)
+        for entry in added:
+            entry.target, entry.created, entry.n_train = failed.id, step, len(A)
+        mismatch.sampled_at = max(mismatch.sampled_at, step)
+        events.append(Event(step, "model_sampled",
+                            f"{failed.describe()} failed: fitted {len(added)} chain replacements on the {len(A)} "
+                            f"samples since the change point (step {mismatch.tau}): the chain again (a bent link, a "
+                            f"moved marker) and the chain without each joint (a blocked joint): "
+                            f"{', '.join(e.describe() for e in added)}",
+                            parent=failed.parent, child=failed.child, model=failed.describe()))
+
     def _choose_replacement(self, failed, candidates, absolute=False):
         """The valid, not dominated candidate of least cost ``C(M2|M1)`` + error and class penalty (Eq. 11), or None;
         with ``absolute``, of least absolute complexity ``C(M2)`` instead (Eq. 4, as while bootstrapping)."""
@@ -318,7 +375,7 @@ class Repair:
                             f"{choice.cost:.2f} ({'' if mismatch.search else 'relative '}complexity "
                             f"{choice.relative}), "
                             f"cheapest of {choice.n_valid} valid among {choice.n_sampled} sampled; mismatch lasted "
-                            f"{step - mismatch.detected} steps",
+                            f"{step - mismatch.detected} steps{_chain_change(failed, new)}",
                             parent=new.parent, child=new.child, model=new.describe(),
                             trans_error=choice.trans_error, rot_error=choice.rot_error))
         if {new.parent, new.child} != {failed.parent, failed.child}:

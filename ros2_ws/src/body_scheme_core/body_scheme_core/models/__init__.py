@@ -1,15 +1,17 @@
 """Local model classes p(Z_ij | A_ij), one module each, and the registry used by persistence.
 
 Rigid joints (:class:`StaticModel`, :class:`PrismaticModel`, :class:`RevoluteModel` on the shared
-:class:`RigidJointModel`), Gaussian processes (:class:`GPModel`; kernel and hyperparameters in :mod:`.gp_kernel`), the
-robot's specification (:class:`EngineeredModel`), and the two batches that let hundreds of candidates learn at once
-(:class:`GPBatch`, :class:`RigidBatch`).
+:class:`RigidJointModel`), chains of joints between two observed parts (:class:`ChainModel`), Gaussian processes
+(:class:`GPModel`; kernel and hyperparameters in :mod:`.gp_kernel`), the robot's specification
+(:class:`EngineeredModel`), and the two batches that let hundreds of candidates learn at once (:class:`GPBatch`,
+:class:`RigidBatch`).
 """
 
 from __future__ import annotations
 
 from ..errors import ModelFileError
 from .base import LocalModel, check_action_batch, check_observations
+from .chain import ChainModel, chain_form, chain_from_engineered
 from .engineered import EngineeredModel, engineered_models
 from .gp import GPModel
 from .gp_batch import GPBatch
@@ -26,7 +28,7 @@ from .prismatic import PrismaticModel
 from .revolute import RevoluteModel
 from .rigid import RigidJointModel
 from .rigid_batch import RIGID_CLASSES, RigidBatch
-from .rigid_fit import DEFAULT_F_SCALE, huber_weights, robust_cost
+from .rigid_fit import DEFAULT_F_SCALE, huber_weights, pose_residuals, robust_cost
 from .static import StaticModel
 
 __all__ = [
@@ -37,10 +39,14 @@ __all__ = [
     "PrismaticModel",
     "RevoluteModel",
     "RigidJointModel",
+    "ChainModel",
+    "chain_form",
+    "chain_from_engineered",
     "RigidBatch",
     "RIGID_CLASSES",
     "DEFAULT_F_SCALE",
     "huber_weights",
+    "pose_residuals",
     "robust_cost",
     "EngineeredModel",
     "engineered_models",
@@ -59,7 +65,7 @@ __all__ = [
 
 #: Local model classes by their ``kind``, the key written into saved files.
 MODEL_CLASSES: dict[str, type[LocalModel]] = {
-    cls.kind: cls for cls in (StaticModel, PrismaticModel, RevoluteModel, EngineeredModel, GPModel)}
+    cls.kind: cls for cls in (StaticModel, PrismaticModel, RevoluteModel, ChainModel, EngineeredModel, GPModel)}
 
 
 def model_from_dict(data):

@@ -114,6 +114,11 @@ class RigidJointModel(LocalModel):
             return np.zeros(A.shape[0])
         return self._select(A)[:, 0]
 
+    def form_input(self, A):
+        """What the form evaluates at for full action vectors ``A`` (n, m): per sample the model's action value
+        (n,), or for a chain its joints' (n, d) (:mod:`~body_scheme_core.calibration.joint_fit` stacks them)."""
+        return self._x(A)
+
     def fit(self, A, Z, sigma=None):
         """Robust weighted least squares on poses (:func:`least_squares_fit`) from a closed-form start.
 

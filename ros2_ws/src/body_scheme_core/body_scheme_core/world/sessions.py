@@ -182,7 +182,7 @@ class Session:
 
 def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS, sigma_rot=PAPER_SIGMA_ROT,
                  visibility=1.0, world2root=None, always_visible=(), above_ground=None, ground_z=0.0, depth_ratio=1.0,
-                 flip_rate=0.0):
+                 flip_rate=0.0, actions=None):
     """Simulate motor babbling with noisy observations and faults.
 
     The commands are babbled on the nominal robot and the noise comes from a separate random stream, so sessions
@@ -201,6 +201,8 @@ def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS,
         See :class:`ObservationModel`.
     above_ground, ground_z
         See :func:`babble`.
+    actions : array-like, shape (n_steps, m), optional
+        The commands, instead of babbling (e.g. an exploration plan); within the joint limits.
 
     Returns
     -------
@@ -215,7 +217,13 @@ def make_session(robot, n_steps, seed, faults=(), sigma_trans=PAPER_SIGMA_TRANS,
         if not (0 <= step < n_steps):
             raise InvalidInputError(f"fault step {step} is outside the session's 0..{n_steps - 1}")
     rng_actions, rng_noise = np.random.default_rng(seed).spawn(2)
-    A = babble(tree, n_steps, rng_actions, above_ground=above_ground, ground_z=ground_z)
+    if actions is None:
+        A = babble(tree, n_steps, rng_actions, above_ground=above_ground, ground_z=ground_z)
+    else:
+        A = np.array(actions, dtype=float)
+        if A.shape != (n_steps, tree.n_actions) or not np.all(np.isfinite(A)):
+            raise InvalidInputError(f"actions must be {n_steps} finite commands of {tree.n_actions} actions, got "
+                                    f"shape {A.shape}")
     executed = np.zeros_like(A)
     root2marker = np.zeros((n_steps, len(tree.marker_ids), 4, 4))
     body, start = original, 0

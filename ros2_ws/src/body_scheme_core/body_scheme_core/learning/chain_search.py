@@ -1,0 +1,503 @@
+"""Finding the chain of joints between two observed parts from scratch: which actions, which types, which order.
+
+What a calibration tool is given (the robot's URDF), the learner finds from its own motions, the way circle point
+analysis measures a robot's joint axes (Mooring, Roth and Driels): moving one joint at a time from a reference
+posture, the child turns about (or slides along) that joint's screw, expressed in the parent frame at the reference
+posture, whatever the other joints' order. So from *excursions* (samples that differ from the reference posture in one
+action only) each joint's screw and type follow from a one-action local model, and an action that moves nothing is no
+joint of the chain (the dependence test). A sample that differs in two actions, one of whose screws is known, gives
+the other's screw and which of the two comes first. The order of the whole chain is then the one that explains the
+samples in which several joints moved, found by insertion and swaps of neighbours (:func:`best_order`), and the chain
+is refined on every sample (:meth:`~body_scheme_core.models.chain.ChainModel.fit`).
+
+The learner proposes such excursions itself while it bootstraps a chain (:func:`excursion_plan`); a user's calibration
+data often consists of them already (one joint swept at a time).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..errors import BodySchemeError, InvalidInputError
+from ..models import ChainModel, PrismaticModel, RevoluteModel, chain_form, pose_residuals
+from ..transforms import chordal_mean, invert_transform, rotation_log, rotvec_matrix, transform_from_rotvec
+
+__all__ = ["Excursions", "find_excursions", "JointScrew", "identify_chain", "best_order", "excursion_plan",
+           "register_chain", "chain_replacements", "same_chain", "ORDER_SAMPLES", "ChainNotIdentified"]
+
+#: Two action values closer than this (rad, m) are the same posture of that joint.
+SAME = 1e-6
+#: A joint whose excursions scatter the child's pose about their mean by less than this mean squared residual (in
+#: noise units; 1 for noise alone) moves nothing: it is not part of the chain.
+STILL_CHI2 = 4.0
+#: A prismatic fit wins over a revolute one unless its normalised residual is this much larger.
+PRISMATIC_MARGIN = 1.5
+#: Samples in which several joints moved, per joint, before their order is decided (with fewer, several orders
+#: explain the samples alike, and a wrong one fails on the next posture).
+ORDER_SAMPLES = 2
+
+
+class ChainNotIdentified(BodySchemeError):
+    """The data does not (yet) determine the chain: too few excursions, or joints that cannot be told apart."""
+
+
+@dataclass(frozen=True)
+class Excursions:
+    """Samples that differ from a reference posture in few actions.
+
+    Attributes
+    ----------
+    reference : ndarray, shape (m,)
+        The reference posture: per action its most frequent value.
+    single : dict of int to ndarray of int
+        Per action, the samples that differ from the reference in that action alone (the reference itself, if it
+        was sampled, in none: it is in ``at_reference``).
+    pairs : dict of tuple to ndarray of int
+        Per pair of actions, the samples that differ in exactly those two.
+    at_reference : ndarray of int
+        Samples at the reference posture.
+    """
+
+    reference: np.ndarray
+    single: dict
+    pairs: dict
+    at_reference: np.ndarray
+
+
+def find_excursions(A, actions):
+    """The :class:`Excursions` of action vectors ``A`` (n, m) over the columns ``actions``."""
+    A = np.asarray(A, dtype=float)
+    cols = list(actions)
+    reference = A[0].copy()
+    for j in cols:
+        values, counts = np.unique(np.round(A[:, j] / SAME) * SAME, return_counts=True)
+        reference[j] = values[np.argmax(counts)]
+    differs = np.abs(A[:, cols] - reference[cols]) > 10 * SAME
+    n_diff = differs.sum(axis=1)
+    single = {j: np.flatnonzero((n_diff == 1) & differs[:, c]) for c, j in enumerate(cols)}
+    pairs = {}
+    for (c1, j1), (c2, j2) in itertools.combinations(enumerate(cols), 2):
+        rows = np.flatnonzero((n_diff == 2) & differs[:, c1] & differs[:, c2])
+        if rows.size:
+            pairs[(j1, j2)] = rows
+    return Excursions(reference, single, pairs, np.flatnonzero(n_diff == 0))
+
+
+@dataclass(frozen=True)
+class JointScrew:
+    """One joint of a chain, found from its excursions: ``kind``, its screw in the parent frame at the reference
+    posture (a revolute ``(w, p)``, a prismatic ``d``), and how well its one-action model fit (``rms``, in sigmas)."""
+
+    action: int
+    kind: str
+    screw: tuple
+    rms: float
+
+
+def _one_joint(action, A, Z, S, parent, child):
+    """The revolute and prismatic fits of one joint's excursions; the better as a :class:`JointScrew`, and the pose
+    at the reference (M) it implies, or None when the joint moves nothing."""
+    # The dependence test: do the excursions' poses scatter about their mean more than the noise would?
+    still = np.eye(4)
+    still[:3, :3] = chordal_mean(Z[None, :, :3, :3], np.ones((1, len(Z))))[0]
+    still[:3, 3] = Z[:, :3, 3].mean(axis=0)
+    if np.mean(pose_residuals(np.broadcast_to(still, Z.shape), Z, S) ** 2) < STILL_CHI2:
+        return None
+    fits = {}
+    for kind, cls in (("revolute", RevoluteModel), ("prismatic", PrismaticModel)):
+        if len(Z) < cls.unit_form.MIN_SAMPLES:
+            continue
+        try:
+            fits[kind] = cls(parent, child, (action,)).fit(A, Z, S)
+        except (BodySchemeError, np.linalg.LinAlgError, ValueError):
+            continue
+    if not fits:
+        return None
+    kind = "revolute" if "revolute" in fits else "prismatic"
+    if "prismatic" in fits and "revolute" in fits and fits["prismatic"].rms_ <= PRISMATIC_MARGIN * max(
+            fits["revolute"].rms_, 1.0):
+        kind = "prismatic"
+    model = fits[kind]
+    if kind == "revolute":
+        u, r, p0 = model.params_[0:3], model.params_[3:6], model.params_[6:9]
+        point = p0 + r
+        screw = (u, point - (point @ u) * u)
+    else:
+        screw = model.params_[6:9] / np.linalg.norm(model.params_[6:9])
+    return JointScrew(action, kind, screw, float(model.rms_)), model
+
+
+def _stored(kind, screw):
+    return np.concatenate(screw) if kind == "revolute" else np.asarray(screw, dtype=float)
+
+
+def _chain_shape(joints, couplings):
+    """``(types, index couplings, coefficients)`` of ``joints`` in order and ``couplings`` ``{(action i, action j):
+    c}``."""
+    at = {j.action: k for k, j in enumerate(joints)}
+    pairs = sorted(pair for pair in couplings if pair[0] in at and pair[1] in at)  # a partial order: its own
+    return (tuple(j.kind for j in joints), tuple((at[i], at[j]) for i, j in pairs),
+            [couplings[pair] for pair in pairs])
+
+
+def _chain_params(joints, M, couplings=None):
+    """Stored chain parameters of ``joints`` (JointScrew, in order), ``couplings`` and the reference pose ``M``."""
+    _, _, coefficients = _chain_shape(joints, couplings or {})
+    return np.concatenate([_stored(j.kind, j.screw) for j in joints] + [coefficients]
+                          + [M[:3, 3], rotation_log(M[None, :3, :3])[0]])
+
+
+def _chain_error(joints, M, A, Z, S, reference, couplings=None):
+    """Mean squared normalised residual of the chain ``joints`` (in order) with reference pose ``M`` over samples."""
+    types, pairs, _ = _chain_shape(joints, couplings or {})
+    form = chain_form(types, pairs)
+    x = A[:, [j.action for j in joints]] - reference[[j.action for j in joints]]
+    pred = form.transforms(_chain_params(joints, M, couplings)[None], x[None])[0]
+    r = pose_residuals(pred, Z, S)
+    return float(np.mean(np.minimum(r * r, 100.0)))
+
+
+def best_order(joints, M, A, Z, S, reference, couplings=None):
+    """The order of ``joints`` that best explains samples in which several moved: insert each at its best place,
+    then swap neighbours while that helps. Returns ``(ordered joints, error)``; the given order when no sample tells
+    orders apart."""
+    if len(joints) < 2 or len(A) == 0:
+        return list(joints), _chain_error(joints, M, A, Z, S, reference, couplings) if len(A) else 0.0
+
+    def error_of(order):
+        return _chain_error(order, M, A, Z, S, reference, couplings)
+
+    order = [joints[0]]
+    for joint in joints[1:]:
+        trials = [order[:i] + [joint] + order[i:] for i in range(len(order) + 1)]
+        order = trials[int(np.argmin([error_of(t) for t in trials]))]
+    error = error_of(order)
+    improved = True
+    while improved:
+        improved = False
+        for i in range(len(order) - 1):
+            trial = order[:i] + [order[i + 1], order[i]] + order[i + 2:]
+            trial_error = error_of(trial)
+            if trial_error < error - 1e-9:
+                order, error, improved = trial, trial_error, True
+    return order, error
+
+
+def identify_chain(A, Z, sigma, parent, child, actions, sigma_trans=None, sigma_rot=None):
+    """The chain between ``parent`` and ``child`` from scratch (module docstring).
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, m)
+        Full action vectors of the samples in which both parts were observed.
+    Z : ndarray, shape (n, 4, 4)
+        ``parent2child`` observed.
+    sigma : ndarray, shape (n, 2) or (2,)
+        Per-sample noise std (trans m, rot rad) of ``Z``.
+    parent, child : int
+    actions : sequence of int
+        The actions that may drive the chain (those that move nothing are left out).
+
+    Returns
+    -------
+    model : ChainModel
+        Fitted on every sample.
+
+    Raises
+    ------
+    ChainNotIdentified
+        When some action moved without an excursion that tells its screw, or no joint moved.
+    """
+    A, Z = np.asarray(A, dtype=float), np.asarray(Z, dtype=float)
+    S = np.broadcast_to(np.asarray(sigma, dtype=float), (len(Z), 2)).copy()
+    ex = find_excursions(A, actions)
+    joints, M_estimates = {}, []
+    for j in actions:
+        rows = np.concatenate([ex.at_reference, ex.single[j]])
+        if ex.single[j].size < 2:
+            continue
+        found = _one_joint(j, A[rows], Z[rows], S[rows], parent, child)
+        if found is None:
+            continue
+        joints[j] = found[0]
+        M_estimates.append(found[1].predict(ex.reference[None])[0])
+    moving = [j for j in actions if np.ptp(A[:, j]) > 10 * SAME and j not in joints
+              and ex.single[j].size < 2]
+    if not joints:
+        raise ChainNotIdentified(f"no excursion of a single action moves part {child} relative to {parent} yet")
+    M = _mean_pose(np.array(M_estimates))
+    # Actions without single excursions: from pair excursions with a known partner (the partner's screw known).
+    couplings = {}
+    for j in list(moving):
+        for (j1, j2), rows in ex.pairs.items():
+            if j not in (j1, j2) or rows.size < 2:
+                continue
+            other = j2 if j == j1 else j1
+            if other not in joints:
+                continue
+            found = _from_pair(j, joints[other], rows, A, Z, S, ex.reference, M, parent, child)
+            if found is not None:
+                joints[j], coupling = found
+                if coupling is not None:
+                    couplings[(other, j)] = coupling
+                moving.remove(j)
+                break
+    if moving:
+        raise ChainNotIdentified(f"actions {moving} move part {child} but have no excursion that tells their screw")
+    several = np.flatnonzero(np.sum(np.abs(A[:, list(joints)] - ex.reference[list(joints)]) > 10 * SAME,
+                                    axis=1) >= 2)
+    order, _ = best_order(list(joints.values()), M, A[several], Z[several], S[several], ex.reference, couplings)
+    hyper = {} if sigma_trans is None else {"sigma_trans": sigma_trans, "sigma_rot": sigma_rot}
+
+    def fitted(order):
+        types, pairs, _ = _chain_shape(order, couplings)
+        model = ChainModel(parent, child, tuple(j.action for j in order), types,
+                           reference=ex.reference[[j.action for j in order]], couplings=pairs,
+                           order_evidence=int(several.size), **hyper)
+        return model.fit(A, Z, S, start=_chain_params(order, M, couplings))
+
+    model = fitted(order)
+    if several.size >= ORDER_SAMPLES * len(order):
+        model = _polish_order(model, order, fitted)
+    return model
+
+
+def _polish_order(model, order, fitted):
+    """Swap neighbours of ``order`` while the whole chain, fitted again on every sample, explains them better (the
+    screws at the reference posture do not depend on the order, so each swap starts from the same ones)."""
+    improved = True
+    while improved:
+        improved = False
+        for i in range(len(order) - 1):
+            trial = order[:i] + [order[i + 1], order[i]] + order[i + 2:]
+            try:
+                candidate = fitted(trial)
+            except (BodySchemeError, np.linalg.LinAlgError, ValueError):
+                continue
+            if candidate.rms_ < model.rms_ * (1.0 - 1e-3):
+                model, order, improved = candidate, trial, True
+    return model
+
+
+def _mean_pose(Ms):
+    out = np.eye(4)
+    out[:3, :3] = chordal_mean(Ms[None, :, :3, :3], np.ones((1, len(Ms))))[0]
+    out[:3, 3] = np.median(Ms[:, :3, 3], axis=0)
+    return out
+
+
+def _from_pair(j, known, rows, A, Z, S, reference, M, parent, child):
+    """Joint ``j``'s screw from samples in which it and the ``known`` joint moved; returns ``(JointScrew,
+    coupling coefficient or None)``, or None. Three explanations are tried and the best kept: the known joint first
+    (``Z = E_known E_j M``), last (``Z = E_j E_known M``), or not moving at all because its command follows ``j``'s
+    (``Z = E_j M`` while ``q_known + c q_j = 0``: a coupled joint, ``c`` then a parameter of the chain)."""
+    form_known = chain_form((known.kind,))
+    q_known = A[rows, known.action] - reference[known.action]
+    q_j = A[rows, j] - reference[j]
+    E_known = form_known.transforms(np.concatenate([_stored(known.kind, known.screw), np.zeros(6)])[None],
+                                    q_known[None, :, None])[0]
+    best = None
+    for hypothesis in ("known first", "known last", "coupled"):
+        # Turn the samples into excursions of j alone: E_j M = E_known^-1 Z (known first), Z M^-1 E_known^-1 M
+        # (known last), or Z itself (the known joint did not move).
+        if hypothesis == "known first":
+            Zj = invert_transform(E_known) @ Z[rows]
+        elif hypothesis == "known last":
+            Zj = Z[rows] @ invert_transform(M) @ invert_transform(E_known) @ M
+        else:
+            Zj = Z[rows]
+        Aj = A[rows].copy()
+        Aj[:, known.action] = reference[known.action]
+        found = _one_joint(j, np.vstack([reference[None], Aj]), np.concatenate([M[None], Zj]),
+                           np.vstack([S[rows[:1]], S[rows]]), parent, child)
+        if found is not None and (best is None or found[0].rms < best[0].rms):
+            coupling = -float(q_known @ q_j / (q_j @ q_j)) if hypothesis == "coupled" else None
+            best = (found[0], coupling)
+    return best
+
+
+def excursion_plan(reference, lower, upper, actions, values=3, span=0.5, rng=None):
+    """Postures that identify a chain from scratch: ``values`` excursions of each action from ``reference`` (spread
+    over ``span`` of its range, within the limits), then one posture per pair of actions in a random order.
+
+    Returns
+    -------
+    postures : ndarray, shape (k, m)
+    """
+    rng = np.random.default_rng(rng)
+    reference = np.asarray(reference, dtype=float)
+    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    if reference.shape != lower.shape or not np.all((lower <= reference) & (reference <= upper)):
+        raise InvalidInputError("the reference posture must lie within the limits")
+    out = []
+    for j in actions:
+        half = 0.5 * span * (upper[j] - lower[j])
+        for v in np.linspace(-half, half, values + 1):
+            if abs(v) < 1e-12:
+                continue
+            a = reference.copy()
+            a[j] = np.clip(reference[j] + v, lower[j], upper[j])
+            out.append(a)
+    pairs = list(itertools.combinations(actions, 2))
+    rng.shuffle(pairs)
+    for j1, j2 in pairs:
+        a = reference.copy()
+        for j in (j1, j2):
+            a[j] = rng.uniform(lower[j], upper[j])
+        out.append(a)
+    return np.array(out)
+
+
+def register_chain(model, A, Z, sigma, starts=8, rng=0):
+    """A chain from the robot's specification (:func:`~body_scheme_core.models.chain.chain_from_engineered`) placed
+    where the parts' markers are: ``parent2child = G chain(a) H`` with the parent marker's pose ``G`` on the first
+    link and the child marker's ``H`` on the last one fitted to the observations, the specification's joints held.
+
+    What a calibration does first when the markers' places on the links are unknown (a motion-capture body glued on a
+    hand, a tracker standing somewhere near the base). ``starts`` orientations of ``G`` are tried (the identity
+    first, then random ones from ``rng``); the best fit wins.
+
+    Parameters
+    ----------
+    model : ChainModel
+        Fitted (its parameters: the specification).
+    A : ndarray, shape (n, m)
+    Z : ndarray, shape (n, 4, 4)
+    sigma : array-like, shape (2,) or (n, 2)
+
+    Returns
+    -------
+    model : ChainModel
+        A copy with the screws moved by ``G`` and ``M`` by ``G`` and ``H``; its covariance is the specification's.
+    """
+    A, Z = np.asarray(A, dtype=float), np.asarray(Z, dtype=float)
+    S = np.broadcast_to(np.asarray(sigma, dtype=float), (len(Z), 2))
+    chain = model.predict(A)
+
+    def compose(v):
+        return transform_from_rotvec(v[0:3], v[3:6]), transform_from_rotvec(v[6:9], v[9:12])
+
+    def residuals(v):
+        G, H = compose(v)
+        return np.clip(pose_residuals(G @ chain @ H, Z, S), -1e6, 1e6).ravel()
+
+    rng = np.random.default_rng(rng)
+    best = None
+    for k in range(starts):
+        rotation = np.zeros(3) if k == 0 else rotation_log(rotvec_matrix(rng.normal(size=3) * np.pi)[None])[0]
+        # G's translation from the first observation, given the rotation: Z_0 ~ G chain_0.
+        G0 = transform_from_rotvec(rotation, np.zeros(3))
+        G0[:3, 3] = Z[0, :3, 3] - (G0 @ chain[0])[:3, 3]
+        v0 = np.concatenate([rotation, G0[:3, 3], np.zeros(6)])
+        result = least_squares(residuals, v0, loss="huber", f_scale=3.0, max_nfev=200)
+        if best is None or result.cost < best.cost:
+            best = result
+    G, H = compose(best.x)
+    form = model.form
+    params = model.params_.copy()
+    for kind, at in zip(form.TYPES, form.STORED_AT, strict=True):
+        params[at:at + 3] = G[:3, :3] @ params[at:at + 3]
+        if kind == "revolute":
+            params[at + 3:at + 6] = G[:3, :3] @ params[at + 3:at + 6] + G[:3, 3]
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = rotvec_matrix(params[-3:]), params[-6:-3]
+    M = G @ M @ H
+    params[-6:-3], params[-3:] = M[:3, 3], rotation_log(M[None, :3, :3])[0]
+    params = form.canonical(params[None])[0]
+    return model.with_params(params, model.param_cov_)
+
+
+def chain_replacements(model, A, Z, sigma):
+    """Replacements of a chain that no longer fits, fitted on the samples since the change: the same chain fitted
+    again (a bent link, a moved marker), and for each joint the chain without it (a blocked joint: its motion, at the
+    angle it stuck, folded into the joints after it and the reference pose). Returns the fits that succeeded.
+
+    Parameters
+    ----------
+    model : ChainModel
+    A : ndarray, shape (n, m)
+    Z : ndarray, shape (n, 4, 4)
+    sigma : ndarray, shape (n, 2)
+    """
+    form = model.form
+    hyper = {"sigma_trans": model.sigma_trans, "sigma_rot": model.sigma_rot, "f_scale": model.f_scale}
+    out = []
+    try:
+        out.append(ChainModel(model.parent, model.child, model.actions, model.types, reference=model.reference,
+                              couplings=model.couplings, order_evidence=model.order_evidence, **hyper)
+                   .fit(A, Z, sigma, start=model.params_))
+    except (BodySchemeError, np.linalg.LinAlgError, ValueError):
+        pass
+    k = len(model.actions)
+    if k < 2:
+        return out
+    screws, M = form._unpack(model.params_[None])
+    for i in range(k):
+        keep = [j for j in range(k) if j != i]
+        couplings = tuple((keep.index(a), keep.index(b)) for a, b in model.couplings if a != i and b != i)
+        coefficients = [model.params_[form.COUPLING_STORED_AT + c] for c, (a, b) in enumerate(model.couplings)
+                        if a != i and b != i]
+        best = None
+        # Stuck at the reference, or where the joint was commanded most since the change.
+        stuck = {0.0, float(np.median(A[:, model.actions[i]]) - model.reference[i])}
+        for q in stuck:
+            E = chain_form((model.types[i],)).transforms(
+                np.concatenate([_stored(model.types[i], tuple(s[0] for s in screws[i]) if model.types[i] ==
+                                        "revolute" else screws[i][0]), np.zeros(6)])[None], np.array([[[q]]]))[0, 0]
+            joints = []
+            for j in keep:
+                screw = tuple(s[0] for s in screws[j]) if model.types[j] == "revolute" else screws[j][0]
+                if j > i:  # the joints after the stuck one turn with it
+                    if model.types[j] == "revolute":
+                        screw = (E[:3, :3] @ screw[0], E[:3, :3] @ screw[1] + E[:3, 3])
+                    else:
+                        screw = E[:3, :3] @ screw
+                joints.append(JointScrew(model.actions[j], model.types[j], screw, 0.0))
+            start_M = E @ M[0]
+            start = np.concatenate([_stored(jt.kind, jt.screw) for jt in joints] + [coefficients]
+                                   + [start_M[:3, 3], rotation_log(start_M[None, :3, :3])[0]])
+            try:
+                fit = ChainModel(model.parent, model.child, tuple(model.actions[j] for j in keep),
+                                 tuple(model.types[j] for j in keep), reference=model.reference[keep],
+                                 couplings=couplings, order_evidence=model.order_evidence, **hyper
+                                 ).fit(A, Z, sigma, start=chain_form(tuple(model.types[j] for j in keep),
+                                                                     couplings).canonical(start[None])[0])
+            except (BodySchemeError, np.linalg.LinAlgError, ValueError):
+                continue
+            if best is None or fit.rms_ < best.rms_:
+                best = fit
+        if best is not None:
+            out.append(best)
+    return out
+
+
+def _commute(kind_a, screw_a, kind_b, screw_b, tol=1e-3):
+    """Whether two joints' screws commute (either order gives the same motion): two prismatic joints always, a
+    prismatic and a revolute one when parallel, two revolute ones when coaxial."""
+    if kind_a == kind_b == "prismatic":
+        return True
+    if kind_a == "prismatic" or kind_b == "prismatic":
+        d, (w, _) = (screw_a, screw_b) if kind_a == "prismatic" else (screw_b, screw_a)
+        return abs(abs(float(d @ w)) - 1.0) < tol
+    (w1, p1), (w2, p2) = screw_a, screw_b
+    return abs(abs(float(w1 @ w2)) - 1.0) < tol and np.linalg.norm(np.cross(w1, p2 - p1)) < tol
+
+
+def same_chain(model, truth):
+    """Whether chain ``model`` has the joints (actions and types) of chain ``truth`` in its order, up to the order of
+    neighbours whose screws commute (two sliding joints, say): the order a tool's observations can tell."""
+    if sorted(zip(model.actions, model.types)) != sorted(zip(truth.actions, truth.types)):
+        return False
+    screws, _ = truth.form._unpack(truth.params_[None])
+    screws = [tuple(s[0] for s in screw) if kind == "revolute" else screw[0]
+              for kind, screw in zip(truth.types, screws, strict=True)]
+    at = {a: k for k, a in enumerate(model.actions)}
+    for i, j in itertools.combinations(range(len(truth.actions)), 2):
+        if not _commute(truth.types[i], screws[i], truth.types[j], screws[j]) and \
+                at[truth.actions[i]] > at[truth.actions[j]]:
+            return False
+    return True
