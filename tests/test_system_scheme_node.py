@@ -734,3 +734,47 @@ def test_exploration_suggests_only_postures_the_camera_would_see(start_node, ros
     suggestions.clear()
     assert spin_until(lambda: int(_values(collector)["step"]) >= step + 20, timeout=30, during=babbler)
     assert suggestions == [], f"{len(suggestions)} suggestions for a camera that sees nothing"
+
+
+# ---------------------------------------------------------------------- tool only, the sensor as root (issue 32)
+def test_a_tool_seen_past_four_joints_by_a_sensor_at_the_root_is_learnt_as_a_chain(start_node, ros_node,
+                                                                                    spin_until):
+    """A tracker rigid with the base sees one plate on the tool of a 4-joint arm (a sliding joint among them) and
+    nothing else: with ``learner.sensor_root`` the node learns the chain through the unmarked links, and its URDF
+    has a joint per action, named after it."""
+    from body_scheme_core.learning.chain_search import excursion_plan
+    from body_scheme_core.transforms import transform_from_xyz_rpy
+    from body_scheme_core.world import KinematicTree, random_tree
+    from body_scheme_core.world import Marker as PlateMarker
+
+    arm = random_tree(4, seed=16, branching=False, prismatic_fraction=0.25)
+    last = [j for j in arm.joints if j.action is not None][-1].child
+    tree = KinematicTree(arm.joints, [PlateMarker(2, last, transform_from_xyz_rpy([0, 0.04, 0.02], [0, 0.4, 0.1]))],
+                         root_link=arm.root_link)
+    rng = np.random.default_rng(8)
+    lo, hi = tree.action_lower, tree.action_upper
+    reference = lo + (hi - lo) * rng.uniform(0.35, 0.65, tree.n_actions)
+    A = np.vstack([reference[None], excursion_plan(reference, lo, hi, range(4), values=3, span=0.4, rng=rng),
+                   rng.uniform(lo, hi, size=(120, 4))])
+    session = make_session(tree, len(A), 1, sigma_trans=0.002, sigma_rot=np.radians(0.5), actions=A)
+    # Every sample is learnt, however long identifying a chain takes on a busy machine (live, stale ones are shed).
+    parameters = dict(scheme_parameters(tree), part_ids=[0, 2], max_sample_age=3600.0,
+                      **{"learner.root": 0, "learner.sensor_root": True})
+    process = start_node("body_scheme_nodes", "scheme_node", parameters)
+    collector = Collector(ros_node)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    babbler = Babbler(ros_node, session)
+
+    def chain_learnt():
+        s = collector.structure
+        return s is not None and s.phase == "steady" and [e.kind for e in s.edges] == ["chain"] and s.edges[0].valid
+
+    assert spin_until(chain_learnt, timeout=300, during=babbler), (collector.structure, process.output())
+    assert sorted(collector.structure.edges[0].action_indices) == [0, 1, 2, 3]
+    client = ros_node.create_client(GetRobotDescription, "/scheme_node/get_urdf")
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(GetRobotDescription.Request())
+    assert spin_until(future.done, timeout=10)
+    urdf = URDF.from_xml_string(future.result().urdf)
+    movable = sorted(j.name for j in urdf.joints if j.type in ("revolute", "prismatic"))
+    assert movable == sorted(tree.action_joint_names)

@@ -11,6 +11,7 @@ setup(
     "reports and session recording.",
     license="Apache-2.0",
     packages=find_packages(exclude=["test"]),
+    package_data={"body_scheme_apps.experiments": ["data/*.urdf"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

@@ -47,7 +47,7 @@ def calibrate(learner, joint_names, out, nominal=None, prefix=""):
     scheme = learner.body_scheme
     if scheme is None:
         raise BodySchemeError(f"the state has no body scheme yet ({learner.phase}, step {learner.step})")
-    body = learned_tree(scheme, joint_names, *learner.trained_range(), prefix=prefix)
+    body = learned_tree(scheme, joint_names, *learner.trained_range(), prefix=prefix, nominal=nominal)
     (out / "learned.urdf").write_text(learned_urdf(body))
     if nominal is None:
         return None

@@ -54,6 +54,9 @@ checkpoint_path : string ""           state file; restored on start if it exists
 checkpoint_period : double 30.0 s
 urdf_path, markers_path : string ""   start from the engineered body scheme of this robot (paper Sec. IV-B/C)
                                       instead of bootstrapping; joints map to actions by ``joint_names``
+urdf_tolerance_trans : 0.005 m, urdf_tolerance_rot : 0.01745 rad   how far the robot may be from its URDF: markers
+                                      with unmarked links between them are joined by the URDF's chain, calibrated
+                                      from there (0 for both: the URDF exact)
 stamp_tolerance : double 1.0 s        messages stamped further ahead of the node clock are refused (future_stamp)
 unstamped_policy : "receipt_time"     zero-stamped messages: stamped with their receipt time (counted as
                                       restamped.unstamped) or, with "reject", refused (unstamped)
@@ -113,7 +116,7 @@ from .checkpoint import Checkpoint, lock_holder
 from .explorer import SchemeExplorer
 from .intake import BatchIntake, RequestIntake, ServiceWorker
 from .message_feed import feed_message, learn_sample
-from .settings import SchemeSettings, parameter_defaults
+from .settings import SchemeSettings, parameter_defaults, specification_tree
 from .spin import run_node
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -138,6 +141,10 @@ class SchemeNode(Node):
         if self.checkpoint is not None and self.checkpoint.removed_orphans:
             self.get_logger().warn(f"removed temporary files a killed save left: {self.checkpoint.removed_orphans}")
         self.learner = self._restore_or_create()
+        # The robot's specification, if given: the learned URDF keeps its unmarked links' frames and names.
+        self._specification = specification_tree(self.settings.urdf_path, self.settings.markers_path,
+                                                 self.joint_names, self.settings.part_ids) \
+            if self.settings.urdf_path else None
         self.started = self._now()
         self.rejected = Counter()
         self.event_counts = Counter()
@@ -404,7 +411,8 @@ class SchemeNode(Node):
         if scheme is None:
             return None
         lower, upper = self.learner.trained_range()
-        return learned_tree(scheme, self.joint_names, lower, upper, prefix=self.settings.tf_prefix)
+        return learned_tree(scheme, self.joint_names, lower, upper, prefix=self.settings.tf_prefix,
+                            nominal=self._specification)
 
     def _publish_description(self):
         body = self._learned_body()

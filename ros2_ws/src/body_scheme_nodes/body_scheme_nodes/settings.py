@@ -25,9 +25,12 @@ from body_scheme_core.world import KinematicTree, load_markers_yaml
 
 from .message_feed import MessageLimits
 
-__all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "AUTO_SENTINELS", "SchemeSettings", "engineered_body_scheme",
-           "parameter_defaults"]
+__all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "AUTO_SENTINELS", "URDF_TOLERANCE", "SchemeSettings",
+           "engineered_body_scheme", "specification_tree", "parameter_defaults"]
 
+#: How far a robot may be from its URDF by default (m, rad): a chain between two markers with unmarked links between
+#: them is calibrated from there (assembly of a few mm, zero offsets of a degree).
+URDF_TOLERANCE = (0.005, math.radians(1.0))
 #: ROS parameter prefix of the BodySchemeConfig fields.
 LEARNER_PREFIX = "learner."
 #: Optional config fields that ROS parameters cannot hold as None: this value stands for None.
@@ -44,6 +47,7 @@ def parameter_defaults(n_joints=1):
         "frame_id": "camera", "update_period": 0.02,
         "settle_time": 0.0, "max_delay": 2.0, "pairing_grace": 0.2,
         "checkpoint_path": "", "checkpoint_period": 30.0, "urdf_path": "", "markers_path": "",
+        "urdf_tolerance_trans": URDF_TOLERANCE[0], "urdf_tolerance_rot": URDF_TOLERANCE[1],
         "stamp_tolerance": 1.0, "unstamped_policy": "receipt_time", "stall_timeout": 10.0, "hardware_id": "",
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
         "queue_depth": 1000, "max_inbox": 2000, "max_pending_samples": 500, "max_sample_age": 5.0,
@@ -103,6 +107,8 @@ class SchemeSettings:
     checkpoint_period: float = 30.0
     urdf_path: str = ""
     markers_path: str = ""
+    urdf_tolerance_trans: float = URDF_TOLERANCE[0]
+    urdf_tolerance_rot: float = URDF_TOLERANCE[1]
     stamp_tolerance: float = 1.0
     unstamped_policy: str = "receipt_time"
     stall_timeout: float = 10.0
@@ -167,6 +173,11 @@ class SchemeSettings:
             problem = _special_path_problem(getattr(self, name))
             if problem:
                 raise InvalidInputError(f"{name} {getattr(self, name)!r}: {problem}")
+        for name in ("urdf_tolerance_trans", "urdf_tolerance_rot"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value <= 1.0):
+                raise InvalidInputError(f"{name} must be a number from 0 to 1 (m or rad; 0 for both: the URDF "
+                                        f"exact), got {value!r}")
         if not isinstance(self.exploration, bool):
             raise InvalidInputError(f"exploration must be true or false, got {self.exploration!r}")
         if isinstance(self.exploration_candidates, bool) or not isinstance(self.exploration_candidates, int) or \
@@ -245,10 +256,15 @@ class SchemeSettings:
 
     def new_learner(self):
         """A fresh learner: engineered start if ``urdf_path`` is set, else bootstrapping from scratch."""
-        initial = engineered_body_scheme(self.urdf_path, self.markers_path, self.joint_names, self.part_ids) \
-            if self.urdf_path else None
+        initial = engineered_body_scheme(self.urdf_path, self.markers_path, self.joint_names, self.part_ids,
+                                         self.urdf_tolerance) if self.urdf_path else None
         return BodySchemeLearner(list(self.part_ids), len(self.joint_names), self.config, initial_models=initial,
                                  action_lower=list(self.action_lower), action_upper=list(self.action_upper))
+
+    @property
+    def urdf_tolerance(self):
+        """``(urdf_tolerance_trans, urdf_tolerance_rot)``."""
+        return (self.urdf_tolerance_trans, self.urdf_tolerance_rot)
 
     @property
     def message_limits(self):
@@ -261,8 +277,8 @@ class SchemeSettings:
                                         grace=self.pairing_grace)
 
 
-def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids):
-    """Engineered local models of a robot description, one per edge of its marker tree (the initial body scheme).
+def specification_tree(urdf_path, markers_path, joint_names, part_ids):
+    """The robot's specification: its URDF with its marker file, actions in ``joint_names`` order.
 
     Raises
     ------
@@ -276,4 +292,12 @@ def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids):
     if sorted(tree.marker_ids) != sorted(part_ids):
         raise InvalidInputError(f"markers of {markers_path} are {sorted(tree.marker_ids)}, part_ids are "
                                 f"{list(part_ids)}")
-    return engineered_models(tree)
+    return tree
+
+
+def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids, tolerance=None):
+    """Engineered local models of a robot description, one per edge of its marker tree (the initial body scheme);
+    with ``tolerance`` (m, rad; not both 0) an edge over several joints is the specification's chain, calibrated
+    from there (:func:`~body_scheme_core.models.engineered.engineered_models`)."""
+    tree = specification_tree(urdf_path, markers_path, joint_names, part_ids)
+    return engineered_models(tree, tolerance if tolerance is not None and any(tolerance) else None)

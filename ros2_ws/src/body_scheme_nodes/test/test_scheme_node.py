@@ -59,6 +59,35 @@ def test_engineered_start_from_urdf_and_marker_file(tmp_path):
         np.testing.assert_allclose(root2part, root_inverse @ expected[part], atol=1e-9)
 
 
+def test_a_tool_only_urdf_start_is_the_urdfs_chain_calibrated_from_the_tolerance(tmp_path):
+    """Markers on the base and the tool only: the engineered start joins them by the URDF's chain of six joints,
+    with the tolerance as its prior covariance (0, 0: the URDF exact, an engineered model), predicting as the URDF."""
+    from body_scheme_core.world import KinematicTree
+
+    arm = powercube_6dof()
+    markers = [m for m in arm.markers if m.id in (arm.root_marker, max(arm.marker_ids))]
+    tree = KinematicTree(arm.joints, markers, root_link=arm.root_link)
+    urdf, markers_file = tmp_path / "arm.urdf", tmp_path / "markers.yaml"
+    urdf.write_text(tree.to_urdf("arm"))
+    markers_file.write_text(markers_to_yaml(tree.markers))
+    names, parts = list(tree.action_joint_names), list(tree.marker_ids)
+    (chain,) = engineered_body_scheme(str(urdf), str(markers_file), names, parts, (0.005, math.radians(1.0)))
+    assert chain.kind == "chain" and len(chain.actions) == 6
+    assert np.sqrt(chain.param_cov_.diagonal().max()) == pytest.approx(math.radians(1.0))
+    assert np.sqrt(chain.param_cov_[-6:-3, -6:-3].diagonal()) == pytest.approx([0.005] * 3)
+    a = np.random.default_rng(0).uniform(tree.action_lower, tree.action_upper)
+    poses = tree.marker_poses(a)
+    expected = np.linalg.inv(poses[tree.root_marker]) @ poses[max(parts)]
+    np.testing.assert_allclose(chain.predict(a[None])[0], expected, atol=1e-9)
+    (exact,) = engineered_body_scheme(str(urdf), str(markers_file), names, parts, (0.0, 0.0))
+    assert exact.kind == "engineered"
+    settings = SchemeSettings.from_parameters({"part_ids": parts, "joint_names": names, "urdf_path": str(urdf),
+                                               "markers_path": str(markers_file)})
+    assert settings.new_learner().body_scheme.models[0].kind == "chain"
+    with pytest.raises(InvalidInputError, match="urdf_tolerance_rot"):
+        SchemeSettings.from_parameters({"part_ids": parts, "joint_names": names, "urdf_tolerance_rot": -1.0})
+
+
 def test_engineered_start_rejects_missing_marker_file_and_wrong_parts(tmp_path):
     """Without a marker file, or with markers other than part_ids, the start is refused with a reason."""
     tree = powercube_6dof()

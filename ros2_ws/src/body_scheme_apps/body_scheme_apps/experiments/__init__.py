@@ -12,6 +12,8 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.yourrobot`: not in the paper: real arms' URDFs, markers planned, learned from rendered images, calibrated.
 - :mod:`.iksure`: not in the paper: IK's reported uncertainty against where the true arm goes.
 - :mod:`.explore`: the paper's future work: active exploration against random babbling.
+- :mod:`.sparse`: not in the paper: real arms observed at the tool only, a chain through the unmarked links.
+- :mod:`.realdata`: not in the paper: two public datasets of real arms observed at the tool (when present).
 
 A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``PERCEPTIONS`` (default both
 ``"noise"`` and ``"rendered"``), ``NOISE_LEVELS`` (the noise-model runs of one seed, each passed as

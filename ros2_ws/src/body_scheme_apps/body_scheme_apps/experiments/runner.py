@@ -18,7 +18,7 @@ __all__ = ["EXPERIMENTS", "Task", "experiment_module", "run_tasks", "aggregate",
 
 #: Experiment name -> module (in this package), in the order of the paper.
 EXPERIMENTS = ("fig7", "table1", "control", "branching", "transmission", "zoo", "yourrobot", "iksure",
-               "explore")
+               "explore", "sparse", "realdata")
 _SKIP = ("curves", "events")
 
 

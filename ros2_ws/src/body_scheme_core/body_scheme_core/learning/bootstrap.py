@@ -27,32 +27,25 @@ gives the rules and defaults.
 from __future__ import annotations
 
 import itertools
+import math
 
 import networkx as nx
 import numpy as np
 
 from ..events import Event, format_errors
-from ..models import ChainModel
-from .chain_search import ORDER_SAMPLES, ChainNotIdentified, identify_chain
+from .chain_search import ChainNotIdentified, identify_chain, order_decided
 from .quality import model_cost
 from .structure import enumerate_candidates, kinds_for, select_spanning_tree
-from .tracked import CANDIDATE, TREE
+from .tracked import CANDIDATE, TREE, nested_models
 
 __all__ = ["Bootstrap", "SUSPECT_RATIO"]
 
 #: A tree model whose window mean error ratio exceeds this in either channel when bootstrapping would end has its
 #: pair's next layer instantiated first (:meth:`Bootstrap.expand_suspects`); right models stay below about half.
 SUSPECT_RATIO = 0.6
-#: A pair's chain is identified again once this many more samples observed both its parts (excursions may have
-#: come, and a chain found already learns from more data).
-CHAIN_RETRY = 10
-
-
-def _order_decided(model):
-    """Whether a fitted candidate's joints' order was decided by data (always, but for a chain identified from too
-    few samples in which several of its joints moved: it is identified again as they come)."""
-    return not isinstance(model, ChainModel) or len(model.actions) < 2 or \
-        model.order_evidence >= ORDER_SAMPLES * len(model.actions)
+#: A pair's chain is identified again once the samples that observed both its parts grew by this fraction, and by
+#: at least CHAIN_RETRY_MIN (excursions of other joints may have come, and a chain found learns from more data).
+CHAIN_RETRY, CHAIN_RETRY_MIN = 0.1, 2
 
 
 class Bootstrap:
@@ -142,13 +135,23 @@ class Bootstrap:
         tree = self.search(tree, step, events)
         if tree is None and self.expand(step, events):
             tree = self.search(tree, step, events)
-        if (tree is None or self._undecided(tree)) and self.connect_with_chains(step, events):
+        if (tree is None or self._undecided(tree)) and self.connect_with_chains(tree, step, events):
             tree = self.search(tree, step, events)
+            self._drop_superseded_chains(tree)
         return tree, True
+
+    def _drop_superseded_chains(self, tree):
+        """Chains of a pair identified again that the tree does not hold: only the newest of a pair is kept."""
+        newest = {}
+        for entry in self._fitted():
+            newest[frozenset((entry.parent, entry.child))] = entry.id
+        old = [e for e in self._fitted() if e.id != newest[frozenset((e.parent, e.child))] and e.id not in (tree or ())]
+        if old:
+            self.pool.remove(*old)
 
     def _undecided(self, tree):
         """Whether the tree holds a chain whose joints' order the data has not decided yet."""
-        return any(not _order_decided(self.pool.tracked[i].model) for i in tree
+        return any(not order_decided(self.pool.tracked[i].model) for i in tree
                    if self.pool.tracked[i].slot < 0)
 
     def _fitted(self):
@@ -167,14 +170,14 @@ class Bootstrap:
             self.pool.evaluate([fitted[k] for k in sel], a, relative.targets(pair[sel]), step,
                                cusum=np.zeros(sel.size, dtype=bool))
 
-    def connect_with_chains(self, step, events):
+    def connect_with_chains(self, tree, step, events):
         """Where the eligible candidates (chains whose joints' order is not decided yet left out) cannot connect the
         parts, identify a chain between the two parts of each pair of components that were observed together most
         (:func:`identify_chain`), from the recorded steps; a chain found is tracked as a fitted candidate of the pair
-        (replacing that pair's earlier chain). Up to ``config.max_chain_joints`` joints; 0 turns chains off. Returns
+        (:meth:`identify_pair_chain`). Up to ``config.max_chain_joints`` joints; 0 or 1 turns chains off. Returns
         whether a chain was added."""
         c = self.config
-        if c.max_chain_joints < 1 or len(self.history) == 0:
+        if c.max_chain_joints < 2 or len(self.history) == 0:
             return False
         pool = self.pool
         ls = pool.learning()
@@ -183,7 +186,7 @@ class Bootstrap:
         graph.add_nodes_from(self.pairs.part_ids)
         graph.add_edges_from((pool.tracked[int(i)].parent, pool.tracked[int(i)].child) for i in ls.ids[valid])
         graph.add_edges_from((p, q) for p, q, key, _, _ in self._eligible_fitted()
-                             if _order_decided(pool.tracked[key].model))
+                             if order_decided(pool.tracked[key].model))
         components = [sorted(members) for members in nx.connected_components(graph)]
         if len(components) < 2:
             return False
@@ -191,48 +194,68 @@ class Bootstrap:
         added = False
         for first, second in itertools.combinations(components, 2):
             counts = {(u, v): sum(u in s and v in s for s in seen) for u in first for v in second}
-            (u, v), n = max(counts.items(), key=lambda item: (item[1], item[0]))
-            parent, child = (u, v) if self.pairs.part_index[u] < self.pairs.part_index[v] else (v, u)
-            if n < self._chain_tried.get((parent, child), 0) + CHAIN_RETRY:
-                continue
-            self._chain_tried[(parent, child)] = n
-            index = self.pairs.index(parent, child)
-            A, Z, S = [], [], []
-            for _, a, obs in self.history:
-                relative = self.pairs.observe({p: obs[p] for p in (parent, child) if p in obs})
-                if relative.row[index] >= 0:
-                    targets = relative.targets(np.array([index]))
-                    A.append(a)
-                    Z.append(targets.Z[0])
-                    S.append(targets.sigma[0])
-            try:
-                model = identify_chain(np.array(A), np.array(Z), np.array(S), parent, child,
-                                       range(pool.n_actions), sigma_trans=c.prior_sigma_trans,
-                                       sigma_rot=c.prior_sigma_rot)
-            except ChainNotIdentified:
-                continue
-            if len(model.actions) > c.max_chain_joints or len(model.actions) < 2:
-                continue  # one action: the layers' own candidates of that pair say it better
-            old = [e for e in self._fitted() if {e.parent, e.child} == {parent, child}]
-            if old:
-                pool.remove(*old)
-            entry = pool.add_fitted([model], CANDIDATE, origin="chain", last_used=step)[0]
-            entry.n_train = len(A)
-            events.append(Event(step, "model_sampled",
-                                f"parts {parent} and {child} are not connected by the candidates of layers up to "
-                                f"{c.max_complexity}: identified {entry.describe()} from {len(A)} recorded steps "
-                                f"({', '.join(model.types)}; fit rms {model.rms_:.2f} sigma)",
-                                parent=parent, child=child, model=entry.describe()))
-            added = True
+            u, v = max(counts, key=lambda uv: (counts[uv], uv))
+            why = f"parts {u} and {v} are not connected by the candidates of layers up to {c.max_complexity}"
+            added |= self.identify_pair_chain(u, v, tree, step, events, why)
         return added
 
+    def identify_pair_chain(self, u, v, tree, step, events, why):
+        """Identify a chain between parts ``u`` and ``v`` (:func:`identify_chain`) from the recorded steps, when the
+        samples that observed both grew enough since the last try (by ``CHAIN_RETRY``, at least
+        ``CHAIN_RETRY_MIN``); a chain of 2 to ``config.max_chain_joints`` joints is tracked as a fitted candidate of
+        the pair in its canonical direction, replacing the pair's earlier chain unless the tree holds it. ``why``
+        opens the event's reason. Returns whether a chain was added."""
+        c = self.config
+        pool = self.pool
+        parent, child = (u, v) if self.pairs.part_index[u] < self.pairs.part_index[v] else (v, u)
+        tried = self._chain_tried.get((parent, child), 0)
+        n = sum(parent in obs and child in obs for _, _, obs in self.history)
+        if c.max_chain_joints < 2 or n < tried + max(CHAIN_RETRY_MIN, math.ceil(CHAIN_RETRY * tried)):
+            return False
+        self._chain_tried[(parent, child)] = n
+        index = self.pairs.index(parent, child)
+        A, Z, S, recorded = [], [], [], []
+        for rec_step, a, obs in self.history:
+            relative = self.pairs.observe({p: obs[p] for p in (parent, child) if p in obs})
+            if relative.row[index] >= 0:
+                targets = relative.targets(np.array([index]))
+                A.append(a)
+                Z.append(targets.Z[0])
+                S.append(targets.sigma[0])
+                recorded.append((rec_step, a, targets))
+        try:
+            model = identify_chain(np.array(A), np.array(Z), np.array(S), parent, child, range(pool.n_actions),
+                                   sigma_trans=c.prior_sigma_trans, sigma_rot=c.prior_sigma_rot)
+        except ChainNotIdentified:
+            return False
+        if not 2 <= len(model.actions) <= c.max_chain_joints:
+            return False  # one action: the layers' own candidates of that pair say it better
+        old = [e for e in self._fitted() if {e.parent, e.child} == {parent, child} and e.id not in (tree or ())]
+        if old:  # (one in the tree stays until the search replaced it: _drop_superseded_chains)
+            pool.remove(*old)
+        entry = pool.add_fitted([model], CANDIDATE, origin="chain", last_used=step)[0]
+        entry.n_train = len(A)
+        # Its test window starts with the last recorded samples, which it was fitted on (a little optimistic: a
+        # chain's parameters are few against a window of 6-dimensional samples), so that the last poses of a finite
+        # recording need not wait for more; the next samples replace them.
+        for rec_step, a, targets in recorded[-c.test_window:]:
+            pool.evaluate([entry], a, targets, rec_step, cusum=np.zeros(1, dtype=bool))
+        events.append(Event(step, "model_sampled",
+                            f"{why}: identified {entry.describe()} from {len(A)} recorded steps "
+                            f"({', '.join(model.types)}; fit rms {model.rms_:.2f} sigma)",
+                            parent=parent, child=child, model=entry.describe()))
+        return True
+
     def _eligible_fitted(self, exclude=()):
-        """``(parent, child, id, layer, cost)`` of the valid fitted candidates (chains), for the tree search."""
+        """``(parent, child, id, layer, cost)`` of the valid fitted candidates (chains) that no other one dominates,
+        for the tree search."""
         fitted = [e for e in self._fitted() if e.id not in set(exclude)]
         if not fitted:
             return []
         pool = self.pool
-        st, valid = pool.window_stats([e.row for e in fitted], [e.n_train for e in fitted])
+        rows, sizes = [e.row for e in fitted], [e.n_train for e in fitted]
+        st, valid = pool.window_stats(rows, sizes)
+        valid &= ~pool.dominated(rows, sizes, *nested_models(fitted), valid)  # a chain of fewer of its joints
         layer = np.array([e.complexity for e in fitted], dtype=float)
         cost = model_cost(layer, st.trans_ratio, st.rot_ratio, np.array([e.rank for e in fitted]))
         return [(e.parent, e.child, e.id, int(layer[k]), float(cost[k])) for k, e in enumerate(fitted) if valid[k]]
@@ -425,7 +448,8 @@ class Bootstrap:
         pool = self.pool
         n_now = pool.sizes(ls)
         st, valid = pool.window_stats(ls.rows, n_now)
-        dominated = valid & pool.dominated(ls.rows, n_now, *ls.nested, valid)
+        dominated = valid & (pool.dominated(ls.rows, n_now, *ls.nested, valid)
+                             | self._dominated_by_fitted(ls, n_now, valid))
         valid &= ~dominated
         expired = ls.ids[:0]
         if self.vetoed:
@@ -435,6 +459,30 @@ class Bootstrap:
             valid &= ~(vetoed & ~done)
             expired = ls.ids[done]
         return st, valid, dominated, expired
+
+    def _dominated_by_fitted(self, ls, n_now, valid):
+        """Mask over the learning candidates ``ls``: valid ones that a valid fitted candidate of their pair nests and
+        beats by the dominance rule (a chain on actions that include theirs, clearly better: the actions it adds
+        matter). No fitted candidates, no cost."""
+        fitted = self._fitted()
+        out = np.zeros(ls.ids.size, dtype=bool)
+        if not fitted:
+            return out
+        pool = self.pool
+        groups = {(e.parent, e.child, e.target) for e in fitted}
+        entries = [pool.tracked[int(i)] for i in ls.ids]
+        sel = [k for k in np.flatnonzero(valid) if (entries[k].parent, entries[k].child, entries[k].target) in groups]
+        if not sel:
+            return out
+        _, fitted_valid = pool.window_stats([e.row for e in fitted], [e.n_train for e in fitted])
+        sub, sup = nested_models([entries[k] for k in sel] + fitted)
+        keep = sup >= len(sel)
+        keep[keep] &= (sub[keep] < len(sel)) & fitted_valid[sup[keep] - len(sel)]
+        rows = np.concatenate([ls.rows[sel], [e.row for e in fitted]])
+        sizes = np.concatenate([n_now[sel], [e.n_train for e in fitted]])
+        beaten = pool.dominated(rows, sizes, sub[keep], sup[keep])
+        out[np.asarray(sel)[beaten[:len(sel)]]] = True
+        return out
 
     def finish_if_ready(self, tree, step, events):
         """End bootstrapping if the tree's models are frozen and all candidates are, or the tree is stable.
@@ -454,7 +502,7 @@ class Bootstrap:
         n_now = pool.sizes(ls)
         pos = {int(i): k for k, i in enumerate(ls.ids)}
         # A fitted candidate (a chain) learns no more: it is frozen once its joints' order was decided by data.
-        tree_frozen = all(n_now[pos[i]] >= c.train_window if i in pos else _order_decided(pool.tracked[i].model)
+        tree_frozen = all(n_now[pos[i]] >= c.train_window if i in pos else order_decided(pool.tracked[i].model)
                           for i in tree)
         all_frozen = bool(np.all(n_now >= c.train_window))
         stable = step - self.tree_since >= c.bootstrap_patience

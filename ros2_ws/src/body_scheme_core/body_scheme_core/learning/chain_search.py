@@ -27,13 +27,16 @@ from ..models import ChainModel, PrismaticModel, RevoluteModel, chain_form, pose
 from ..transforms import chordal_mean, invert_transform, rotation_log, rotvec_matrix, transform_from_rotvec
 
 __all__ = ["Excursions", "find_excursions", "JointScrew", "identify_chain", "best_order", "excursion_plan",
-           "register_chain", "chain_replacements", "same_chain", "ORDER_SAMPLES", "ChainNotIdentified"]
+           "register_chain", "chain_replacements", "same_chain", "order_decided", "ORDER_SAMPLES",
+           "ChainNotIdentified"]
 
 #: Two action values closer than this (rad, m) are the same posture of that joint.
 SAME = 1e-6
 #: A joint whose excursions scatter the child's pose about their mean by less than this mean squared residual (in
-#: noise units; 1 for noise alone) moves nothing: it is not part of the chain.
+#: noise units; 1 for noise alone) moves nothing: it is not part of the chain; nor is one whose best one-joint model
+#: leaves more than 1 / EXPLAINED of that scatter.
 STILL_CHI2 = 4.0
+EXPLAINED = 4.0
 #: A prismatic fit wins over a revolute one unless its normalised residual is this much larger.
 PRISMATIC_MARGIN = 1.5
 #: Samples in which several joints moved, per joint, before their order is decided (with fewer, several orders
@@ -105,7 +108,8 @@ def _one_joint(action, A, Z, S, parent, child):
     still = np.eye(4)
     still[:3, :3] = chordal_mean(Z[None, :, :3, :3], np.ones((1, len(Z))))[0]
     still[:3, 3] = Z[:, :3, 3].mean(axis=0)
-    if np.mean(pose_residuals(np.broadcast_to(still, Z.shape), Z, S) ** 2) < STILL_CHI2:
+    scatter = float(np.mean(pose_residuals(np.broadcast_to(still, Z.shape), Z, S) ** 2))
+    if scatter < STILL_CHI2:
         return None
     fits = {}
     for kind, cls in (("revolute", RevoluteModel), ("prismatic", PrismaticModel)):
@@ -115,8 +119,8 @@ def _one_joint(action, A, Z, S, parent, child):
             fits[kind] = cls(parent, child, (action,)).fit(A, Z, S)
         except (BodySchemeError, np.linalg.LinAlgError, ValueError):
             continue
-    if not fits:
-        return None
+    if not fits or min(fit.rms_ for fit in fits.values()) ** 2 > scatter / EXPLAINED:
+        return None  # the scatter is not a joint's motion: no one-joint model explains most of it
     kind = "revolute" if "revolute" in fits else "prismatic"
     if "prismatic" in fits and "revolute" in fits and fits["prismatic"].rms_ <= PRISMATIC_MARGIN * max(
             fits["revolute"].rms_, 1.0):
@@ -129,6 +133,28 @@ def _one_joint(action, A, Z, S, parent, child):
     else:
         screw = model.params_[6:9] / np.linalg.norm(model.params_[6:9])
     return JointScrew(action, kind, screw, float(model.rms_)), model
+
+
+def _noise_scale(ex, actions, A, Z, S, parent, child):
+    """How much larger the noise is than ``S`` says, from the excursions themselves: the median over actions of the
+    best one-joint fit's normalised residual (a joint's fit, or a still action's, leaves the noise). A learner's
+    noise is unknown until a rigid model explains the child, and a tool seen past several joints has none before its
+    chain: so the dependence test is judged against the noise the data show. 1 without excursions."""
+    scales = []
+    for j in actions:
+        if ex.single[j].size < 2:
+            continue
+        rows = np.concatenate([ex.at_reference, ex.single[j]])
+        fits = []
+        for cls in (RevoluteModel, PrismaticModel):
+            if rows.size >= cls.unit_form.MIN_SAMPLES + 1:
+                try:
+                    fits.append(cls(parent, child, (j,)).fit(A[rows], Z[rows], S[rows]).rms_)
+                except (BodySchemeError, np.linalg.LinAlgError, ValueError):
+                    continue
+        if fits:
+            scales.append(min(fits))
+    return float(np.clip(np.median(scales), 1e-3, 1e3)) if scales else 1.0
 
 
 def _stored(kind, screw):
@@ -215,6 +241,7 @@ def identify_chain(A, Z, sigma, parent, child, actions, sigma_trans=None, sigma_
     A, Z = np.asarray(A, dtype=float), np.asarray(Z, dtype=float)
     S = np.broadcast_to(np.asarray(sigma, dtype=float), (len(Z), 2)).copy()
     ex = find_excursions(A, actions)
+    S *= _noise_scale(ex, actions, A, Z, S, parent, child)
     joints, M_estimates = {}, []
     for j in actions:
         rows = np.concatenate([ex.at_reference, ex.single[j]])
@@ -281,6 +308,14 @@ def _polish_order(model, order, fitted):
             if candidate.rms_ < model.rms_ * (1.0 - 1e-3):
                 model, order, improved = candidate, trial, True
     return model
+
+
+def order_decided(model):
+    """Whether a model's joints' order was decided by data: always, but for a chain identified from fewer than
+    :data:`ORDER_SAMPLES` samples per joint in which several of its joints moved (a learner neither freezes nor
+    installs it, and identifies it again as they come)."""
+    return not isinstance(model, ChainModel) or len(model.actions) < 2 or \
+        model.order_evidence >= ORDER_SAMPLES * len(model.actions)
 
 
 def _mean_pose(Ms):
@@ -490,7 +525,7 @@ def _commute(kind_a, screw_a, kind_b, screw_b, tol=1e-3):
 def same_chain(model, truth):
     """Whether chain ``model`` has the joints (actions and types) of chain ``truth`` in its order, up to the order of
     neighbours whose screws commute (two sliding joints, say): the order a tool's observations can tell."""
-    if sorted(zip(model.actions, model.types)) != sorted(zip(truth.actions, truth.types)):
+    if sorted(zip(model.actions, model.types, strict=True)) != sorted(zip(truth.actions, truth.types, strict=True)):
         return False
     screws, _ = truth.form._unpack(truth.params_[None])
     screws = [tuple(s[0] for s in screw) if kind == "revolute" else screw[0]

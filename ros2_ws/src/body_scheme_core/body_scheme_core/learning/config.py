@@ -164,7 +164,8 @@ class BodySchemeConfig:
     max_chain_joints : int
         Parts that no layer up to ``max_complexity`` connects (a tool observed past six joints) are connected by a
         chain of at most this many joints, identified from the samples in which few actions moved
-        (:mod:`~body_scheme_core.learning.chain_search`); 0: no chains.
+        (:mod:`~body_scheme_core.learning.chain_search`), and so are the two parts of an edge that leaves its child
+        unexplained while bootstrapping; 0 or 1: no chains (a chain has two joints or more).
     sensor_root : bool
         The root part (``root``, required) is the camera or tracker itself, rigid with the robot's base: its pose is
         the identity at every step, given to the learner whether or not anything observed it, so no base marker is

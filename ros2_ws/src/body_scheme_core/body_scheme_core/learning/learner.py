@@ -48,7 +48,7 @@ import numpy as np
 from ..calibration import NoiseModel
 from ..errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, NotFittedError
 from ..events import Event, format_errors
-from ..models import GPModel, RigidJointModel
+from ..models import ChainModel, GPModel, RigidJointModel
 from ..prediction import BodyScheme
 from ..transforms import invert_transform
 from .adaptation import Adaptation
@@ -138,7 +138,11 @@ class BodySchemeLearner(JointFitSteps):
             Bootstrap.add_candidates(pool, self.part_ids, self.n_actions, config)
             tree = [] if len(self.part_ids) == 1 else None
         else:
-            tree = [entry.id for entry in pool.add_fitted(models, TREE, origin="initial", last_used=0)]
+            entries = pool.add_fitted(models, TREE, origin="initial", last_used=0)
+            for entry in entries:
+                if isinstance(entry.model, ChainModel):  # a specification's chain: its covariance, its prior
+                    entry.prior = (entry.model.params_.copy(), entry.model.param_cov_.copy())
+            tree = [entry.id for entry in entries]
         self._set_models(pool, tree, bootstrapping=initial_models is None, found=initial_models is not None,
                          tree_since=0, mismatch=None, calibrated=None)
 
@@ -148,7 +152,7 @@ class BodySchemeLearner(JointFitSteps):
         self.n_actions = n_actions
         self.root = root_part(parts, config.root)
         self.noise = NoiseModel.from_config(parts, config)
-        self._pairs = PartPairs(parts, self.noise)
+        self._pairs = PartPairs(parts, self.noise, exact=(self.root,) if config.sensor_root else ())
 
     def _set_models(self, pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed=None,
                     refining=None, unexplained=None, lack_of_fit=(), failed=None, root_watch=None, root_since=0):
@@ -416,12 +420,12 @@ class BodySchemeLearner(JointFitSteps):
         return valid
 
     def _workspace(self):
-        """``(root position, reach + workspace_margin)`` once a joint fit exists, else None (only ``max_distance``
-        applies). The reach is the largest root-to-part distance the calibrated scheme predicts over the history's
-        actions, computed once per joint fit."""
+        """``(root position, reach + workspace_margin)`` once a joint fit exists after bootstrapping, else None (only
+        ``max_distance`` applies). The reach is the largest root-to-part distance the calibrated scheme predicts over
+        the history's actions, computed once per joint fit."""
         cal = self._calibrated
-        if cal is None or not math.isfinite(self.config.workspace_margin):
-            return None
+        if cal is None or self._bootstrapping or not math.isfinite(self.config.workspace_margin):
+            return None  # a provisional body scheme's reach says little (a wrong tree's may be short)
         if self._reach is None or self._reach[0] is not cal:
             A = np.stack([a for _, a, _ in self._history]) if self._history else np.zeros((1, self.n_actions))
             root2part = cal.scheme.predict_batch(A)

@@ -90,6 +90,9 @@ class JointFitSteps:
             k = suspects[-1] if best is None else best[1]
             entry = self._pool.tracked[self._tree[k]]
             self._bootstrap.veto(entry.id)
+            # Its two parts may be joined by more joints than any layer holds (a tool seen past six of them).
+            self._bootstrap.identify_pair_chain(entry.parent, entry.child, self._tree, step, events,
+                                                f"{entry.describe()} leaves part {far_part} unexplained")
             why = (f" (vetoed {entry.describe()}: without it the calibrated body scheme explains the absolute "
                    f"observations best)")
             self._tree = self._bootstrap.search(self._tree, step, events, why)
@@ -200,9 +203,11 @@ class JointFitSteps:
         Only parts the fit explains speak: tested by the lack-of-fit test and passing it, with mean errors below the
         thresholds, and not below a GP edge; a wrong model's residuals, or a GP's approximation error, would otherwise
         make the noise look larger, the thresholds looser and a wrong model valid. While bootstrapping the tree is
-        provisional: the estimate may lower the prior, not exceed it (``cap``)."""
+        provisional: the estimate may lower the prior, not exceed it (``cap``). With ``sensor_root`` the root's pose
+        is given, not observed: it says nothing about the noise."""
         explained = [p for p, test in cal.consistency.items()
-                     if test.tested and not self._lacks_fit(cal, p) and max(cal.part_ratios[p][1:]) < 1.0]
+                     if test.tested and not self._lacks_fit(cal, p) and max(cal.part_ratios[p][1:]) < 1.0
+                     and not (self.config.sensor_root and p == self.root)]  # the sensor's own pose is exact
         use = np.isin(result.parts, explained) & result.coupled  # below a GP edge its approximation would count
         fraction = 1.0 - result.n_params / max(6 * int(result.coupled.sum()), 1)
         self.noise.update(result.parts[use], result.residual_t[use], result.residual_r[use], result.positions[use],

@@ -52,9 +52,10 @@ RANK_PENALTY = 0.1
 #: specification, not a candidate.
 CLASS_RANKS = {"static": 0, "prismatic": 0, "revolute": 1, "chain": 1, "gp": 2, "engineered": 0}
 N_RANKS = 3
-#: What a class can represent, for one set of actions: static < prismatic, revolute < GP (prismatic and revolute
-#: are different forms, neither nests the other). Engineered models nest nothing and are nested by nothing.
-_FLEXIBILITY = {"static": 0, "prismatic": 1, "revolute": 1, "gp": 2}
+#: What a class can represent, for one set of actions: static < prismatic, revolute < chain < GP (prismatic and
+#: revolute are different forms, neither nests the other; a chain of joints holds one of them for each of its
+#: actions, a GP any smooth relation). Engineered models nest nothing and are nested by nothing.
+_FLEXIBILITY = {"static": 0, "prismatic": 1, "revolute": 1, "chain": 1.5, "gp": 2}
 
 
 def class_rank(kind):
@@ -66,16 +67,11 @@ def nests(kind_a, actions_a, kind_b, actions_b):
     """Whether model class ``kind_a`` on ``actions_a`` can represent every relation ``kind_b`` on ``actions_b`` can.
 
     True when the actions of ``b`` are a subset of ``a``'s and ``a``'s class is more flexible, or the class is the
-    same and the subset strict (e.g. a GP on ``(a1, a2)`` nests a revolute joint on ``a1`` and a GP on ``a1``).
+    same and the subset strict (e.g. a GP on ``(a1, a2)`` nests a revolute joint on ``a1`` and a GP on ``a1``). A
+    chain also nests a GP of fewer of its actions: it cannot represent every relation such a GP can, but what the
+    dominance rule asks of a nesting model holds: when it predicts clearly better, the actions it adds matter.
     """
-    if kind_a not in _FLEXIBILITY or kind_b not in _FLEXIBILITY:
-        return False
-    sa, sb = set(actions_a), set(actions_b)
-    if not sb <= sa:
-        return False
-    if kind_a == kind_b:
-        return sb != sa
-    return _FLEXIBILITY[kind_a] > _FLEXIBILITY[kind_b]
+    return bool(nesting_matrix([kind_b, kind_a], [actions_b, actions_a], 1 + max((*actions_a, *actions_b, 0)))[0, 1])
 
 
 def nesting_matrix(kinds, action_sets, n_actions):
@@ -92,7 +88,8 @@ def nesting_matrix(kinds, action_sets, n_actions):
     kind_q, kind_k = np.asarray(kinds, dtype=object)[None, :], np.asarray(kinds, dtype=object)[:, None]
     more_flexible = flex[None, :] > flex[:, None]
     known = (flex[None, :] >= 0) & (flex[:, None] >= 0)
-    return known & subset & np.where(kind_q == kind_k, ~same, more_flexible)
+    chain_of_more = (kind_q == "chain") & ~same  # a chain of more actions nests any class (see nests)
+    return known & subset & np.where(kind_q == kind_k, ~same, more_flexible | chain_of_more)
 
 
 def prediction_errors(Z_pred, Z_obs):

@@ -10,7 +10,6 @@ predicts the inverse of the canonical transform (:meth:`PartPairs.flip`).
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
@@ -84,6 +83,9 @@ class PartPairs:
         The current marker noise (``sigma_trans``, ``sigma_rot``: 3D RMS, m and rad) and validity thresholds
         (``theta_trans``, ``theta_rot``) behind :meth:`threshold`, read at every :meth:`observe`
         (:mod:`~body_scheme_core.calibration.noise_model`).
+    exact : iterable of int
+        Parts whose pose is given without noise (the sensor as the root, ``sensor_root``): a pair with one of them
+        carries one marker's noise, and no lever arm of its orientation noise.
 
     Attributes
     ----------
@@ -92,7 +94,7 @@ class PartPairs:
         Position of each part id in ``part_ids``.
     """
 
-    def __init__(self, part_ids, noise):
+    def __init__(self, part_ids, noise, exact=()):
         self.part_ids = tuple(part_ids)
         self.noise = noise
         self.part_index = {p: k for k, p in enumerate(self.part_ids)}
@@ -100,6 +102,10 @@ class PartPairs:
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
         self._first = np.array([i for i, _ in pairs], dtype=np.intp)
         self._second = np.array([j for _, j in pairs], dtype=np.intp)
+        noisy = np.array([p not in set(exact) for p in self.part_ids], dtype=float)
+        # Per pair: how many of its two poses are noisy, and whether the first one's orientation noise has a lever.
+        self._markers = noisy[self._first] + noisy[self._second]
+        self._lever = noisy[self._first]
         self._index = {}
         for k, (i, j) in enumerate(pairs):
             self._index[(self.part_ids[i], self.part_ids[j])] = k
@@ -118,9 +124,10 @@ class PartPairs:
         """Whether ``parent2child`` is the inverse of its pair's canonical direction."""
         return self.part_index[parent] > self.part_index[child]
 
-    def threshold(self, Z):
-        """Translational validity thresholds (m) of relative transforms ``Z`` (..., 4, 4): they grow with distance."""
-        distance = np.linalg.norm(Z[..., :3, 3], axis=-1)
+    def threshold(self, Z, lever=1.0):
+        """Translational validity thresholds (m) of relative transforms ``Z`` (..., 4, 4): they grow with distance,
+        where the first pose's orientation is noisy (``lever`` 1, else 0)."""
+        distance = np.linalg.norm(Z[..., :3, 3], axis=-1) * lever
         return translation_threshold(self.noise.theta_trans, self.noise.theta_rot, distance)
 
     def observe(self, observations):
@@ -150,8 +157,9 @@ class PartPairs:
         Yinv = invert_transform(Y[seen])
         inv_index = np.cumsum(seen) - 1
         Z = Yinv[inv_index[self._first[both]]] @ Y[self._second[both]]
-        d2 = np.sum(Z[:, :3, 3] ** 2, axis=1)
+        markers, lever = self._markers[both], self._lever[both]
+        d2 = np.sum(Z[:, :3, 3] ** 2, axis=1) * lever
         sigma_t, sigma_r = self.noise.sigma_trans, self.noise.sigma_rot
-        sigma = np.stack([np.sqrt((2.0 * sigma_t**2 + (2.0 / 3.0) * sigma_r**2 * d2) / 3.0),
-                          np.full(d2.shape, sigma_r * math.sqrt(2.0 / 3.0))], axis=1)
-        return RelativeObservations(Z, row, self.threshold(Z), self.noise.theta_rot, sigma)
+        sigma = np.stack([np.sqrt((markers * sigma_t**2 + (2.0 / 3.0) * sigma_r**2 * d2) / 3.0),
+                          sigma_r * np.sqrt(markers / 3.0)], axis=1)
+        return RelativeObservations(Z, row, self.threshold(Z, lever), self.noise.theta_rot, sigma)

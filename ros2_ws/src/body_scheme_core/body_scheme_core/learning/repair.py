@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import ModelFileError
 from ..events import Event, format_errors
 from ..state_values import integer, listing, part_id
-from .chain_search import chain_replacements
+from .chain_search import ChainNotIdentified, chain_replacements, identify_chain, order_decided
 from .quality import model_cost, nests, relative_complexity
 from .structure import action_subsets, kinds_for, replacement_candidates
 from .tracked import CANDIDATE, MEMORY, TREE, TrackedModel, nested_models
@@ -29,9 +29,9 @@ from .tracked import CANDIDATE, MEMORY, TREE, TrackedModel, nested_models
 __all__ = ["Repair", "Change", "Replacement", "tree_halves", "bridge_relative_complexity"]
 
 #: Chain-consistent samples since the change point before a failed chain's replacements are fitted, and how many
-#: more before they are fitted again.
+#: more (at least; a tenth more later) before they are fitted again.
 CHAIN_MIN_SAMPLES = 8
-CHAIN_RETRY = 8
+CHAIN_RETRY = 4
 
 
 class Change(NamedTuple):
@@ -119,7 +119,7 @@ class Repair:
             change = self._reinstate_from_memory(tree, failed, mismatch, halves, step, events)
             if change is not None:
                 return change
-        if failed.kind == "chain":
+        if failed.kind == "chain" or mismatch.search:
             self._sample_chains(failed, mismatch, chain_at, step, events)
         candidates = pool.candidates_of(failed.id)
         if not candidates and mismatch.sampled_at < 0:
@@ -235,38 +235,53 @@ class Repair:
                             parent=failed.parent, child=failed.child, model=failed.describe()))
 
     def _sample_chains(self, failed, mismatch, chain_at, step, events):
-        """A failed chain's replacements, fitted on its pair's chain-consistent targets since the change point once
-        there are enough of them, and again every ``CHAIN_RETRY`` more (:func:`chain_replacements`: the chain fitted
-        again for a bent link or a moved marker, and the chain without each joint for a blocked one). They replace
-        the earlier chain replacements of the edge and are judged on the samples that follow."""
+        """Chains that may replace ``failed``, fitted on its pair's chain-consistent targets once there are enough of
+        them, and again every ``CHAIN_RETRY`` more; they replace the edge's earlier chain candidates and are judged on
+        the samples that follow.
+
+        A failed chain (since the change point): :func:`chain_replacements`, the chain fitted again (a bent link, a
+        moved marker) and the chain without each joint (a blocked one). An edge searched for like a new one
+        (``mismatch.search``: the structure was wrong, not the body changed): a chain identified from scratch
+        (:func:`identify_chain`) on the whole history, as while bootstrapping.
+        """
         pool = self.pool
-        A, Z, S = [], [], []
+        samples = []  # (step, a, target Z, sigma) of the failed pair, over the whole history
         for rec_step, a, obs in self.history:
-            if rec_step < mismatch.tau:
-                continue
             index, targets = chain_at(a, obs).for_entries([failed], own=True)
             if index.size:
-                A.append(a)
-                Z.append(targets.Z[0])
-                S.append(targets.sigma[0])
+                samples.append((rec_step, a, targets.Z[0], targets.sigma[0]))
+        since = [k for k, item in enumerate(samples) if item[0] >= mismatch.tau]
         tried = self._chain_samples.get(failed.id, 0)
-        if len(A) < max(CHAIN_MIN_SAMPLES, tried + CHAIN_RETRY):
+        if len(since) < max(CHAIN_MIN_SAMPLES, tried + max(CHAIN_RETRY, tried // 10)):
             return
-        self._chain_samples[failed.id] = len(A)
-        replacements = chain_replacements(failed.model, np.array(A), np.array(Z), np.array(S))
-        if not replacements:
+        self._chain_samples[failed.id] = len(since)
+        A, Z, S = (np.array([item[k] for item in samples]) for k in (1, 2, 3))
+        found, how = [], []
+        if failed.kind == "chain":
+            found += chain_replacements(failed.model, A[since], Z[since], S[since])
+            how.append(f"on the {len(since)} samples since the change point (step {mismatch.tau}), the chain again "
+                       f"(a bent link, a moved marker) and the chain without each joint (a blocked joint)")
+        try:  # in the failed model's direction, as its targets are
+            identified = identify_chain(A, Z, S, failed.parent, failed.child, range(pool.n_actions),
+                                        sigma_trans=self.config.prior_sigma_trans,
+                                        sigma_rot=self.config.prior_sigma_rot)
+            if 2 <= len(identified.actions) <= self.config.max_chain_joints:
+                found.append(identified)
+                how.append(f"a chain identified from the excursions of the {len(A)} samples of the whole history "
+                           f"(the structure was wrong)")
+        except ChainNotIdentified:
+            pass
+        if not found:
             return
         for e in pool.candidates_of(failed.id):
             if e.kind == "chain":
                 pool.remove(e)
-        added = pool.add_fitted(replacements, CANDIDATE, origin="replacement", last_used=step, since=mismatch.tau)
+        added = pool.add_fitted(found, CANDIDATE, origin="replacement", last_used=step, since=mismatch.tau)
         for entry in added:
-            entry.target, entry.created, entry.n_train = failed.id, step, len(A)
+            entry.target, entry.created, entry.n_train = failed.id, step, entry.model.n_samples_
         mismatch.sampled_at = max(mismatch.sampled_at, step)
         events.append(Event(step, "model_sampled",
-                            f"{failed.describe()} failed: fitted {len(added)} chain replacements on the {len(A)} "
-                            f"samples since the change point (step {mismatch.tau}): the chain again (a bent link, a "
-                            f"moved marker) and the chain without each joint (a blocked joint): "
+                            f"{failed.describe()} failed: fitted {len(added)} chain candidate(s): {'; '.join(how)}: "
                             f"{', '.join(e.describe() for e in added)}",
                             parent=failed.parent, child=failed.child, model=failed.describe()))
 
@@ -278,6 +293,7 @@ class Repair:
         n_now = [pool.n_now(e) for e in candidates]
         st, valid = pool.window_stats(rows, n_now)
         valid &= ~pool.dominated(rows, n_now, *nested_models(candidates), valid)
+        valid &= np.array([order_decided(e.model) for e in candidates], dtype=bool)  # a chain's order known
         if not np.any(valid):
             return None
         rel = np.array([e.complexity if absolute else bridge_relative_complexity(e, failed) for e in candidates])

@@ -49,7 +49,8 @@ from .base import check_observations
 from .rigid import RigidJointModel, _sigmas
 from .rigid_fit import fit_rms, least_squares_fit
 
-__all__ = ["ChainModel", "chain_form", "chain_from_engineered", "JOINT_TYPES", "screw_transforms"]
+__all__ = ["ChainModel", "chain_form", "chain_from_engineered", "prior_covariance", "JOINT_TYPES",
+           "screw_transforms"]
 
 #: Joint types of a chain and their degrees of freedom in a local increment.
 JOINT_TYPES = {"revolute": 4, "prismatic": 2}
@@ -412,14 +413,27 @@ class ChainModel(RigidJointModel):
         return cls(data["parent"], data["child"], data["actions"], types, **h)
 
 
-def chain_from_engineered(model, reference=None, **hyperparameters):
+def prior_covariance(form, sigma_trans, sigma_rot):
+    """A diagonal covariance of a local increment of chains of ``form``: ``sigma_rot`` (rad) on every angle (axis
+    turns, ``M``'s rotation), ``sigma_trans`` (m) on every offset (axis moves, ``M``'s translation), 1 on the
+    couplings: how far a robot may be from its specification."""
+    variance = []
+    for kind in form.TYPES:
+        variance += [sigma_rot**2] * 2 + ([sigma_trans**2] * 2 if kind == "revolute" else [])
+    variance += [1.0] * len(form.COUPLINGS) + [sigma_trans**2] * 3 + [sigma_rot**2] * 3
+    return np.diag(variance)
+
+
+def chain_from_engineered(model, reference=None, prior=None, **hyperparameters):
     """The :class:`ChainModel` of an :class:`~body_scheme_core.models.engineered.EngineeredModel` (the robot's
     specification between two markers), with the specification's values at ``reference`` (the joints' actions,
     default zeros) as its parameters: the start of a calibration.
 
     Each joint's screw is its axis moved into the parent frame by the chain up to it at the reference posture; a
     joint traversed from child to parent (``sign -1``) turns the other way. Mimic joints (an action moving two
-    joints) have no chain form and raise ``InvalidInputError``.
+    joints) have no chain form and raise ``InvalidInputError``. ``prior`` ``(sigma_trans, sigma_rot)``: how far the
+    robot may be from its specification, as the chain's parameter covariance (:func:`prior_covariance`; a learner
+    takes a given chain's covariance as its prior until data fills its window); default: the specification exact.
     """
     elements = [e for e in model._elements]
     joints = [e for e in elements if e[0] != "fixed"]
@@ -449,10 +463,9 @@ def chain_from_engineered(model, reference=None, **hyperparameters):
         else:
             E[:3, 3] = axis * q_ref[action]
         G = G @ E
-    from ..transforms import rotation_log
-
     params += [G[:3, 3], rotation_log(G[None, :3, :3])[0]]
     chain = ChainModel(model.parent, model.child, actions, tuple(types), reference=reference, **hyperparameters)
     form = chain.form
     stored = form.canonical(np.concatenate(params)[None])[0]
-    return chain._set_fit(stored, np.eye(form.N_PARAMS) * 1e-12, 0, 0.0)
+    cov = np.eye(form.N_PARAMS) * 1e-12 if prior is None else prior_covariance(form, *prior)
+    return chain._set_fit(stored, cov, 0, 0.0)

@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 from ..errors import InvalidInputError, ModelFileError
 from ..transforms import check_transform, invert_transform
 from .base import LocalModel, check_action_batch, check_observations
+from .chain import chain_from_engineered
 
 __all__ = ["EngineeredModel", "engineered_models", "chain_from_tree"]
 
@@ -264,16 +265,30 @@ class EngineeredModel(LocalModel):
             raise ModelFileError(f"bad engineered model dict: {exc}") from exc
 
 
-def engineered_models(tree):
-    """The initial engineered body scheme: one :class:`EngineeredModel` per edge of ``tree.marker_tree_edges()``.
+def engineered_models(tree, tolerance=None):
+    """The initial engineered body scheme: one model per edge of ``tree.marker_tree_edges()``.
 
     Parameters
     ----------
     tree : KinematicTree
+    tolerance : (float, float), optional
+        How far the robot may be from its specification (m, rad). Given, an edge over two joints or more (markers
+        with unmarked links between them) becomes the specification's chain with that prior, which the joint fit
+        calibrates (:func:`~body_scheme_core.models.chain.chain_from_engineered`); an edge that has no chain form
+        (a mimic joint) stays an engineered model. Default: every edge an :class:`EngineeredModel`.
 
     Returns
     -------
-    models : list of EngineeredModel
+    models : list of LocalModel
         ``n_markers - 1`` models forming a spanning tree over the markers, each oriented away from the root.
     """
-    return [EngineeredModel.from_tree(tree, parent, child) for parent, child in tree.marker_tree_edges()]
+    models = []
+    for parent, child in tree.marker_tree_edges():
+        model = EngineeredModel.from_tree(tree, parent, child)
+        if tolerance is not None and len(model.actions) >= 2:
+            try:
+                model = chain_from_engineered(model, prior=tuple(float(v) for v in tolerance))
+            except InvalidInputError:
+                pass  # an action moving several joints: no chain form
+        models.append(model)
+    return models

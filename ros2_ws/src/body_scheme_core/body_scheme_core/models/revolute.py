@@ -112,14 +112,18 @@ class RevoluteForm:
         return out
 
     @staticmethod
-    def axis_estimate(x, Z, S, mask):
-        """Axis ``u`` (k, 3) and scale ``s`` (k,) from the rotations: ``log(R_k R_ref^T) = u s (a_k - a_ref)``."""
+    def axis_estimate(x, Z, S, mask, unit=False):
+        """Axis ``u`` (k, 3) and scale ``s`` (k,) from the rotations: ``log(R_k R_ref^T) = u s (a_k - a_ref)``. With
+        ``unit`` (``s = 1``: the actions are angles) the differences are taken modulo a turn, so that a joint swept
+        over more than a turn (a wrist at -360 and +216 deg) still shows its axis."""
         k, n = x.shape
         w = mask.astype(float)
         ref = np.argmax(mask, axis=1)  # the first sample of each model
         rows = np.arange(k)
         R = Z[..., :3, :3]
         dx = x - x[rows, ref][:, None]
+        if unit:
+            dx = (dx + math.pi) % (2 * math.pi) - math.pi
         rv = rotation_log(R @ np.swapaxes(R[rows, ref], -1, -2)[:, None])  # (k, n, 3)
         use = w * (np.abs(dx) <= _MAX_ANGLE) / S[..., 1] ** 2
         v = np.einsum("kn,kn,kni->ki", use, dx, rv) / np.maximum(np.einsum("kn,kn->k", use, dx * dx), 1e-300)[:, None]
@@ -239,7 +243,7 @@ class UnitRevoluteForm(RevoluteForm):
 
     @classmethod
     def initial(cls, x, Z, S, mask):
-        u, _ = cls.axis_estimate(x, Z, S, mask)
+        u, _ = cls.axis_estimate(x, Z, S, mask, unit=True)
         return cls.solve_given_axis(u, np.ones(x.shape[0]), x, Z, S, mask)
 
     @staticmethod

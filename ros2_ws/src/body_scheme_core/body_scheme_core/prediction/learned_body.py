@@ -11,13 +11,22 @@ robot_state_publisher, MoveIt or pybullet):
   commands drive it), its axis through the learned axis line, its limits the trained range; the joint frame has the
   parent marker's orientation, and for a revolute joint its origin is the axis point nearest to the child marker;
 - a ``fixed`` joint per static edge;
+- a joint per joint of a chain edge (:class:`~body_scheme_core.models.chain.ChainModel`), through links of their own
+  for the unmarked links between: given the robot's specification (``nominal``), each joint's frame is the
+  specification's, moved onto the learned axis (its origin to the nearest point of the learned axis line, its
+  orientation turned by the least rotation that aligns the axes), and the links keep the specification's names;
+  without one, a joint's frame has the parent marker's orientation and its origin is the axis point nearest the
+  previous joint's. A tool's observations cannot tell where along its axis a joint sits, nor a sliding joint's line
+  (:mod:`~body_scheme_core.models.chain`): the specification's places are kept for those. A coupled joint gets a
+  ``mimic`` joint on its axis that follows the coupled action;
 - an edge no URDF joint can express (a GP, or a model of several actions) becomes a fixed joint at its prediction for
   mid-range actions, and is named in the notes (:attr:`LearnedBody.notes`, a comment at the top of the URDF).
 
 :func:`calibration_report` compares a learned body with a nominal one (a URDF and its marker file, as a
-``KinematicTree``): per learned joint, the axis deviation (deg), the origin offset (mm: the distance of the nominal
-joint origin from the learned axis line, for revolute joints; a prismatic joint's line has no position) and the child
-marker's placement (its pose relative to the parent marker at zero actions: mm and deg).
+``KinematicTree``): per learned joint (a chain's joints each), the axis deviation (deg), the origin offset (mm: the
+distance of the nominal joint origin from the learned axis line, for revolute joints; a prismatic joint's line has no
+position) at zero actions in the edge's parent marker frame, and the edge's child marker's placement (its pose
+relative to the parent marker at zero actions: mm and deg).
 """
 
 from __future__ import annotations
@@ -28,7 +37,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..transforms import invert_transform, rotation_log, rotational_error, translational_error
+from ..models import ChainModel
+from ..transforms import (
+    cross3,
+    invert_transform,
+    rotation_log,
+    rotational_error,
+    rotvec_matrix,
+    translational_error,
+)
 from ..world import Joint, KinematicTree, Marker, tree_to_urdf
 from .scheme import BodyScheme
 
@@ -48,10 +65,10 @@ class LearnedJoint:
     type: str  # "revolute", "prismatic" or "fixed"
     name: str
     action: int | None
-    model: str  # the local model's kind: static, prismatic, revolute, gp
+    model: str  # the local model's kind: static, prismatic, revolute, chain, gp
     scale: float = 1.0  # joint position per action unit
-    axis: tuple = ()  # unit axis in the parent marker frame
-    point: tuple = ()  # a point of the axis line in the parent marker frame (revolute)
+    axis: tuple = ()  # unit axis in the parent marker frame (a chain's joint: at the chain's reference posture)
+    point: tuple = ()  # a point of the axis line in the parent marker frame (revolute; likewise)
 
 
 @dataclass
@@ -96,12 +113,130 @@ def _screw(Z0, Z1, kind):
     return u, scale, c
 
 
+def _chain_joints(model, inverted):
+    """A chain's joints in the tree's direction: ``[(action, kind, w or d, p or None, reference)]`` in the parent
+    marker frame at the reference posture, its couplings ``[(i, j, c)]`` (chain positions) and ``M``. An inverted
+    edge reverses the chain: ``M^-1 exp(-Ad_{M^-1} S_k q_k) ... exp(-Ad_{M^-1} S_1 q_1)``."""
+    screws, M = model.form._unpack(model.params_[None])
+    M = M[0]
+    at = model.form.COUPLING_STORED_AT
+    couplings = [(i, j, float(model.params_[at + c])) for c, (i, j) in enumerate(model.couplings)]
+    joints = []
+    for k, (kind, screw) in enumerate(zip(model.types, screws, strict=True)):
+        if kind == "revolute":
+            w, p = screw[0][0], screw[1][0]
+        else:
+            w, p = screw[0], None
+        joints.append((model.actions[k], kind, w, p, float(model.reference[k])))
+    if not inverted:
+        return joints, couplings, M
+    Minv = invert_transform(M)
+    R, t = Minv[:3, :3], Minv[:3, 3]
+    flipped = [(a, kind, -R @ w, None if p is None else R @ p + t, r) for a, kind, w, p, r in reversed(joints)]
+    k = len(joints) - 1
+    return flipped, [(k - i, k - j, c) for i, j, c in couplings], Minv
+
+
+def _aligned(R, u, w):
+    """``R`` turned by the least rotation that takes ``R u`` to ``w`` (unit vectors)."""
+    v = R @ u
+    axis = cross3(v, w)
+    s, c = float(np.linalg.norm(axis)), float(np.clip(v @ w, -1.0, 1.0))
+    if s < 1e-12:
+        if c > 0:
+            return R
+        axis = np.cross(v, np.eye(3)[int(np.argmin(np.abs(v)))])
+        s = float(np.linalg.norm(axis))
+    return rotvec_matrix(axis / s * math.atan2(s, c)) @ R
+
+
+def _chain_frames(joints, nominal_frames):
+    """The joints' frames (4, 4) in the parent marker frame at the reference posture (module docstring), and each
+    axis in its own frame."""
+    frames, axes = [], []
+    previous = np.eye(4)
+    for k, (_, _, w, p, _) in enumerate(joints):
+        F = np.eye(4)
+        if nominal_frames is not None:
+            nominal, nominal_axis = nominal_frames[k]
+            sign = 1.0 if (nominal[:3, :3] @ nominal_axis) @ w >= 0 else -1.0  # a chain traversed child to parent
+            F[:3, :3] = _aligned(nominal[:3, :3], nominal_axis, sign * w)
+            near = nominal[:3, 3]
+        else:
+            F[:3, :3] = previous[:3, :3]
+            near = previous[:3, 3]
+        F[:3, 3] = near if p is None else p + w * float(w @ (near - p))
+        frames.append(F)
+        axes.append(F[:3, :3].T @ w)
+        previous = F
+    return frames, axes
+
+
+def _nominal_chain_frames(nominal, parent, joints):
+    """Per chain joint, the specification's joint frame in the parent marker frame at the chain's reference posture
+    and its axis; None when the specification lacks a marker or a joint of the chain."""
+    if nominal is None or parent not in nominal.marker_ids:
+        return None
+    a = np.zeros(nominal.n_actions)
+    try:
+        specs = [nominal.action_joint(action) for action, *_ in joints]
+    except InvalidInputError:
+        return None
+    for (action, *_, reference) in joints:
+        a[action] = reference
+    links = nominal.link_poses(a)
+    to_parent = invert_transform(nominal.marker_poses(a)[parent])
+    return [(to_parent @ links[spec.parent] @ spec.origin, np.asarray(spec.axis, dtype=float)) for spec in specs]
+
+
+def _export_chain(edge, joint_names, part, link2marker, lower, upper, used, nominal, prefix):
+    """The URDF joints of a chain edge (module docstring): ``(joints, exported, child link2marker, notes)``; the
+    tree actions of its joints are appended to ``used``."""
+    parent, child, model, inverted = edge
+    joints, couplings, M = _chain_joints(model, inverted)
+    nominal_frames = _nominal_chain_frames(nominal, parent, joints)
+    frames, axes = _chain_frames(joints, nominal_frames)
+    tree_action = {action: len(used) + k for k, (action, *_) in enumerate(joints)}
+    out, exported, notes = [], [], []
+    previous, link = link2marker[parent], part[parent]
+    for k, ((action, kind, w, p, reference), F, u) in enumerate(zip(joints, frames, axes, strict=True)):
+        name = joint_names[action]
+        last = k == len(joints) - 1
+        if last:
+            next_link = part[child]
+        elif nominal_frames is not None:
+            spec = nominal.action_joint(action)
+            next_link = prefix + (spec.parent if inverted else spec.child)
+        else:
+            next_link = f"{part[parent]}_to_{child}_link_{k + 1}"
+        zero = np.eye(4)  # the joint at its zero position: the reference turned or slid back
+        zero[:3, :3] = rotvec_matrix(-u * reference) if kind == "revolute" else np.eye(3)
+        zero[:3, 3] = 0.0 if kind == "revolute" else -u * reference
+        coupled = [(j, c) for i, j, c in couplings if i == k]
+        mid_link = f"{next_link}_coupling" if coupled else next_link
+        out.append(Joint(name, kind, link, mid_link, origin=previous @ F @ zero, axis=u, lower=float(lower[action]),
+                         upper=float(upper[action]), action=tree_action[action]))
+        for j, c in coupled:
+            source, source_reference = joints[j][0], joints[j][4]
+            limits = sorted(c * (np.array([lower[source], upper[source]]) - source_reference))
+            out.append(Joint(f"{name}_coupling", kind, mid_link, next_link, axis=u, lower=float(limits[0]),
+                             upper=float(limits[1]), action=tree_action[source], mimic=joint_names[source],
+                             multiplier=c, offset=-c * source_reference))
+            notes.append(f"{parent}->{child}: joint {name} moves {c:.6g} x joint {joint_names[source]} too (a "
+                         f"coupling): mimic joint {name}_coupling")
+        exported.append(LearnedJoint(parent, child, kind, name, action, "chain", 1.0, tuple(w),
+                                     () if p is None else tuple(F[:3, 3])))
+        previous, link = invert_transform(F), next_link
+    used += [action for action, *_ in joints]
+    return out, exported, invert_transform(frames[-1]) @ M, notes
+
+
 def marker_link(prefix, part):
     """The learned URDF's link of a part's marker, ``<prefix>marker_<id>`` (also its TF frame)."""
     return f"{prefix}marker_{int(part)}"
 
 
-def learned_tree(scheme, joint_names, lower, upper, prefix=""):
+def learned_tree(scheme, joint_names, lower, upper, prefix="", nominal=None):
     """The body scheme as a kinematic tree (see the module docstring).
 
     Parameters
@@ -114,6 +249,8 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
     prefix : str
         Prefix of every link name (two robots in one TF tree). Joint names keep the robot's joint names, so its
         JointState drives them, as robot_state_publisher's ``frame_prefix`` expects.
+    nominal : KinematicTree, optional
+        The robot's specification with its markers: a chain's unmarked links take its frames and names.
 
     Returns
     -------
@@ -131,6 +268,13 @@ def learned_tree(scheme, joint_names, lower, upper, prefix=""):
     joints, exported, used, notes = [], [], [], []
     for edge in scheme.edges:
         parent, child, model, _ = edge
+        if isinstance(model, ChainModel) and not set(model.actions) & set(used):
+            chain, rows, link2marker[child], why = _export_chain(edge, joint_names, part, link2marker, lower, upper,
+                                                                 used, nominal, prefix)
+            joints += chain
+            exported += rows
+            notes += why
+            continue
         kind = model.kind if len(model.actions) <= 1 else "multi"
         action = model.actions[0] if len(model.actions) == 1 else None
         rigid_joint = kind in ("revolute", "prismatic") and action not in used
@@ -205,6 +349,8 @@ def calibration_report(body, nominal):
     nominal_markers = nominal.marker_poses(zero_nominal)
     nominal_links = nominal.link_poses(zero_nominal)
     learned_markers = body.marker_poses(np.zeros(body.n_actions))
+    learned_links = body.tree.link_poses(np.zeros(body.tree.n_actions))
+    tree_joints = {j.name: j for j in body.tree.joints}
     rows, fixed = [], []
     for joint in body.joints:
         for part in (joint.parent, joint.child):
@@ -223,14 +369,15 @@ def calibration_report(body, nominal):
         spec = nominal.action_joint(joint.action)
         parent2frame = nominal2parent @ nominal_links[spec.parent] @ spec.origin
         axis = parent2frame[:3, :3] @ spec.axis
+        learned = tree_joints[joint.name]  # its frame at zero actions, in the parent marker's frame
+        frame = invert_transform(learned_markers[joint.parent]) @ learned_links[learned.parent] @ learned.origin
+        u = frame[:3, :3] @ learned.axis
         origin_mm = None
         if joint.type == "revolute":
-            d = parent2frame[:3, 3] - np.asarray(joint.point)
-            u = np.asarray(joint.axis)
+            d = parent2frame[:3, 3] - frame[:3, 3]
             origin_mm = 1e3 * float(np.linalg.norm(d - u * np.dot(d, u)))
         rows.append({"parent": joint.parent, "child": joint.child, "joint": joint.name, "nominal_joint": spec.name,
-                     "type": joint.type, "axis_deg": _angle_deg(np.asarray(joint.axis), axis),
-                     "origin_mm": origin_mm, **placement})
+                     "type": joint.type, "axis_deg": _angle_deg(u, axis), "origin_mm": origin_mm, **placement})
 
     def biggest(key, items):
         values = [r[key] for r in items if r[key] is not None]

@@ -160,3 +160,33 @@ def test_the_learner_bootstraps_a_tool_past_four_joints_adapts_to_a_block_and_sa
     path.write_text(encode_state(learner, path))
     loaded = BodySchemeLearner.from_state(json.loads(path.read_text())["state"])
     assert np.allclose(loaded.predict(A[-1])[2], learner.predict(A[-1])[2])
+
+
+def test_a_tracker_that_sweeps_one_joint_at_a_time_gives_the_chain_without_a_noise_prior():
+    """The laser-tracker protocol of kinematic calibration: the tracker is the root (``sensor_root``), it sees one
+    body on the tool of a six-joint arm, each joint is swept alone (the wrists over two turns), and the noise prior
+    is the default (50 mm, 15 deg, far above the tracker's). Simple models of a few actions pass validity at that
+    noise; the chain through all six joints is identified where the tree leaves the tool unexplained and dominates
+    them: the body scheme is the chain, and it predicts held-out sweeps to the tracker's noise."""
+    rng = np.random.default_rng(4)
+    tree = _tool_only(6, 21, prismatic_fraction=0.0)
+    lo, hi = tree.action_lower, tree.action_upper
+    reference = 0.5 * (lo + hi)
+    A = []
+    for j in range(6):
+        span = math.radians(360.0) if j in (3, 5) else 0.4 * (hi[j] - lo[j])
+        for value in np.linspace(-span, span, 6) + rng.normal(0.0, 0.01, 6):
+            a = reference.copy()
+            a[j] = reference[j] + value
+            A.append(a)
+    A = np.array(A)
+    order = rng.permutation(len(A))
+    train, test = order[:30], order[30:]
+    learner = BodySchemeLearner([0, 2], 6, BodySchemeConfig(root=0, sensor_root=True))
+    for a in A[train]:
+        pose = tree.marker_poses(a)[2] @ transform_from_rotvec(rng.normal(0, 3e-4, 3), rng.normal(0, 5e-5, 3))
+        learner.update(a, {2: pose})
+    (model,) = learner.body_scheme.models
+    assert model.kind == "chain" and sorted(model.actions) == list(range(6))
+    error = [np.linalg.norm(learner.predict(a)[2][:3, 3] - tree.marker_poses(a)[2][:3, 3]) for a in A[test]]
+    assert max(error) < 1e-3

@@ -67,3 +67,8 @@ def test_nesting_follows_flexibility_and_actions():
     assert not nests("revolute", (1,), "prismatic", (1,))
     assert not nests("gp", (2,), "revolute", (1,))
     assert not nests("engineered", (1,), "static", ())
+    # A chain holds a joint of each of its actions; a GP of as many actions any smooth relation.
+    assert nests("chain", (1, 2, 3), "revolute", (2,)) and nests("chain", (1, 2, 3), "chain", (1, 3))
+    assert nests("gp", (1, 2, 3), "chain", (1, 2, 3)) and nests("chain", (1, 2, 3), "gp", (1, 3))
+    assert not nests("chain", (1, 2), "gp", (1, 2)) and not nests("chain", (1, 2), "chain", (1, 2))
+    assert not nests("chain", (1, 2), "revolute", (3,))

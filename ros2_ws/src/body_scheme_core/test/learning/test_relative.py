@@ -1,6 +1,7 @@
 """Tests of the pair index and the relative observations of one time step."""
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -56,6 +57,22 @@ def test_thresholds_grow_with_the_observed_distance():
     distance = np.linalg.norm(rel.Z[:, :3, 3], axis=1)
     np.testing.assert_allclose(rel.theta_trans, translation_threshold(THETA_T, THETA_R, distance))
     assert pairs.threshold(np.eye(4)) == pytest.approx(THETA_T)
+
+
+def test_a_part_given_without_noise_adds_no_noise_and_no_lever_arm():
+    """With part 1 exact (the sensor as root), its pairs carry one marker's noise and no lever arm of its orientation
+    in both the noise and the threshold; the pair of two markers keeps both."""
+    rng = np.random.default_rng(3)
+    noise = _noise((1, 2, 3))
+    rel = PartPairs((1, 2, 3), noise, exact=(1,)).observe(_poses(rng, (1, 2, 3)))
+    both = PartPairs((1, 2, 3), noise).observe(_poses(np.random.default_rng(3), (1, 2, 3)))
+    exact, markers = rel.row[0], rel.row[2]  # pairs (1, 2) and (2, 3)
+    assert rel.sigma[exact, 0] == pytest.approx(noise.sigma_trans / math.sqrt(3))
+    assert rel.sigma[exact, 1] == pytest.approx(noise.sigma_rot / math.sqrt(3))
+    assert rel.theta_trans[exact] == pytest.approx(THETA_T)
+    np.testing.assert_allclose(rel.sigma[markers], both.sigma[markers])
+    np.testing.assert_allclose(rel.theta_trans[markers], both.theta_trans[markers])
+    assert rel.theta_trans[markers] > THETA_T
 
 
 def test_of_pairs_inverts_flipped_directions():

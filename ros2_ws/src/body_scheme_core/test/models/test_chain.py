@@ -26,7 +26,8 @@ def _params(rng, types, n_couplings=0):
             out += [*w, *(p - (p @ w) * w)]
         else:
             out += list(w)
-    return np.array(out + list(rng.normal(size=n_couplings)) + list(rng.normal(size=3)) + list(0.5 * rng.normal(size=3)))
+    return np.array(out + list(rng.normal(size=n_couplings)) + list(rng.normal(size=3))
+                    + list(0.5 * rng.normal(size=3)))
 
 
 @pytest.mark.parametrize("couplings", [(), COUPLINGS])

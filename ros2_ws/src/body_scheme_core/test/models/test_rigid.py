@@ -63,6 +63,18 @@ def test_revolute_fit_recovers_a_known_joint():
     assert model.scale_ == 1.0 and model.n_params == 10 and 0.8 < model.rms_ < 1.2
 
 
+def test_a_joint_swept_over_more_than_a_turn_is_fitted_from_its_angles_modulo_a_turn():
+    """A wrist at -360, -72 and +216 deg (a laser-tracker sweep): the first sample is the identity, and each other
+    is more than 2.5 rad from it; the start takes the differences modulo a turn and the fit is exact."""
+    rng = np.random.default_rng(5)
+    true = _revolute_params(rng)
+    x = np.radians([-360.0, -72.0, 216.0])
+    Z = RevoluteForm.transforms(true[None], x[None])[0]
+    model = RevoluteModel(0, 1, (1,), sigma_trans=1e-4, sigma_rot=1e-4).fit(_actions(x), Z)
+    assert model.rms_ < 1e-3
+    assert math.degrees(math.acos(min(1.0, abs(model.axis_ @ true[0:3])))) < 1e-3
+
+
 def test_revolute_fit_with_a_free_scale_recovers_a_gear_ratio():
     """With fit_scale the joint turns s = 0.5 rad per action unit: recovered within 3 %."""
     rng = np.random.default_rng(1)

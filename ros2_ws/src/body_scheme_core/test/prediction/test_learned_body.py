@@ -84,3 +84,63 @@ def test_a_prefix_goes_on_links_only_joints_keep_the_robots_names():
     joints = body.tree.joints
     assert sorted(j.name for j in joints if j.type == "revolute") == sorted(robot.action_joint_names)
     assert all(link.startswith("robot2/") for j in joints for link in (j.parent, j.child))
+
+
+def _chain_scheme(seed, couplings=(), root=1):
+    """A tool-only random tree (markers 1 on the base, 2 on the tool) and a body scheme of one chain between them:
+    the specification's chain about a random reference posture, its parameters moved a little (a calibration), with
+    ``couplings`` coefficients of 0.3."""
+    from body_scheme_core.models import ChainModel, EngineeredModel, chain_from_engineered
+    from body_scheme_core.world import KinematicTree, Marker
+
+    tree = random_tree(4, seed=seed, branching=False, prismatic_fraction=0.3)
+    last = [j for j in tree.joints if j.action is not None][-1].child
+    robot = KinematicTree(tree.joints, [Marker(1, tree.root_link), Marker(2, last)], root_link=tree.root_link)
+    rng = np.random.default_rng(seed)
+    reference = rng.uniform(robot.action_lower, robot.action_upper) * 0.5
+    spec = chain_from_engineered(EngineeredModel.from_tree(robot, 1, 2), reference=reference[list(range(4))])
+    chain = ChainModel(1, 2, spec.actions, spec.types, reference=spec.reference, couplings=couplings)
+    params = np.concatenate([spec.params_[:-6], np.full(len(couplings), 0.3), spec.params_[-6:]])
+    params = chain.form.retract(params[None], rng.normal(0.0, 0.01, (1, chain.form.N_PARAMS)))[0]
+    chain._set_fit(chain.form.canonical(params[None])[0], np.eye(chain.form.N_PARAMS) * 1e-6, 0, 0.0)
+    return robot, BodyScheme((1, 2), root, [chain])
+
+
+@pytest.mark.parametrize("root", [1, 2])
+@pytest.mark.parametrize("couplings", [(), ((2, 1),)])
+def test_a_chain_is_exported_joint_by_joint_through_links_of_its_own(root, couplings):
+    """Each joint of a chain becomes a URDF joint named after its action, a coupling a mimic joint; the URDF's
+    forward kinematics equal the body scheme's, rooted at either end, and survive a URDF round trip."""
+    from body_scheme_core.world import tree_from_urdf
+
+    robot, scheme = _chain_scheme(3, couplings, root)
+    body = learned_tree(scheme, robot.action_joint_names, robot.action_lower, robot.action_upper)
+    assert [j.name for j in body.joints] == [robot.action_joint(a).name for a in scheme.models[0].actions[::(
+        1 if root == 1 else -1)]]
+    assert len(body.notes) == len(couplings)
+    A = np.random.default_rng(0).uniform(robot.action_lower, robot.action_upper, (20, robot.n_actions))
+    assert _fk_error(body, scheme, A) < 1e-9
+    again = tree_from_urdf(learned_urdf(body), markers=body.tree.markers)
+    np.testing.assert_allclose(again.marker_poses(A[0][list(body.actions)])[2],
+                               body.tree.marker_poses(A[0][list(body.actions)])[2], atol=1e-9)
+
+
+def test_with_the_specification_a_chain_keeps_its_links_and_the_report_compares_every_joint():
+    """Calibrated a little away from the specification, the exported chain's unmarked links carry the
+    specification's names and sit near its frames; the report lists every joint of the chain, with the small
+    deviation, and zero for the specification itself."""
+    robot, scheme = _chain_scheme(5)
+    body = learned_tree(scheme, robot.action_joint_names, robot.action_lower, robot.action_upper, nominal=robot)
+    links = {j.child for j in body.tree.joints}
+    assert {robot.action_joint(a).child for a in scheme.models[0].actions[:-1]} <= links
+    report = calibration_report(body, robot)
+    assert [r["joint"] for r in report["joints"]] == [robot.action_joint(a).name for a in scheme.models[0].actions]
+    assert 0.01 < report["max_axis_deg"] < 5.0 and report["max_marker_mm"] < 100.0
+    from body_scheme_core.models import EngineeredModel, chain_from_engineered
+
+    exact = chain_from_engineered(EngineeredModel.from_tree(robot, 1, 2), reference=scheme.models[0].reference)
+    body = learned_tree(BodyScheme((1, 2), 1, [exact]), robot.action_joint_names, robot.action_lower,
+                        robot.action_upper, nominal=robot)
+    report = calibration_report(body, robot)
+    assert report["max_axis_deg"] < 1e-6 and (report["max_origin_mm"] or 0.0) < 1e-6
+    assert report["max_marker_mm"] < 1e-6
