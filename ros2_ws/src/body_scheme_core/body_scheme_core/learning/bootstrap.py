@@ -45,7 +45,7 @@ __all__ = ["Bootstrap", "SUSPECT_RATIO"]
 SUSPECT_RATIO = 0.6
 #: A pair's chain is identified again once the samples that observed both its parts grew by this fraction, and by
 #: at least CHAIN_RETRY_MIN (excursions of other joints may have come, and a chain found learns from more data).
-CHAIN_RETRY, CHAIN_RETRY_MIN = 0.1, 2
+CHAIN_RETRY, CHAIN_RETRY_MIN = 0.25, 2
 
 
 class Bootstrap:
@@ -173,8 +173,8 @@ class Bootstrap:
     def connect_with_chains(self, tree, step, events):
         """Where the eligible candidates (chains whose joints' order is not decided yet left out) cannot connect the
         parts, identify a chain between the two parts of each pair of components that were observed together most
-        (:func:`identify_chain`), from the recorded steps; a chain found is tracked as a fitted candidate of the pair
-        (:meth:`identify_pair_chain`). Up to ``config.max_chain_joints`` joints; 0 or 1 turns chains off. Returns
+        (:func:`identify_chain`), from the recorded steps, once that pair's candidates of every layer were tested on
+        a full test window; a chain found is tracked as a fitted candidate of the pair (:meth:`identify_pair_chain`). Up to ``config.max_chain_joints`` joints; 0 or 1 turns chains off. Returns
         whether a chain was added."""
         c = self.config
         if c.max_chain_joints < 2 or len(self.history) == 0:
@@ -191,17 +191,30 @@ class Bootstrap:
         if len(components) < 2:
             return False
         seen = [set(obs) for _, _, obs in self.history]
+        tested, layers = self._tested(ls), self._instantiated_layers()
         added = False
         for first, second in itertools.combinations(components, 2):
             counts = {(u, v): sum(u in s and v in s for s in seen) for u in first for v in second}
             u, v = max(counts, key=lambda uv: (counts[uv], uv))
+            pair = (u, v) if self.pairs.part_index[u] < self.pairs.part_index[v] else (v, u)
+            if layers.get(pair, 0) < c.max_complexity or tested.get(pair, c.test_window) < c.test_window:
+                continue  # the layers have not had their chance yet
             why = f"parts {u} and {v} are not connected by the candidates of layers up to {c.max_complexity}"
             added |= self.identify_pair_chain(u, v, tree, step, events, why)
         return added
 
-    def identify_pair_chain(self, u, v, tree, step, events, why):
+    def _tested(self, ls):
+        """``{(parent, child): fewest test samples of its learning candidates}`` in the canonical direction."""
+        tested = {}
+        for i, count in zip(ls.ids, self.pool.monitor.count[ls.rows], strict=True):
+            entry = self.pool.tracked[int(i)]
+            key = (entry.parent, entry.child)
+            tested[key] = min(tested.get(key, count), count)
+        return tested
+
+    def identify_pair_chain(self, u, v, tree, step, events, why, growth=CHAIN_RETRY):
         """Identify a chain between parts ``u`` and ``v`` (:func:`identify_chain`) from the recorded steps, when the
-        samples that observed both grew enough since the last try (by ``CHAIN_RETRY``, at least
+        samples that observed both grew enough since the last try (by the fraction ``growth``, at least
         ``CHAIN_RETRY_MIN``); a chain of 2 to ``config.max_chain_joints`` joints is tracked as a fitted candidate of
         the pair in its canonical direction, replacing the pair's earlier chain unless the tree holds it. ``why``
         opens the event's reason. Returns whether a chain was added."""
@@ -210,7 +223,7 @@ class Bootstrap:
         parent, child = (u, v) if self.pairs.part_index[u] < self.pairs.part_index[v] else (v, u)
         tried = self._chain_tried.get((parent, child), 0)
         n = sum(parent in obs and child in obs for _, _, obs in self.history)
-        if c.max_chain_joints < 2 or n < tried + max(CHAIN_RETRY_MIN, math.ceil(CHAIN_RETRY * tried)):
+        if c.max_chain_joints < 2 or n < tried + max(CHAIN_RETRY_MIN, math.ceil(growth * tried)):
             return False
         self._chain_tried[(parent, child)] = n
         index = self.pairs.index(parent, child)
@@ -297,10 +310,7 @@ class Bootstrap:
         component = {p: k for k, members in enumerate(nx.connected_components(graph)) for p in members}
         if max(component.values(), default=0) == 0:
             return False
-        tested = {}
-        for entry, count in zip(entries, pool.monitor.count[ls.rows], strict=True):
-            key = (entry.parent, entry.child)
-            tested[key] = min(tested.get(key, count), count)
+        tested = self._tested(ls)
         layers = self._instantiated_layers()
         pairs = [pair for pair, top in layers.items() if top < c.max_complexity
                  and component[pair[0]] != component[pair[1]] and tested.get(pair, c.test_window) >= c.test_window]

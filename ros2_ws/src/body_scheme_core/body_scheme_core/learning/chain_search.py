@@ -101,16 +101,8 @@ class JointScrew:
     rms: float
 
 
-def _one_joint(action, A, Z, S, parent, child):
-    """The revolute and prismatic fits of one joint's excursions; the better as a :class:`JointScrew`, and the pose
-    at the reference (M) it implies, or None when the joint moves nothing."""
-    # The dependence test: do the excursions' poses scatter about their mean more than the noise would?
-    still = np.eye(4)
-    still[:3, :3] = chordal_mean(Z[None, :, :3, :3], np.ones((1, len(Z))))[0]
-    still[:3, 3] = Z[:, :3, 3].mean(axis=0)
-    scatter = float(np.mean(pose_residuals(np.broadcast_to(still, Z.shape), Z, S) ** 2))
-    if scatter < STILL_CHI2:
-        return None
+def _joint_fits(action, A, Z, S, parent, child):
+    """The revolute and prismatic one-action fits of one joint's excursions that succeed, by kind."""
     fits = {}
     for kind, cls in (("revolute", RevoluteModel), ("prismatic", PrismaticModel)):
         if len(Z) < cls.unit_form.MIN_SAMPLES:
@@ -119,11 +111,28 @@ def _one_joint(action, A, Z, S, parent, child):
             fits[kind] = cls(parent, child, (action,)).fit(A, Z, S)
         except (BodySchemeError, np.linalg.LinAlgError, ValueError):
             continue
-    if not fits or min(fit.rms_ for fit in fits.values()) ** 2 > scatter / EXPLAINED:
+    return fits
+
+
+def _one_joint(action, A, Z, S, parent, child, fits=None, scale=1.0):
+    """The better of the revolute and prismatic fits of one joint's excursions as a :class:`JointScrew`, and the
+    pose at the reference (M) it implies, or None when the joint moves nothing. ``fits``: :func:`_joint_fits` made
+    with ``S`` divided by ``scale`` (their residuals are rescaled)."""
+    # The dependence test: do the excursions' poses scatter about their mean more than the noise would?
+    still = np.eye(4)
+    still[:3, :3] = chordal_mean(Z[None, :, :3, :3], np.ones((1, len(Z))))[0]
+    still[:3, 3] = Z[:, :3, 3].mean(axis=0)
+    scatter = float(np.mean(pose_residuals(np.broadcast_to(still, Z.shape), Z, S) ** 2))
+    if scatter < STILL_CHI2:
+        return None
+    if fits is None:
+        fits, scale = _joint_fits(action, A, Z, S, parent, child), 1.0
+    rms = {kind: fit.rms_ / scale for kind, fit in fits.items()}
+    if not fits or min(rms.values()) ** 2 > scatter / EXPLAINED:
         return None  # the scatter is not a joint's motion: no one-joint model explains most of it
     kind = "revolute" if "revolute" in fits else "prismatic"
-    if "prismatic" in fits and "revolute" in fits and fits["prismatic"].rms_ <= PRISMATIC_MARGIN * max(
-            fits["revolute"].rms_, 1.0):
+    if "prismatic" in fits and "revolute" in fits and rms["prismatic"] <= PRISMATIC_MARGIN * max(
+            rms["revolute"], 1.0):
         kind = "prismatic"
     model = fits[kind]
     if kind == "revolute":
@@ -132,28 +141,16 @@ def _one_joint(action, A, Z, S, parent, child):
         screw = (u, point - (point @ u) * u)
     else:
         screw = model.params_[6:9] / np.linalg.norm(model.params_[6:9])
-    return JointScrew(action, kind, screw, float(model.rms_)), model
+    return JointScrew(action, kind, screw, rms[kind]), model
 
 
-def _noise_scale(ex, actions, A, Z, S, parent, child):
-    """How much larger the noise is than ``S`` says, from the excursions themselves: the median over actions of the
-    best one-joint fit's normalised residual (a joint's fit, or a still action's, leaves the noise). A learner's
-    noise is unknown until a rigid model explains the child, and a tool seen past several joints has none before its
-    chain: so the dependence test is judged against the noise the data show. 1 without excursions."""
-    scales = []
-    for j in actions:
-        if ex.single[j].size < 2:
-            continue
-        rows = np.concatenate([ex.at_reference, ex.single[j]])
-        fits = []
-        for cls in (RevoluteModel, PrismaticModel):
-            if rows.size >= cls.unit_form.MIN_SAMPLES + 1:
-                try:
-                    fits.append(cls(parent, child, (j,)).fit(A[rows], Z[rows], S[rows]).rms_)
-                except (BodySchemeError, np.linalg.LinAlgError, ValueError):
-                    continue
-        if fits:
-            scales.append(min(fits))
+def _noise_scale(fits):
+    """How much larger the noise is than the samples' sigma says, from the excursions themselves: the median over
+    actions of the best one-joint fit's normalised residual (``fits``: :func:`_joint_fits` per action; a joint's
+    fit, or a still action's, leaves the noise). A learner's noise is unknown until a rigid model explains the
+    child, and a tool seen past several joints has none before its chain: so the dependence test is judged against
+    the noise the data show. 1 without fits."""
+    scales = [min(fit.rms_ for fit in f.values()) for f in fits.values() if f]
     return float(np.clip(np.median(scales), 1e-3, 1e3)) if scales else 1.0
 
 
@@ -241,13 +238,13 @@ def identify_chain(A, Z, sigma, parent, child, actions, sigma_trans=None, sigma_
     A, Z = np.asarray(A, dtype=float), np.asarray(Z, dtype=float)
     S = np.broadcast_to(np.asarray(sigma, dtype=float), (len(Z), 2)).copy()
     ex = find_excursions(A, actions)
-    S *= _noise_scale(ex, actions, A, Z, S, parent, child)
+    rows_of = {j: np.concatenate([ex.at_reference, ex.single[j]]) for j in actions if ex.single[j].size >= 2}
+    fits = {j: _joint_fits(j, A[rows], Z[rows], S[rows], parent, child) for j, rows in rows_of.items()}
+    scale = _noise_scale(fits)
+    S *= scale
     joints, M_estimates = {}, []
-    for j in actions:
-        rows = np.concatenate([ex.at_reference, ex.single[j]])
-        if ex.single[j].size < 2:
-            continue
-        found = _one_joint(j, A[rows], Z[rows], S[rows], parent, child)
+    for j, rows in rows_of.items():
+        found = _one_joint(j, A[rows], Z[rows], S[rows], parent, child, fits[j], scale)
         if found is None:
             continue
         joints[j] = found[0]
@@ -477,9 +474,8 @@ def chain_replacements(model, A, Z, sigma):
         coefficients = [model.params_[form.COUPLING_STORED_AT + c] for c, (a, b) in enumerate(model.couplings)
                         if a != i and b != i]
         best = None
-        # Stuck at the reference, or where the joint was commanded most since the change.
-        stuck = {0.0, float(np.median(A[:, model.actions[i]]) - model.reference[i])}
-        for q in stuck:
+        # Started as if stuck where the joint was commanded in the middle since the change (the fit moves it).
+        for q in (float(np.median(A[:, model.actions[i]]) - model.reference[i]),):
             E = chain_form((model.types[i],)).transforms(
                 np.concatenate([_stored(model.types[i], tuple(s[0] for s in screws[i]) if model.types[i] ==
                                         "revolute" else screws[i][0]), np.zeros(6)])[None], np.array([[[q]]]))[0, 0]

@@ -90,9 +90,10 @@ class JointFitSteps:
             k = suspects[-1] if best is None else best[1]
             entry = self._pool.tracked[self._tree[k]]
             self._bootstrap.veto(entry.id)
-            # Its two parts may be joined by more joints than any layer holds (a tool seen past six of them).
+            # Its two parts may be joined by more joints than any layer holds (a tool seen past six of them): their
+            # chain, identified again every few samples while an edge of theirs leaves a part unexplained.
             self._bootstrap.identify_pair_chain(entry.parent, entry.child, self._tree, step, events,
-                                                f"{entry.describe()} leaves part {far_part} unexplained")
+                                                f"{entry.describe()} leaves part {far_part} unexplained", growth=0.0)
             why = (f" (vetoed {entry.describe()}: without it the calibrated body scheme explains the absolute "
                    f"observations best)")
             self._tree = self._bootstrap.search(self._tree, step, events, why)

@@ -29,7 +29,7 @@ from .tracked import CANDIDATE, MEMORY, TREE, TrackedModel, nested_models
 __all__ = ["Repair", "Change", "Replacement", "tree_halves", "bridge_relative_complexity"]
 
 #: Chain-consistent samples since the change point before a failed chain's replacements are fitted, and how many
-#: more (at least; a tenth more later) before they are fitted again.
+#: more (at least; a quarter more later) before they are fitted again.
 CHAIN_MIN_SAMPLES = 8
 CHAIN_RETRY = 4
 
@@ -252,7 +252,7 @@ class Repair:
                 samples.append((rec_step, a, targets.Z[0], targets.sigma[0]))
         since = [k for k, item in enumerate(samples) if item[0] >= mismatch.tau]
         tried = self._chain_samples.get(failed.id, 0)
-        if len(since) < max(CHAIN_MIN_SAMPLES, tried + max(CHAIN_RETRY, tried // 10)):
+        if len(since) < max(CHAIN_MIN_SAMPLES, tried + max(CHAIN_RETRY, tried // 4)):
             return
         self._chain_samples[failed.id] = len(since)
         A, Z, S = (np.array([item[k] for item in samples]) for k in (1, 2, 3))

@@ -156,17 +156,17 @@ class _ChainForm:
         if not twists:
             return Z, None
         xi = np.zeros((k, n, 6, cls.N_PARAMS))  # spatial twists (w, v) in the parent frame
+        _, E1, E2 = cls._directions(params)
         for i, (kind, screw) in enumerate(zip(cls.TYPES, screws, strict=True)):
             before, E = partial[i]
+            e1, e2 = E1[:, i], E2[:, i]
             if kind == "revolute":
-                w, p = screw
-                e1, e2 = perpendicular_basis(w)
+                p = screw[1]
                 eta = np.zeros((k, 6, 4))
                 eta[:, :3, 0], eta[:, 3:, 0] = e1, cross3(p, e1)
                 eta[:, :3, 1], eta[:, 3:, 1] = e2, cross3(p, e2)
                 eta[:, 3:, 2], eta[:, 3:, 3] = e1, e2
             else:
-                e1, e2 = perpendicular_basis(screw)
                 eta = np.zeros((k, 6, 2))
                 eta[:, :3, 0], eta[:, :3, 1] = e1, e2
             eta = np.broadcast_to(eta[:, None], (k, n) + eta.shape[1:])
@@ -201,19 +201,26 @@ class _ChainForm:
         return S
 
     @classmethod
+    def _directions(cls, params):
+        """Every joint's unit direction (k, d, 3) and its perpendicular basis ``e1, e2`` (each (k, d, 3)), at once."""
+        W = params[:, np.asarray(cls.STORED_AT)[:, None] + np.arange(3)]
+        return (W, *perpendicular_basis(W))
+
+    @classmethod
     def retract(cls, params, delta):
         """Parameters (k, q) after increments (k, p) (module docstring)."""
         params = np.asarray(params, dtype=float)
         out = params.copy()
-        for kind, at, d in zip(cls.TYPES, cls.STORED_AT, cls.PARAMS_AT, strict=True):
-            w = params[:, at:at + 3]
-            e1, e2 = perpendicular_basis(w)
-            turn = rotvec_matrix(delta[:, d:d + 1] * e1 + delta[:, d + 1:d + 2] * e2)
-            w_new = np.einsum("kij,kj->ki", turn, w)
-            w_new /= np.linalg.norm(w_new, axis=1, keepdims=True)
+        W, E1, E2 = cls._directions(params)
+        d = np.asarray(cls.PARAMS_AT)
+        turns = rotvec_matrix(delta[:, d, None] * E1 + delta[:, d + 1, None] * E2)  # (k, d, 3, 3)
+        W_new = np.einsum("kdij,kdj->kdi", turns, W)
+        W_new /= np.linalg.norm(W_new, axis=2, keepdims=True)
+        for i, (kind, at, d) in enumerate(zip(cls.TYPES, cls.STORED_AT, cls.PARAMS_AT, strict=True)):
+            w_new = W_new[:, i]
             out[:, at:at + 3] = w_new
             if kind == "revolute":
-                p = params[:, at + 3:at + 6] + delta[:, d + 2:d + 3] * e1 + delta[:, d + 3:d + 4] * e2
+                p = params[:, at + 3:at + 6] + delta[:, d + 2:d + 3] * E1[:, i] + delta[:, d + 3:d + 4] * E2[:, i]
                 out[:, at + 3:at + 6] = p - np.sum(p * w_new, axis=1, keepdims=True) * w_new
         n_c = len(cls.COUPLINGS)
         out[:, cls.COUPLING_STORED_AT:cls.COUPLING_STORED_AT + n_c] += delta[:, cls.COUPLING_PARAMS_AT:
