@@ -174,8 +174,8 @@ class Bootstrap:
         """Where the eligible candidates (chains whose joints' order is not decided yet left out) cannot connect the
         parts, identify a chain between the two parts of each pair of components that were observed together most
         (:func:`identify_chain`), from the recorded steps, once that pair's candidates of every layer were tested on
-        a full test window; a chain found is tracked as a fitted candidate of the pair (:meth:`identify_pair_chain`). Up to ``config.max_chain_joints`` joints; 0 or 1 turns chains off. Returns
-        whether a chain was added."""
+        a full test window; a chain found is tracked as a fitted candidate of the pair (:meth:`identify_pair_chain`).
+        Up to ``config.max_chain_joints`` joints; 0 or 1 turns chains off. Returns whether a chain was added."""
         c = self.config
         if c.max_chain_joints < 2 or len(self.history) == 0:
             return False
