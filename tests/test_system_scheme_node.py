@@ -742,7 +742,7 @@ def test_a_tool_seen_past_four_joints_by_a_sensor_at_the_root_is_learnt_as_a_cha
     """A tracker rigid with the base sees one plate on the tool of a 4-joint arm (a sliding joint among them) and
     nothing else: with ``learner.sensor_root`` the node learns the chain through the unmarked links, and its URDF
     has a joint per action, named after it."""
-    from body_scheme_core.learning.chain_search import excursion_plan
+    from body_scheme_core.control import excursion_plan
     from body_scheme_core.transforms import transform_from_xyz_rpy
     from body_scheme_core.world import KinematicTree, random_tree
     from body_scheme_core.world import Marker as PlateMarker
@@ -758,10 +758,12 @@ def test_a_tool_seen_past_four_joints_by_a_sensor_at_the_root_is_learnt_as_a_cha
                    rng.uniform(lo, hi, size=(120, 4))])
     session = make_session(tree, len(A), 1, sigma_trans=0.002, sigma_rot=np.radians(0.5), actions=A)
     # Every sample is learnt, however long identifying a chain takes on a busy machine (live, stale ones are shed).
-    parameters = dict(scheme_parameters(tree), part_ids=[0, 2], max_sample_age=3600.0,
-                      **{"learner.root": 0, "learner.sensor_root": True})
+    parameters = dict(scheme_parameters(tree), part_ids=[0, 2], max_sample_age=3600.0, exploration=True,
+                      exploration_excursions=True, **{"learner.root": 0, "learner.sensor_root": True})
     process = start_node("body_scheme_nodes", "scheme_node", parameters)
     collector = Collector(ros_node)
+    suggested = []
+    ros_node.create_subscription(JointState, "body_scheme/exploration_command", suggested.append, 100)
     assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
     babbler = Babbler(ros_node, session)
 
@@ -771,6 +773,11 @@ def test_a_tool_seen_past_four_joints_by_a_sensor_at_the_root_is_learnt_as_a_cha
 
     assert spin_until(chain_learnt, timeout=300, during=babbler), (collector.structure, process.output())
     assert sorted(collector.structure.edges[0].action_indices) == [0, 1, 2, 3]
+    # While it bootstrapped, the node suggested the middle of the limits, then each joint moved alone.
+    middle = 0.5 * (lo + hi)
+    assert len(suggested) >= 5
+    np.testing.assert_allclose(suggested[0].position, middle)
+    assert all(np.sum(~np.isclose(m.position, middle)) == 1 for m in suggested[1:5])
     client = ros_node.create_client(GetRobotDescription, "/scheme_node/get_urdf")
     assert client.wait_for_service(timeout_sec=10)
     future = client.call_async(GetRobotDescription.Request())

@@ -60,7 +60,7 @@ class SchemeExplorer:
             self.policy = ExplorationPolicy(settings.action_lower, settings.action_upper,
                                             settings.exploration_candidates,
                                             travel_weight=settings.exploration_travel_weight,
-                                            noise=noise)
+                                            noise=noise, excursions=settings.exploration_excursions)
             self.pub_command = node.create_publisher(JointState, "body_scheme/exploration_command", 10)
             if settings.exploration_camera_info:
                 create_sized_subscription(  # best effort: matches either publisher

@@ -66,6 +66,7 @@ tf_prefix : string ""                 prefix of the TF frames and URDF links; jo
 view_period : double 0.1 s            markers, poses and /tf at most this often
 exploration : bool false, exploration_candidates : int 64, exploration_travel_weight : double 0.0
                                       suggest the next command (see body_scheme/exploration_command)
+exploration_excursions : bool false   while bootstrapping, first each joint alone, then pairs (chains from scratch)
 exploration_camera_info : string ""   CameraInfo topic: suggest only postures whose markers are predicted inside
                                       the image, 10 % in from each border ("" = no view constraint)
 state_dir : string ""                 directory of ~/save and ~/load names ("" = the checkpoint's directory, else

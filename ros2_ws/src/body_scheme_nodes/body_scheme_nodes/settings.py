@@ -52,7 +52,7 @@ def parameter_defaults(n_joints=1):
         "state_dir": "", "max_state_bytes": 64 * 1024 * 1024,
         "queue_depth": 1000, "max_inbox": 2000, "max_pending_samples": 500, "max_sample_age": 5.0,
         "tf_prefix": "", "view_period": 0.1, "exploration": False, "exploration_candidates": 64,
-        "exploration_travel_weight": 0.0, "exploration_camera_info": "",
+        "exploration_travel_weight": 0.0, "exploration_camera_info": "", "exploration_excursions": False,
         "max_message_bytes": MessageLimits().max_bytes, "max_joint_names": MessageLimits().max_joint_names,
         "max_markers": MessageLimits().max_markers, "service_queue_depth": 100, "max_waiting_requests": 20,
     }
@@ -130,6 +130,7 @@ class SchemeSettings:
     exploration_candidates: int = 64
     exploration_travel_weight: float = 0.0
     exploration_camera_info: str = ""
+    exploration_excursions: bool = False
 
     #: What scheme_node does with a zero-stamped message: stamp it with its receipt time, or refuse it.
     UNSTAMPED_POLICIES = ("receipt_time", "reject")
@@ -178,8 +179,9 @@ class SchemeSettings:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value <= 1.0):
                 raise InvalidInputError(f"{name} must be a number from 0 to 1 (m or rad; 0 for both: the URDF "
                                         f"exact), got {value!r}")
-        if not isinstance(self.exploration, bool):
-            raise InvalidInputError(f"exploration must be true or false, got {self.exploration!r}")
+        for name in ("exploration", "exploration_excursions"):
+            if not isinstance(getattr(self, name), bool):
+                raise InvalidInputError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if isinstance(self.exploration_candidates, bool) or not isinstance(self.exploration_candidates, int) or \
                 not 1 <= self.exploration_candidates <= 100_000:
             raise InvalidInputError(f"exploration_candidates must be an integer from 1 to 100,000, got "

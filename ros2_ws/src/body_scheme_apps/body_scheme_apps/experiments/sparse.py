@@ -5,9 +5,9 @@ with one marker plate on its base and one on its tool (:func:`plated_robot`), no
 640 x 480 camera's noise from 2 m (:data:`NOISE`: 1 mm per axis across the ray, 15 mm along it, 3 deg), every plate
 seen. The learner is given no noise value.
 
-- ``<robot>`` (from scratch): the learner's excursion plan (:func:`~body_scheme_core.learning.chain_search.
-  excursion_plan`: a reference posture in the middle of the joint ranges, 4 excursions of each joint over 40 % of its
-  range, one posture per pair of joints), then uniform commands, :data:`N_STEPS` in all. *True chain*: the body scheme
+- ``<robot>`` (from scratch): the excursion plan (:func:`~body_scheme_core.control.exploration.excursion_plan`: a
+  reference posture in the middle of the joint ranges, 4 excursions of each joint over 40 % of its range, one posture
+  per pair of joints), then uniform commands, :data:`N_STEPS` in all. *True chain*: the body scheme
   is one chain with the arm's joints and types in the arm's order, up to neighbours whose screws commute
   (:func:`~body_scheme_core.learning.chain_search.same_chain`); *held-out error*: the median distance between the
   predicted and the true tool plate position over :data:`N_HELDOUT` uniform commands never commanded, at the end;
@@ -36,9 +36,9 @@ import pathlib
 import numpy as np
 
 from body_scheme_apps.experiments.runner import aggregate
-from body_scheme_core.control import ExplorationPolicy
+from body_scheme_core.control import ExplorationPolicy, excursion_plan
 from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
-from body_scheme_core.learning.chain_search import excursion_plan, same_chain
+from body_scheme_core.learning.chain_search import same_chain
 from body_scheme_core.models import EngineeredModel, chain_from_engineered
 from body_scheme_core.transforms import transform_from_rotvec, transform_from_xyz_rpy
 from body_scheme_core.world import Fault, KinematicTree, Marker, ObservationModel, default_world2root, make_session

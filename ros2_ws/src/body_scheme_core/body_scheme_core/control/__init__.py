@@ -7,7 +7,7 @@ to teach the learner the most (:mod:`.exploration`, the paper's future work), an
 
 from __future__ import annotations
 
-from .exploration import PAPER_NOISE, ExplorationPolicy, NearFocus, explore_near, in_camera_view
+from .exploration import PAPER_NOISE, ExplorationPolicy, NearFocus, excursion_plan, explore_near, in_camera_view
 from .ik import IKResult, solve_ik, trained_bounds
 from .motion import SafetyLimits, SettleDetector, path_samples, trajectory_duration
 
@@ -16,6 +16,7 @@ __all__ = [
     "solve_ik",
     "trained_bounds",
     "ExplorationPolicy",
+    "excursion_plan",
     "NearFocus",
     "PAPER_NOISE",
     "explore_near",

@@ -12,7 +12,9 @@ arm's posture:
   by where the body scheme is used (I-optimal), on every rigid-joint model of a learned tree rather than a known chain;
 - with a body scheme without it (GP or engineered edges only): the predicted positional variance summed over the
   parts (:meth:`BodyScheme.predict_batch <body_scheme_core.prediction.scheme.BodyScheme.predict_batch>`);
-- without one (pass None while the learner is bootstrapping): a uniform draw, random babbling. Measured, both the
+- without one (pass None while the learner is bootstrapping): a uniform draw, random babbling; with ``excursions``
+  first the postures of :func:`excursion_plan` (each joint moved alone from a reference posture, then pairs): what
+  identifies a chain through unmarked links from scratch (a tool observed past six joints). Measured, both the
   candidate farthest from every command seen so far and the most uncertain posture of the provisional body scheme
   made bootstrapping slower than random babbling (7-joint arm, 6 seeds: 180 and 97 commands until the end effector
   was predicted within the noise, against 75; ``docs/RESULTS.md``, explore): they pick the corners of the joint
@@ -31,12 +33,14 @@ answer it is unsure of); :class:`NearFocus` does it one suggestion at a time, fo
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from ..errors import InvalidInputError
 from ..prediction import parameter_jacobian
 
-__all__ = ["ExplorationPolicy", "NearFocus", "PAPER_NOISE", "explore_near", "in_camera_view"]
+__all__ = ["ExplorationPolicy", "NearFocus", "PAPER_NOISE", "excursion_plan", "explore_near", "in_camera_view"]
 
 #: The camera's positional noise per axis (m) the policy assumes by default: the paper's 44 mm 3D RMS.
 PAPER_NOISE = 0.044 / np.sqrt(3.0)
@@ -68,6 +72,10 @@ class ExplorationPolicy:
         The camera's positional noise per axis (m) in the expected fall of the variance.
     n_reference : int
         Postures drawn uniformly within the limits (once, first from ``rng``) over which the variance should fall.
+    excursions : bool
+        Without a body scheme, first suggest the middle of the limits and the feasible postures of
+        :func:`excursion_plan` about it (4 excursions of each joint over 40 % of its range, then one posture per pair
+        of joints).
 
     Raises
     ------
@@ -76,7 +84,7 @@ class ExplorationPolicy:
     """
 
     def __init__(self, lower, upper, n_candidates=256, feasible=None, travel_weight=0.0, rng=None,
-                 noise=PAPER_NOISE, n_reference=64):
+                 noise=PAPER_NOISE, n_reference=64, excursions=False):
         self.lower, self.upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
         if (self.lower.shape != self.upper.shape or self.lower.ndim != 1 or not np.all(np.isfinite(self.lower))
                 or not np.all(np.isfinite(self.upper)) or np.any(self.lower > self.upper)):
@@ -100,6 +108,10 @@ class ExplorationPolicy:
         self._scale = np.where(self.upper > self.lower, self.upper - self.lower, 1.0)
         #: Suggestions that found no feasible candidate (None was returned).
         self.n_infeasible = 0
+        #: The excursions still to suggest while there is no body scheme (``excursions``).
+        middle = 0.5 * (self.lower + self.upper)
+        self.plan = [middle, *excursion_plan(middle, self.lower, self.upper, range(self.lower.size), values=3,
+                                             span=0.4, rng=self.rng)] if excursions else []
 
     def suggest(self, scheme=None, current=None, near=None, radius=0.1, feasible=None):
         """The next command (m,), or None when no candidate is feasible (counted in :attr:`n_infeasible`).
@@ -120,6 +132,10 @@ class ExplorationPolicy:
             A constraint of this call only, on top of the policy's own (e.g. :func:`in_camera_view` of the current
             body scheme).
         """
+        if scheme is None and near is None and self.plan:
+            command = self._next_excursion(feasible)
+            if command is not None:
+                return command
         lower, upper, reference = self.lower, self.upper, self.reference
         if near is not None:
             near = np.asarray(near, dtype=float)
@@ -143,6 +159,16 @@ class ExplorationPolicy:
             travel = np.linalg.norm((C - np.asarray(current, dtype=float)) / self._scale, axis=1)
             score = score - self.travel_weight * travel
         return C[int(np.argmax(score))]
+
+    def _next_excursion(self, feasible):
+        """The next posture of the plan that the constraints accept (infeasible ones are skipped), or None."""
+        while self.plan:
+            command = self.plan.pop(0)
+            ok = all(constraint is None or bool(np.asarray(constraint(command[None]), dtype=bool).reshape(-1)[0])
+                     for constraint in (self.feasible, feasible))
+            if ok:
+                return command
+        return None
 
     def information(self, C, scheme=None, reference=None):
         """Each candidate's score (k,), scaled to mean 1 (see the module docstring); all 1 without a scheme.
@@ -301,3 +327,37 @@ def explore_near(learner, policy, actions, observe, n_samples=5, radius=0.1):
         events += learner.update(a, observe(a))
         current = a
     return events + learner.recalibrate()
+
+
+def excursion_plan(reference, lower, upper, actions, values=3, span=0.5, rng=None):
+    """Postures that identify a chain through unmarked links from scratch
+    (:func:`~body_scheme_core.learning.chain_search.identify_chain`): excursions of each action from ``reference``
+    (spread over ``span`` of its range, within the limits), then one posture per pair of actions in a random order:
+    ``values + 1`` evenly spread excursions of each action (one fewer where one falls on the reference).
+
+    Returns
+    -------
+    postures : ndarray, shape (k, m)
+    """
+    rng = np.random.default_rng(rng)
+    reference = np.asarray(reference, dtype=float)
+    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    if reference.shape != lower.shape or not np.all((lower <= reference) & (reference <= upper)):
+        raise InvalidInputError("the reference posture must lie within the limits")
+    out = []
+    for j in actions:
+        half = 0.5 * span * (upper[j] - lower[j])
+        for v in np.linspace(-half, half, values + 1):
+            if abs(v) < 1e-12:
+                continue
+            a = reference.copy()
+            a[j] = np.clip(reference[j] + v, lower[j], upper[j])
+            out.append(a)
+    pairs = list(itertools.combinations(actions, 2))
+    rng.shuffle(pairs)
+    for j1, j2 in pairs:
+        a = reference.copy()
+        for j in (j1, j2):
+            a[j] = rng.uniform(lower[j], upper[j])
+        out.append(a)
+    return np.array(out).reshape(-1, reference.size)

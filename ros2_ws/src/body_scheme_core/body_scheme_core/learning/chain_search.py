@@ -10,7 +10,8 @@ the other's screw and which of the two comes first. The order of the whole chain
 samples in which several joints moved, found by insertion and swaps of neighbours (:func:`best_order`), and the chain
 is refined on every sample (:meth:`~body_scheme_core.models.chain.ChainModel.fit`).
 
-The learner proposes such excursions itself while it bootstraps a chain (:func:`excursion_plan`); a user's calibration
+The exploration policy proposes such excursions while the learner bootstraps
+(:func:`~body_scheme_core.control.exploration.excursion_plan`); a user's calibration
 data often consists of them already (one joint swept at a time).
 """
 
@@ -22,11 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..errors import BodySchemeError, InvalidInputError
+from ..errors import BodySchemeError
 from ..models import ChainModel, PrismaticModel, RevoluteModel, chain_form, pose_residuals
 from ..transforms import chordal_mean, invert_transform, rotation_log, rotvec_matrix, transform_from_rotvec
 
-__all__ = ["Excursions", "find_excursions", "JointScrew", "identify_chain", "best_order", "excursion_plan",
+__all__ = ["Excursions", "find_excursions", "JointScrew", "identify_chain", "best_order",
            "register_chain", "chain_replacements", "same_chain", "order_decided", "ORDER_SAMPLES",
            "ChainNotIdentified"]
 
@@ -350,38 +351,6 @@ def _from_pair(j, known, rows, A, Z, S, reference, M, parent, child):
             coupling = -float(q_known @ q_j / (q_j @ q_j)) if hypothesis == "coupled" else None
             best = (found[0], coupling)
     return best
-
-
-def excursion_plan(reference, lower, upper, actions, values=3, span=0.5, rng=None):
-    """Postures that identify a chain from scratch: ``values`` excursions of each action from ``reference`` (spread
-    over ``span`` of its range, within the limits), then one posture per pair of actions in a random order.
-
-    Returns
-    -------
-    postures : ndarray, shape (k, m)
-    """
-    rng = np.random.default_rng(rng)
-    reference = np.asarray(reference, dtype=float)
-    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
-    if reference.shape != lower.shape or not np.all((lower <= reference) & (reference <= upper)):
-        raise InvalidInputError("the reference posture must lie within the limits")
-    out = []
-    for j in actions:
-        half = 0.5 * span * (upper[j] - lower[j])
-        for v in np.linspace(-half, half, values + 1):
-            if abs(v) < 1e-12:
-                continue
-            a = reference.copy()
-            a[j] = np.clip(reference[j] + v, lower[j], upper[j])
-            out.append(a)
-    pairs = list(itertools.combinations(actions, 2))
-    rng.shuffle(pairs)
-    for j1, j2 in pairs:
-        a = reference.copy()
-        for j in (j1, j2):
-            a[j] = rng.uniform(lower[j], upper[j])
-        out.append(a)
-    return np.array(out)
 
 
 def register_chain(model, A, Z, sigma, starts=8, rng=0):

@@ -204,3 +204,25 @@ def test_a_joint_fit_on_demand_that_fails_is_undone(learned, monkeypatch):
     with pytest.raises(LearnerStepError, match="undone"):
         learner.recalibrate()
     assert learner.to_state() == before
+
+
+def test_with_excursions_it_moves_each_joint_alone_then_pairs_before_babbling():
+    """``excursions``: without a body scheme, the middle of the limits, then each joint alone (4 values), then one
+    posture per pair of joints, skipping what the feasibility callback refuses; then uniform draws again; with a body
+    scheme, no plan."""
+    lower, upper = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 0.5])
+    refuse = np.array([0.0, 0.8, 0.25])  # one excursion of joint 1, refused
+    policy = ExplorationPolicy(lower, upper, 16, rng=0, excursions=True,
+                               feasible=lambda C: ~np.all(np.isclose(C, refuse[None], atol=1e-6), axis=1))
+    middle = 0.5 * (lower + upper)
+    commands = [policy.suggest() for _ in range(1 + 3 * 4 + 3 - 1)]
+    np.testing.assert_allclose(commands[0], middle)
+    moved = [np.flatnonzero(~np.isclose(c, middle)) for c in commands[1:]]
+    assert [len(m) for m in moved] == [1] * 11 + [2] * 3
+    assert [int(m[0]) for m in moved[:11]] == [0] * 4 + [1] * 3 + [2] * 4
+    assert not any(np.allclose(c, refuse) for c in commands)
+    assert policy.plan == []
+    assert not np.any(np.isclose(policy.suggest(), middle))  # uniform again
+    with_scheme = ExplorationPolicy(lower, upper, 16, rng=0, excursions=True)
+    assert len(with_scheme.plan) == 16 and with_scheme.suggest(scheme=None, near=middle) is not None
+    assert len(with_scheme.plan) == 16  # a near request does not consume the plan

@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
+from body_scheme_core.control import excursion_plan
 from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 from body_scheme_core.learning.chain_search import (
     ChainNotIdentified,
     chain_replacements,
-    excursion_plan,
     find_excursions,
     identify_chain,
     register_chain,
