@@ -278,11 +278,13 @@ def identify_chain(A, Z, sigma, parent, child, actions, sigma_trans=None, sigma_
     order, _ = best_order(list(joints.values()), M, A[several], Z[several], S[several], ex.reference, couplings)
     hyper = {} if sigma_trans is None else {"sigma_trans": sigma_trans, "sigma_rot": sigma_rot}
 
+    inert = tuple(j for j in rows_of if j not in joints)  # excursions that left the child still
+
     def fitted(order):
         types, pairs, _ = _chain_shape(order, couplings)
         model = ChainModel(parent, child, tuple(j.action for j in order), types,
                            reference=ex.reference[[j.action for j in order]], couplings=pairs,
-                           order_evidence=int(several.size), **hyper)
+                           order_evidence=int(several.size), inert_actions=inert, **hyper)
         return model.fit(A, Z, S, start=_chain_params(order, M, couplings))
 
     model = fitted(order)
@@ -429,7 +431,8 @@ def chain_replacements(model, A, Z, sigma):
     out = []
     try:
         out.append(ChainModel(model.parent, model.child, model.actions, model.types, reference=model.reference,
-                              couplings=model.couplings, order_evidence=model.order_evidence, **hyper)
+                              couplings=model.couplings, order_evidence=model.order_evidence,
+                              inert_actions=model.inert_actions, **hyper)
                    .fit(A, Z, sigma, start=model.params_))
     except (BodySchemeError, np.linalg.LinAlgError, ValueError):
         pass
@@ -463,7 +466,8 @@ def chain_replacements(model, A, Z, sigma):
             try:
                 fit = ChainModel(model.parent, model.child, tuple(model.actions[j] for j in keep),
                                  tuple(model.types[j] for j in keep), reference=model.reference[keep],
-                                 couplings=couplings, order_evidence=model.order_evidence, **hyper
+                                 couplings=couplings, order_evidence=model.order_evidence,
+                                 inert_actions=model.inert_actions, **hyper
                                  ).fit(A, Z, sigma, start=chain_form(tuple(model.types[j] for j in keep),
                                                                      couplings).canonical(start[None])[0])
             except (BodySchemeError, np.linalg.LinAlgError, ValueError):

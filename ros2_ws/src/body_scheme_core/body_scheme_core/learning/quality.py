@@ -74,17 +74,21 @@ def nests(kind_a, actions_a, kind_b, actions_b):
     return bool(nesting_matrix([kind_b, kind_a], [actions_b, actions_a], 1 + max((*actions_a, *actions_b, 0)))[0, 1])
 
 
-def nesting_matrix(kinds, action_sets, n_actions):
-    """``M[k, q] = nests(kinds[q], action_sets[q], kinds[k], action_sets[k])`` for all pairs at once, shape (g, g).
+def nesting_matrix(kinds, action_sets, n_actions, covers=None):
+    """``M[k, q] = nests(kinds[q], covers[q], kinds[k], action_sets[k])`` for all pairs at once, shape (g, g).
 
     :func:`nests` for a group of models, with numpy instead of ``g**2`` calls (a bootstrap pair has about a hundred
-    candidates)."""
+    candidates). ``covers``: the actions each model covers as the nesting one (default its actions; a chain's with
+    those found not to move its child)."""
     flex = np.array([_FLEXIBILITY.get(k, -1) for k in kinds])
     A = np.zeros((len(kinds), n_actions + 1), dtype=np.int64)
     for k, acts in enumerate(action_sets):
         A[k, list(acts)] = 1
-    subset = (A @ (1 - A).T) == 0  # subset[k, q]: the actions of k are among those of q
-    same = subset & subset.T
+    C = A.copy()
+    for k, acts in enumerate(action_sets if covers is None else covers):
+        C[k, list(acts)] = 1
+    subset = (A @ (1 - C).T) == 0  # subset[k, q]: the actions of k are among those q covers
+    same = subset & (((1 - A) @ C.T) == 0)
     kind_q, kind_k = np.asarray(kinds, dtype=object)[None, :], np.asarray(kinds, dtype=object)[:, None]
     more_flexible = flex[None, :] > flex[:, None]
     known = (flex[None, :] >= 0) & (flex[:, None] >= 0)

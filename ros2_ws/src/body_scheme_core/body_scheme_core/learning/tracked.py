@@ -199,7 +199,8 @@ def nested_models(models):
 
     ``sup`` nests ``sub`` when it can represent everything ``sub`` can
     (:func:`~body_scheme_core.learning.quality.nests`): a model class at least as flexible and a superset of the
-    actions. These are the pairs the dominance rule compares.
+    actions, a chain's actions counted with those found not to move its child (``inert_actions``). These are the
+    pairs the dominance rule compares.
 
     Parameters
     ----------
@@ -212,10 +213,13 @@ def nested_models(models):
     groups = {}
     for k, e in enumerate(models):
         groups.setdefault((e.parent, e.child, e.target), []).append(k)
-    n_actions = max((max(e.actions, default=0) for e in models), default=0) + 1
+    # As the nesting one, a chain also covers the actions its identification found not to move its child.
+    covers = [(*e.actions, *getattr(e.model, "inert_actions", ())) for e in models]
+    n_actions = max((max(acts, default=0) for acts in covers), default=0) + 1
     sub, sup = [np.zeros(0, dtype=np.intp)], [np.zeros(0, dtype=np.intp)]
     for members in groups.values():
-        nest = nesting_matrix([models[k].kind for k in members], [models[k].actions for k in members], n_actions)
+        nest = nesting_matrix([models[k].kind for k in members], [models[k].actions for k in members], n_actions,
+                              [covers[k] for k in members])
         k, q = np.nonzero(nest)
         members = np.asarray(members, dtype=np.intp)
         sub.append(members[k])

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 
 import numpy as np
 
@@ -52,6 +53,8 @@ from .rigid_fit import fit_rms, least_squares_fit
 __all__ = ["ChainModel", "chain_form", "chain_from_engineered", "prior_covariance", "JOINT_TYPES",
            "screw_transforms"]
 
+#: Most actions a chain records as inert (found not to move its child).
+MAX_INERT_ACTIONS = 1000
 #: Joint types of a chain and their degrees of freedom in a local increment.
 JOINT_TYPES = {"revolute": 4, "prismatic": 2}
 #: Stored numbers per joint type.
@@ -334,6 +337,9 @@ class ChainModel(RigidJointModel):
     order_evidence : int
         Samples in which several of its joints moved when the chain was identified: with fewer than about two per
         joint their order was not determined by data (a learner then does not freeze it).
+    inert_actions : tuple of int
+        Actions the identification found not to move the child (their excursions left it still): a model of the same
+        pair that uses them besides some of the chain's actions is nested by the chain (the dominance rule).
     sigma_trans, sigma_rot, f_scale : float
         See :class:`~body_scheme_core.models.rigid.RigidJointModel`.
     """
@@ -342,11 +348,19 @@ class ChainModel(RigidJointModel):
     class_rank = 2
 
     def __init__(self, parent, child, actions, types, reference=None, couplings=(), order_evidence=0,
-                 **hyperparameters):
+                 inert_actions=(), **hyperparameters):
         super().__init__(parent, child, actions, **hyperparameters)
         if isinstance(order_evidence, bool) or not isinstance(order_evidence, int) or order_evidence < 0:
             raise InvalidInputError(f"order_evidence must be a count, got {order_evidence!r}")
         self.order_evidence = order_evidence
+        try:
+            inert = tuple(sorted({operator.index(a) for a in inert_actions}))
+        except TypeError:
+            raise InvalidInputError(f"inert_actions must be action indices, got {inert_actions!r:.80}") from None
+        if any(a < 0 or a in self.actions for a in inert) or len(inert) > MAX_INERT_ACTIONS:
+            raise InvalidInputError(f"inert_actions must be up to {MAX_INERT_ACTIONS} indices >= 0 outside the "
+                                    f"chain's actions, got {inert_actions!r:.80}")
+        self.inert_actions = inert
         if len(set(self.actions)) != len(self.actions):
             raise InvalidInputError(f"a chain's actions must be distinct, got {self.actions}")
         self.types = tuple(types)
@@ -409,7 +423,7 @@ class ChainModel(RigidJointModel):
     def _hyperparameters(self):
         return {**super()._hyperparameters(), "types": list(self.types),
                 "reference": [float(v) for v in self.reference], "couplings": [list(c) for c in self.couplings],
-                "order_evidence": self.order_evidence}
+                "order_evidence": self.order_evidence, "inert_actions": list(self.inert_actions)}
 
     @classmethod
     def _unfitted_from_dict(cls, data):

@@ -9,6 +9,7 @@ from body_scheme_core.learning.quality import (
     RANK_PENALTY,
     class_rank,
     model_cost,
+    nesting_matrix,
     nests,
     prediction_errors,
     relative_complexity,
@@ -72,3 +73,15 @@ def test_nesting_follows_flexibility_and_actions():
     assert nests("gp", (1, 2, 3), "chain", (1, 2, 3)) and nests("chain", (1, 2, 3), "gp", (1, 3))
     assert not nests("chain", (1, 2), "gp", (1, 2)) and not nests("chain", (1, 2), "chain", (1, 2))
     assert not nests("chain", (1, 2), "revolute", (3,))
+
+
+def test_a_chain_covers_the_actions_found_not_to_move_its_child_only_as_the_nesting_model():
+    """A chain of a0..a2 that found a3 inert nests a GP of a0 and the inert a3 (a dummy action fitted to noise), but
+    a chain that lacks a3 for that reason is nested by one of a0..a3, never the other way round."""
+    kinds = ["chain", "gp", "chain"]
+    actions = [(0, 1, 2), (0, 3), (0, 1, 2, 3)]
+    covers = [(0, 1, 2, 3), (0, 3), (0, 1, 2, 3)]
+    M = nesting_matrix(kinds, actions, 4, covers)
+    assert M[1, 0] and M[1, 2]  # the GP is nested by both chains
+    assert M[0, 2] and not M[2, 0]  # the chain of a0..a2 by the one of a0..a3 only
+    assert not nesting_matrix(kinds, actions, 4)[1, 0]  # without covers: no
