@@ -7,7 +7,8 @@
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json)
 #   make docs    the API reference of body_scheme_core, HTML from its numpydoc docstrings (out/docs/html; warnings fail)
 #   make stress  the learner's property-based stress test on random bodies, >= 100,000 steps (out/stress/stress.json)
-#   make fuzz    scheme_node under 10,000+ hostile and valid messages over DDS (writes out/fuzz/fuzz.json)
+#   make fuzz    scheme_node under 10,000+ hostile and valid messages over DDS (writes out/fuzz/fuzz.json), and
+#                3,000 mutations of saved state files
 #   make bags    regenerate the sample babbling sessions in bags/ (see bags/README.md)
 #   make replay  learn offline from bags/joint_blocked_seed0, write out/replay/joint_blocked_seed0 (report + plot)
 #
@@ -58,9 +59,11 @@ $(STAMPS)/build: $(STAMPS)/cmake-fixed $(PKG_SOURCES) $(PYPI_INTERFACE_SOURCES)
 	  --base-paths src $$extra --cmake-args -DBUILD_TESTING=OFF
 	touch $@
 
-# Every test (pytest over each package's test/ and the cross-package tests/) plus lint.
+# Every test (pytest over each package's test/ and the cross-package tests/) plus lint: the tests without DDS on
+# every core, then the DDS system tests one at a time (each starts its own node processes).
 test: build
-	$(RUN) python -m pytest
+	$(RUN) python -m pytest -m "not system" -n auto
+	$(RUN) python -m pytest -m system
 	$(MAKE) --no-print-directory lint
 
 # The inner loop: every test but the DDS system tests and the ones marked slow, on every core (target: under 90 s).
@@ -103,6 +106,8 @@ stress: build
 # Hostile input over DDS: every refusal counted exactly, the same tree as without it (tests run a 3,000-message one).
 fuzz: build
 	$(RUN) python -m body_scheme_apps.fuzz --messages 11000 --steps 600 --out out/fuzz/fuzz.json
+	$(RUN) BODY_SCHEME_FUZZ_MUTATIONS=3000 python -m pytest -q -p no:cacheprovider --timeout=0 \
+	  ros2_ws/src/body_scheme_core/test/learning/test_state_fuzz.py
 
 # The sample sessions; the commands are the ones in bags/README.md (a test regenerates them and compares).
 bags: build
@@ -120,7 +125,8 @@ replay: build
 experiments: build
 	$(RUN) python -m body_scheme_apps.experiments --runs 20 --rendered-runs 1 --out docs/results --md docs/RESULTS.md
 
-# CI's small version: 2 quick noise runs + 1 quick rendered run each; fails unless every figure is finite and sane.
+# CI's small version: 2 quick noise runs (fewer where an experiment asks for fewer) + 1 quick rendered run each; fails
+# unless every figure is finite and sane.
 experiments-quick: build
 	$(RUN) python -m body_scheme_apps.experiments --quick --runs 2 --rendered-runs 1 --out out/experiments-quick \
 		--md out/experiments-quick/RESULTS.md --check --quiet

@@ -15,8 +15,9 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.sparse`: not in the paper: real arms observed at the tool only, a chain through the unmarked links.
 - :mod:`.realdata`: not in the paper: two public datasets of real arms observed at the tool (when present).
 
-A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``PERCEPTIONS`` (default both
-``"noise"`` and ``"rendered"``), ``NOISE_LEVELS`` (the noise-model runs of one seed, each passed as
+A module may set ``RUNS`` (noise-model runs of a full run, instead of ``--runs``), ``QUICK_RUNS`` (a quick run's,
+if fewer than ``--runs``; default ``RUNS``), ``PERCEPTIONS`` (default both ``"noise"`` and ``"rendered"``),
+``NOISE_LEVELS`` (the noise-model runs of one seed, each passed as
 ``perception``; default ``("noise",)``), ``summarize(runs)`` (its figures from its runs; default: the mean and std of
 every scalar), ``MIN_TARGETS`` (figures where higher is better) and ``NOTES`` (text under its table).
 

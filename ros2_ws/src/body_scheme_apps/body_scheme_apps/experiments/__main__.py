@@ -1,8 +1,9 @@
 """``python -m body_scheme_apps.experiments``: run the paper's experiments and write plots, results.json, RESULTS.md.
 
 ``make experiments``: 20 noise-model runs and 1 rendered-camera run per experiment into ``docs/results/`` and
-``docs/RESULTS.md``. ``make experiments-quick`` (CI): 2 quick noise runs and 1 quick rendered run into
-``out/experiments-quick/``, then checks that every figure is finite and within loose sanity bounds (exit 1 if not).
+``docs/RESULTS.md``. ``make experiments-quick`` (CI): 2 quick noise runs (fewer where the experiment asks for fewer)
+and 1 quick rendered run into ``out/experiments-quick/``, then checks that every figure is finite and within loose
+sanity bounds (exit 1 if not).
 ``--only NAME --keep`` reruns one experiment and keeps the others' figures and plots from the ``results.json`` in
 ``--out`` (the header then sums both runs' seconds and names the commit of this one).
 """
@@ -37,10 +38,7 @@ def _commit():
 
 def _kept(out, rerun):
     """Figures, rendered figures, plots and meta of the experiments not in ``rerun`` from ``out/results.json``."""
-    path = out / "results.json"
-    if not path.is_file():
-        raise SystemExit(f"--keep needs an earlier {path}")
-    old = json.loads(path.read_text())
+    old = json.loads((out / "results.json").read_text())  # there: checked before the runs
     names = [name for name in EXPERIMENTS if name not in rerun]
     figures = {key for name in names for key in experiment_module(name).FIGURES}
     noise = {k: v for k, v in old.items() if k in figures or (k.endswith("_std") and k[:-4] in figures)}
@@ -53,8 +51,8 @@ def main(argv=None):
     """Console entry point."""
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.experiments", description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=20,
-                        help="noise-model runs per experiment (seeds seed..); an experiment may ask for more (RUNS) "
-                             "outside --quick")
+                        help="noise-model runs per experiment (seeds seed..); an experiment may ask for another "
+                             "number (RUNS; with --quick QUICK_RUNS or RUNS, if fewer than --runs)")
     parser.add_argument("--rendered-runs", type=int, default=1, help="rendered-camera runs per experiment")
     parser.add_argument("--quick", action="store_true", help="the experiments' small CI versions")
     parser.add_argument("--only", nargs="+", choices=EXPERIMENTS, default=list(EXPERIMENTS))
@@ -71,9 +69,13 @@ def main(argv=None):
         parser.error("--runs must be >= 1 and --rendered-runs >= 0")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.keep and not (out / "results.json").is_file():
+        raise SystemExit(f"--keep needs an earlier {out / 'results.json'}")  # before minutes of runs, not after
     experiments = {name: experiment_module(name) for name in args.only}
-    run_counts = {name: args.runs if args.quick else getattr(module, "RUNS", args.runs)
-                  for name, module in experiments.items()}
+    run_counts = {name: getattr(module, "RUNS", args.runs) for name, module in experiments.items()}
+    if args.quick:
+        run_counts = {name: min(args.runs, getattr(module, "QUICK_RUNS", run_counts[name]))
+                      for name, module in experiments.items()}
     rendered_runs = {name: args.rendered_runs if "rendered" in getattr(module, "PERCEPTIONS", ("noise", "rendered"))
                      else 0 for name, module in experiments.items()}
     tasks = [Task(name, args.seed + k, variant, args.quick) for name, module in experiments.items()

@@ -13,7 +13,7 @@ the root (``sensor_root``): parts ``0`` (the sensor) and ``1`` (the tool).
 - ``tiago``: a mobile manipulator's prismatic torso and 7-joint arm, a motion-capture body on the hand, static postures
   in random order (no joint ever moves alone). With the robot's public URDF as the prior
   (:data:`TIAGO_URDF`, PAL Robotics, Apache-2.0; the motion-capture bodies' places are registered first,
-  :func:`~body_scheme_core.learning.chain_search.register_chain`), and from scratch (reported: without excursions
+  :func:`~body_scheme_core.learning.register_chain`), and from scratch (reported: without excursions
   no chain can be identified).
 
 Protocol: the poses are split once, a fixed 80 % for training (in their recorded order) and 20 % to test (the
@@ -31,8 +31,7 @@ import pathlib
 
 import numpy as np
 
-from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
-from body_scheme_core.learning.chain_search import register_chain
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner, register_chain
 from body_scheme_core.models import EngineeredModel, chain_from_engineered
 from body_scheme_core.world import KinematicTree, Marker
 

@@ -9,7 +9,7 @@ seen. The learner is given no noise value.
   reference posture in the middle of the joint ranges, 4 excursions of each joint over 40 % of its range, one posture
   per pair of joints), then uniform commands, :data:`N_STEPS` in all. *True chain*: the body scheme
   is one chain with the arm's joints and types in the arm's order, up to neighbours whose screws commute
-  (:func:`~body_scheme_core.learning.chain_search.same_chain`); *held-out error*: the median distance between the
+  (:func:`~body_scheme_core.learning.same_chain`); *held-out error*: the median distance between the
   predicted and the true tool plate position over :data:`N_HELDOUT` uniform commands never commanded, at the end;
   *poses*: the first step (every :data:`EVERY`) from which the held-out error stays within :data:`TARGET_MM`
   (:data:`N_STEPS` + 1 when never).
@@ -37,16 +37,16 @@ import numpy as np
 
 from body_scheme_apps.experiments.runner import aggregate
 from body_scheme_core.control import ExplorationPolicy, excursion_plan
-from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
-from body_scheme_core.learning.chain_search import same_chain
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner, same_chain
 from body_scheme_core.models import EngineeredModel, chain_from_engineered
 from body_scheme_core.transforms import transform_from_rotvec, transform_from_xyz_rpy
 from body_scheme_core.world import Fault, KinematicTree, Marker, ObservationModel, default_world2root, make_session
 
-__all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERCEPTIONS", "NOISE_LEVELS", "run",
-           "summarize", "plot", "plated_robot"]
+__all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "QUICK_RUNS", "PERCEPTIONS",
+           "NOISE_LEVELS", "run", "summarize", "plot", "plated_robot"]
 
 RUNS = 20
+QUICK_RUNS = 1  # ten variants: one quick run of each is CI's sanity check
 PERCEPTIONS = ("noise",)
 #: Robot name -> (URDF in pybullet_data, the tool's link).
 ROBOTS = {"panda": ("franka_panda/panda.urdf", "panda_hand"), "iiwa": ("kuka_iiwa/model.urdf", "lbr_iiwa_link_7"),

@@ -20,6 +20,7 @@ from __future__ import annotations
 from .adaptation import Adaptation
 from .bootstrap import SUSPECT_RATIO, Bootstrap
 from .chain import ChainTargets
+from .chain_search import identify_chain, register_chain, same_chain
 from .challengers import Challengers
 from .config import BodySchemeConfig
 from .detection import Detection, Mismatch, upstream_edges
@@ -134,6 +135,9 @@ __all__ = [
     "least_recently_used",
     "Adaptation",
     "ChainTargets",
+    "identify_chain",
+    "register_chain",
+    "same_chain",
     "still_part",
     "RootPoseEstimator",
     "RootWatch",
