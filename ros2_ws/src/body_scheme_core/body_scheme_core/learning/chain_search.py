@@ -439,7 +439,7 @@ def chain_replacements(model, A, Z, sigma):
     k = len(model.actions)
     if k < 2:
         return out
-    screws, M = form._unpack(model.params_[None])
+    screws, M = model.screws()
     for i in range(k):
         keep = [j for j in range(k) if j != i]
         couplings = tuple((keep.index(a), keep.index(b)) for a, b in model.couplings if a != i and b != i)
@@ -449,18 +449,17 @@ def chain_replacements(model, A, Z, sigma):
         # Started as if stuck where the joint was commanded in the middle since the change (the fit moves it).
         for q in (float(np.median(A[:, model.actions[i]]) - model.reference[i]),):
             E = chain_form((model.types[i],)).transforms(
-                np.concatenate([_stored(model.types[i], tuple(s[0] for s in screws[i]) if model.types[i] ==
-                                        "revolute" else screws[i][0]), np.zeros(6)])[None], np.array([[[q]]]))[0, 0]
+                np.concatenate([_stored(model.types[i], screws[i]), np.zeros(6)])[None], np.array([[[q]]]))[0, 0]
             joints = []
             for j in keep:
-                screw = tuple(s[0] for s in screws[j]) if model.types[j] == "revolute" else screws[j][0]
+                screw = screws[j]
                 if j > i:  # the joints after the stuck one turn with it
                     if model.types[j] == "revolute":
                         screw = (E[:3, :3] @ screw[0], E[:3, :3] @ screw[1] + E[:3, 3])
                     else:
                         screw = E[:3, :3] @ screw
                 joints.append(JointScrew(model.actions[j], model.types[j], screw, 0.0))
-            start_M = E @ M[0]
+            start_M = E @ M
             start = np.concatenate([_stored(jt.kind, jt.screw) for jt in joints] + [coefficients]
                                    + [start_M[:3, 3], rotation_log(start_M[None, :3, :3])[0]])
             try:
@@ -496,9 +495,7 @@ def same_chain(model, truth):
     neighbours whose screws commute (two sliding joints, say): the order a tool's observations can tell."""
     if sorted(zip(model.actions, model.types, strict=True)) != sorted(zip(truth.actions, truth.types, strict=True)):
         return False
-    screws, _ = truth.form._unpack(truth.params_[None])
-    screws = [tuple(s[0] for s in screw) if kind == "revolute" else screw[0]
-              for kind, screw in zip(truth.types, screws, strict=True)]
+    screws, _ = truth.screws()
     at = {a: k for k, a in enumerate(model.actions)}
     for i, j in itertools.combinations(range(len(truth.actions)), 2):
         if not _commute(truth.types[i], screws[i], truth.types[j], screws[j]) and \

@@ -374,6 +374,14 @@ class ChainModel(RigidJointModel):
             raise InvalidInputError(f"reference must be {len(self.actions)} finite action values, got {reference}")
         self.reference = reference
 
+    def screws(self):
+        """The fitted joints' screws in the parent frame at the reference posture, in order (revolute ``(w, p)``: the
+        unit axis and a point of it; prismatic ``d``: the unit direction), and the reference pose ``M`` (4, 4)."""
+        self._check_fitted()
+        screws, M = self.form._unpack(self.params_[None])
+        return [tuple(s[0] for s in screw) if kind == "revolute" else screw[0]
+                for kind, screw in zip(self.types, screws, strict=True)], M[0]
+
     def _x(self, A):
         """Joint values (n, d) of full action vectors (validated)."""
         return self._select(A) - self.reference

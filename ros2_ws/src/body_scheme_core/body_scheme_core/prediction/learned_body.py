@@ -117,16 +117,12 @@ def _chain_joints(model, inverted):
     """A chain's joints in the tree's direction: ``[(action, kind, w or d, p or None, reference)]`` in the parent
     marker frame at the reference posture, its couplings ``[(i, j, c)]`` (chain positions) and ``M``. An inverted
     edge reverses the chain: ``M^-1 exp(-Ad_{M^-1} S_k q_k) ... exp(-Ad_{M^-1} S_1 q_1)``."""
-    screws, M = model.form._unpack(model.params_[None])
-    M = M[0]
+    screws, M = model.screws()
     at = model.form.COUPLING_STORED_AT
     couplings = [(i, j, float(model.params_[at + c])) for c, (i, j) in enumerate(model.couplings)]
     joints = []
     for k, (kind, screw) in enumerate(zip(model.types, screws, strict=True)):
-        if kind == "revolute":
-            w, p = screw[0][0], screw[1][0]
-        else:
-            w, p = screw[0], None
+        w, p = screw if kind == "revolute" else (screw, None)
         joints.append((model.actions[k], kind, w, p, float(model.reference[k])))
     if not inverted:
         return joints, couplings, M
