@@ -7,12 +7,15 @@ import multiprocessing
 import pathlib
 import time
 
+import numpy as np
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool
 
+from body_scheme_apps.other_stacks import write_layout
+from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import BodySchemeStructure, SchemeEvent
 from body_scheme_nodes.offline_replay import default_params_file, replay_bag
 from body_scheme_nodes.settings import SchemeSettings
@@ -92,3 +95,26 @@ def test_replay_through_the_graph_equals_the_offline_replay(start_node, ros_node
     assert received == expected_events
     assert collector.structure.phase == phase
     print(f"through-graph replay of {n_steps} steps: {replay_seconds:.1f} s until bag_replay/done")
+
+
+@pytest.mark.parametrize("layout", ["aruco_ros", "apriltag_ros", "mocap", "csv"])
+def test_other_stacks_recordings_replay_through_the_nodes_to_the_true_tree(layout, start_node, ros_node, spin_until,
+                                                                            tmp_path):
+    """bag_replay with a source map feeds another stack's recording (tags on /tf, a motion-capture PoseStamped per
+    body, a table) to scheme_node, which learns the true tree."""
+    tree = planar_2dof()
+    session = make_session(tree, 60, seed=0, sigma_trans=0.01, sigma_rot=np.radians(3.0))
+    recording, map_path, params = write_layout(session, tmp_path / layout, layout)
+    collector = Collector(ros_node)
+    parameters = yaml.safe_load(params.read_text())["/**"]["ros__parameters"]
+    scheme = start_node("body_scheme_nodes", "scheme_node", parameters)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), scheme.output()
+    replay = start_node("body_scheme_nodes", "bag_replay", {"bag_path": str(recording), "source_map": str(map_path),
+                                                             "rate": 0.0, "start_delay": 0.5})
+    assert spin_until(lambda: collector.done is not None, timeout=40, progress=lambda: collector.step), (
+        replay.output(), scheme.output())
+    assert collector.done is True and "samples 60" in replay.output(), replay.output()
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    assert spin_until(lambda: collector.step == 60, timeout=60, progress=lambda: collector.step), scheme.output()
+    assert spin_until(lambda: {frozenset((e.parent_id, e.child_id)) for e in collector.structure.edges} == true_edges,
+                      timeout=10), scheme.output()

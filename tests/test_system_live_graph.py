@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from body_scheme_apps.live_demo import domain_id, format_summary, run_live_demo
 
 pytestmark = pytest.mark.system
@@ -57,9 +58,10 @@ def test_live_graph_learns_detects_recovers_and_moves_the_arm(ros_env, tmp_path)
 def assert_recording_decodes(bag, recorded):
     """The demo's mcap decodes channel by channel with the mcap library's ROS 2 support, from its embedded schemas
     alone (as Foxglove reads it), and holds every recorded topic with the counts the recorder wrote."""
-    from body_scheme_apps.live_demo import RECORDED_TOPICS
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
+
+    from body_scheme_apps.live_demo import RECORDED_TOPICS
 
     (path,) = bag.glob("*.mcap")
     counts, kinds = {}, {}

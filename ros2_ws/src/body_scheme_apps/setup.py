@@ -31,6 +31,7 @@ setup(
             "load_bench = body_scheme_apps.load_bench:main",
             "calibrate = body_scheme_apps.calibrate:main",
             "fuzz = body_scheme_apps.fuzz:main",
+            "other_stacks = body_scheme_apps.other_stacks:main",
         ],
     },
 )

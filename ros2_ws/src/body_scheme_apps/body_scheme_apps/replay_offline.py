@@ -46,6 +46,7 @@ from body_scheme_core.errors import BodySchemeError
 from body_scheme_nodes.bag_io import bag_topics
 from body_scheme_nodes.offline_replay import COMMANDS, default_params_file, replay_bag
 from body_scheme_nodes.settings import SchemeSettings
+from body_scheme_nodes.sources import SourceMap
 
 __all__ = ["build_report", "default_part", "fault_blocks", "format_timeline", "format_summary", "plot_errors",
            "main"]
@@ -127,6 +128,7 @@ def build_report(result, bag, part=None):
         "n_commands": result.n_commands, "n_steps": len(steps), "seconds": result.seconds,
         "steps_per_second": len(steps) / result.seconds if result.seconds > 0 else None,
         "rejected": dict(sorted(result.rejected.items())),
+        "imported": None if result.imported is None else dict(sorted(result.imported.items())),
         "steps": steps,
         "events": [event.to_dict() for event in result.events],
         "final": {"phase": learner.phase, "step": learner.step, "root": learner.root,
@@ -187,6 +189,8 @@ def format_summary(report):
                      f"{'valid' if e['valid'] else 'INVALID'}")
     counts = Counter(event["kind"] for event in report["events"])
     lines.append("events: " + (", ".join(f"{kind} {n}" for kind, n in counts.items()) or "none"))
+    if report.get("imported") is not None:
+        lines.append("imported: " + ", ".join(f"{k} {n}" for k, n in report["imported"].items()))
     rejected = report["rejected"]
     lines.append("rejected inputs: " + (", ".join(f"{k} {n}" for k, n in rejected.items()) or "none"))
     part = report["end_effector"]
@@ -275,7 +279,10 @@ def plot_errors(report, path):
 def parser():
     """The command-line interface."""
     p = argparse.ArgumentParser(prog="replay_offline", description=__doc__.split("\n\n")[0])
-    p.add_argument("bag", help="session bag (rosbag2 directory)")
+    p.add_argument("bag", help="session bag (rosbag2 directory), or with --source-map another stack's bag or a table "
+                               "(.csv, .jsonl)")
+    p.add_argument("--source-map", default=None,
+                   help="YAML mapping another stack's topics and frames to joints and bodies (docs/your-data.md)")
     p.add_argument("--params", default=None,
                    help="scheme_node parameter file (default: the shipped config/scheme_node.yaml)")
     p.add_argument("--out", default=None, help="output directory (default: out/replay/<bag name>)")
@@ -293,9 +300,10 @@ def main(argv=None):
     params = pathlib.Path(args.params) if args.params else default_params_file()
     try:
         settings = SchemeSettings.from_yaml(params)
-        n_commands = bag_topics(bag).get(COMMANDS, (None, 0))[1]
+        source_map = SourceMap.from_yaml(args.source_map) if args.source_map else None
+        n_commands = bag_topics(bag).get(COMMANDS, (None, 0))[1] if source_map is None else None
         with tqdm(total=n_commands, desc=f"replaying {bag.name}", unit="step", disable=args.quiet) as bar:
-            result = replay_bag(bag, settings, progress=lambda done: bar.update(done - bar.n))
+            result = replay_bag(bag, settings, progress=lambda done: bar.update(done - bar.n), source_map=source_map)
         if not result.steps:
             raise BodySchemeError(f"no command was paired with an observation (rejected: {dict(result.rejected)}); "
                                   "check the pairing parameters in the parameter file")

@@ -4,9 +4,9 @@ import json
 import math
 
 import pytest
-from body_scheme_apps.calibrate import main
 from urdf_parser_py.urdf import URDF
 
+from body_scheme_apps.calibrate import main
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import save_state
 from body_scheme_core.world import make_session

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from body_scheme_apps import core_demo
 
 

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from body_scheme_apps.experiments import control
 
+from body_scheme_apps.experiments import control
 from body_scheme_core.events import Event
 
 pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)

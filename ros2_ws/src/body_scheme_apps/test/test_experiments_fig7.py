@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from body_scheme_apps.experiments import fig7
 
+from body_scheme_apps.experiments import fig7
 from body_scheme_core.learning.config import BodySchemeConfig
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.models.engineered import engineered_models

@@ -5,6 +5,7 @@ import math
 import types
 
 import pytest
+
 from body_scheme_apps.experiments import runner
 from body_scheme_apps.experiments.__main__ import main
 from body_scheme_apps.experiments.report import met, write_results_md

@@ -3,6 +3,7 @@
 import math
 
 import pytest
+
 from body_scheme_apps.experiments import transmission
 
 pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)

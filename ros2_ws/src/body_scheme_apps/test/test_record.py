@@ -9,8 +9,8 @@ import shlex
 
 import numpy as np
 import pytest
-from body_scheme_apps import record
 
+from body_scheme_apps import record
 from body_scheme_nodes.bag_io import SESSION_TOPICS, read_messages
 
 pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture.md, Tests)

@@ -7,8 +7,8 @@ import pathlib
 
 import pytest
 import yaml
-from body_scheme_apps.replay_offline import default_part, fault_blocks, main
 
+from body_scheme_apps.replay_offline import default_part, fault_blocks, main
 from body_scheme_core.transforms import translational_error
 from body_scheme_nodes.bag_io import read_session, write_session
 from body_scheme_nodes.offline_replay import replay_bag

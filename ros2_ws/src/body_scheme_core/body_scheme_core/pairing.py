@@ -14,6 +14,10 @@ Rejections are counted by reason in :attr:`rejected`: ``out_of_order_command`` (
 ``out_of_order_observation`` (observation older than one already decided), ``no_command`` (no command before it),
 ``stale`` (later than ``max_delay`` after its command), ``settling`` (earlier than ``settle_time`` after it), and
 ``duplicate``.
+
+Recordings of other stacks have no command stream, only measured joint values at a high rate: :func:`still_periods`
+finds where the arm stood still, and each still period becomes one command (the sample is taken once the arm has
+settled, as with our own commands).
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ import numpy as np
 
 from .errors import InvalidInputError
 
-__all__ = ["CommandObservationPairer"]
+__all__ = ["CommandObservationPairer", "still_periods"]
 
 
 class CommandObservationPairer:
@@ -113,3 +117,54 @@ class CommandObservationPairer:
             return None
         self._used[k] = True
         return stamp, self._actions[k], observations
+
+
+def still_periods(stamps, values, tolerance, min_duration):
+    """The periods in which the joint values stood still: one per pose of a recorded session.
+
+    A period starts at a sample and holds every following sample whose values stay within ``tolerance`` of that
+    first one (per joint); it counts if it lasts at least ``min_duration``. Periods do not overlap; motion between
+    them is skipped.
+
+    Parameters
+    ----------
+    stamps : array-like, shape (n,)
+        Seconds, non-decreasing.
+    values : array-like, shape (n, m)
+        Joint values (rad or m).
+    tolerance : float
+        Largest change of any joint within a period (rad or m), > 0.
+    min_duration : float
+        Shortest period, s, >= 0.
+
+    Returns
+    -------
+    periods : list of (float, float, ndarray of shape (m,))
+        ``(start, end, mean values)`` per period, in time order.
+
+    Raises
+    ------
+    InvalidInputError
+        For shapes that do not match, stamps that decrease or values that are not finite.
+    """
+    stamps = np.asarray(stamps, dtype=float).reshape(-1)
+    values = np.asarray(values, dtype=float)
+    if values.ndim != 2 or len(values) != len(stamps):
+        raise InvalidInputError(f"need stamps (n,) and values (n, m), got {stamps.shape} and {values.shape}")
+    if not (np.all(np.isfinite(stamps)) and np.all(np.isfinite(values))):
+        raise InvalidInputError("stamps and joint values must be finite")
+    if np.any(np.diff(stamps) < 0):
+        raise InvalidInputError("stamps must not decrease")
+    if not (tolerance > 0 and min_duration >= 0):
+        raise InvalidInputError(f"need tolerance > 0 and min_duration >= 0, got {tolerance}, {min_duration}")
+    periods, i, n = [], 0, len(stamps)
+    while i < n:
+        j = i + 1
+        while j < n and np.max(np.abs(values[j] - values[i])) <= tolerance:
+            j += 1
+        if stamps[j - 1] - stamps[i] >= min_duration:
+            periods.append((float(stamps[i]), float(stamps[j - 1]), values[i:j].mean(axis=0)))
+            i = j
+        else:
+            i += 1
+    return periods

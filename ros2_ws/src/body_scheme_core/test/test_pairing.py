@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.pairing import CommandObservationPairer
+from body_scheme_core.pairing import CommandObservationPairer, still_periods
 
 
 def test_pairs_first_observation_after_each_command():
@@ -51,3 +51,24 @@ def test_invalid_timing_parameters_rejected():
     """max_delay must exceed settle_time."""
     with pytest.raises(InvalidInputError):
         CommandObservationPairer(settle_time=1.0, max_delay=0.5)
+
+
+# ---------------------------------------------------------------------- still periods
+def test_still_periods_find_each_hold_and_skip_motion_and_short_stops():
+    t = np.arange(0.0, 3.0, 0.02)
+    q = np.where(t < 1.0, 0.0, np.where(t < 1.4, (t - 1.0) / 0.4, 1.0))  # hold, move, hold
+    q[(t > 1.1) & (t < 1.2)] = q[(t > 1.1) & (t < 1.2)][0]  # a 0.1 s stop within the move: too short
+    periods = still_periods(t, np.column_stack([q, -q]), tolerance=1e-3, min_duration=0.3)
+    assert [(round(a, 2), round(b, 2)) for a, b, _ in periods] == [(0.0, 1.0), (1.4, 2.98)]
+    np.testing.assert_allclose(periods[1][2], [1.0, -1.0])
+
+
+@pytest.mark.parametrize("stamps, values, tolerance", [
+    ([0.0, 1.0], [[0.0], [np.nan]], 1e-3),     # not finite
+    ([1.0, 0.0], [[0.0], [0.0]], 1e-3),        # stamps decrease
+    ([0.0, 1.0], [0.0, 0.0], 1e-3),            # values not (n, m)
+    ([0.0, 1.0], [[0.0], [0.0]], 0.0),         # tolerance 0
+])
+def test_still_periods_refuse_bad_input(stamps, values, tolerance):
+    with pytest.raises(InvalidInputError):
+        still_periods(stamps, values, tolerance, 0.1)

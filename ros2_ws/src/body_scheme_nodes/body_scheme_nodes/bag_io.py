@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCovarianceStamped, TransformStamped
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, ReaderError, StoragePlugin, Writer
@@ -48,6 +49,8 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
+from trajectory_msgs.msg import JointTrajectory
 
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.world import Session
@@ -81,13 +84,21 @@ _REQUIRED_TOPICS = ("/session/info", "/joint_commands", "/observations", "/groun
 _IMAGE_TOPICS = ("/camera/image_raw", "/camera/camera_info")
 _MSG_PACKAGE = "body_scheme_msgs"
 
-#: Message type name (as stored in the bag) -> rclpy message class, for every type a session bag holds.
+#: Message type name (as stored in the bag) -> rclpy message class: every type a session bag holds, and those of
+#: other stacks' recordings that a source map reads (:mod:`.sources`).
 MESSAGE_CLASSES = {
     "std_msgs/msg/String": String,
     "sensor_msgs/msg/JointState": JointState,
     "sensor_msgs/msg/Image": Image,
     "sensor_msgs/msg/CameraInfo": CameraInfo,
     "body_scheme_msgs/msg/MarkerPoses": MarkerPoses,
+    "trajectory_msgs/msg/JointTrajectory": JointTrajectory,
+    "tf2_msgs/msg/TFMessage": TFMessage,
+    "geometry_msgs/msg/PoseStamped": PoseStamped,
+    "geometry_msgs/msg/PoseWithCovarianceStamped": PoseWithCovarianceStamped,
+    "geometry_msgs/msg/TransformStamped": TransformStamped,
+    "geometry_msgs/msg/PoseArray": PoseArray,
+    "geometry_msgs/msg/PointStamped": PointStamped,
 }
 
 # What a damaged file raises inside rosbags while reading (chunks that do not decompress, records cut short, message

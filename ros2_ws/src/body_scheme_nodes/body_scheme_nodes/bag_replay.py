@@ -34,6 +34,13 @@ that was stale in the original (older than ``max_delay``) can become fresh, and 
 command) and the default pairing (``settle_time`` 0, ``max_delay`` 2 s) nothing changes: the replay pairs exactly as
 ``replay_offline`` does and ends with the same body scheme.
 
+Other stacks' recordings (``source_map``)
+-----------------------------------------
+With ``source_map`` (a YAML file, :mod:`.sources`), ``bag_path`` is another stack's bag (aruco_ros or apriltag_ros
+on ``/tf``, motion capture, ...) or a table (``.csv``, ``.jsonl``): it is translated at start into the two streams
+scheme_node learns from, ``joint_commands`` and ``observations`` (one sample per pose at which the arm stood still),
+which are then replayed as above; ``topics`` is not used. What the import dropped is logged by reason.
+
 The node keeps running after the end, so that ``bag_replay/done`` stays available; stop it with Ctrl-C.
 """
 
@@ -51,13 +58,14 @@ from std_msgs.msg import Bool, UInt64
 from body_scheme_core.errors import InvalidInputError
 
 from .bag_io import MESSAGE_CLASSES, BagError, bag_topics, read_messages
+from .sources import SourceMap, translate
 from .spin import run_node
 
 __all__ = ["BagReplay", "DEFAULT_TOPICS", "main"]
 
 DEFAULT_TOPICS = ["/joint_commands", "/observations", "/ground_truth/marker_poses"]
-#: The bag topic whose messages scheme_node counts on body_scheme/progress.
-BACKPRESSURE_TOPIC = "/observations"
+#: The bag topic whose messages scheme_node counts on body_scheme/progress, and the commands' topic.
+BACKPRESSURE_TOPIC, COMMANDS = "/observations", "/joint_commands"
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Seconds between timer ticks; each tick publishes every message that is due.
@@ -84,6 +92,8 @@ class BagReplay(Node):
     max_in_flight : int 3                      rate 0: observation messages published but not yet decided; a
                                                sample waits for about this many learning steps, which must stay
                                                under scheme_node's max_sample_age (5 s) or it is shed
+    source_map : string ""                     YAML mapping another stack's topics or a table to samples
+                                               (module docstring); "" replays our own session bags
 
     Publishers
     ----------
@@ -103,14 +113,24 @@ class BagReplay(Node):
         self.restamp = bool(self.declare_parameter("restamp", True).value)
         self.start_delay = float(self.declare_parameter("start_delay", 1.0).value)
         self.max_in_flight = int(self.declare_parameter("max_in_flight", 3).value)
+        self.source_map = self.declare_parameter("source_map", "").value
         _check_parameters(self.bag_path, self.rate, self.topics, self.start_delay, self.max_in_flight)
 
-        available = bag_topics(self.bag_path)
-        missing = [topic for topic in self.topics if topic not in available]
-        if missing:
-            self.get_logger().warn(f"bag {self.bag_path} has no topic(s) {missing}; replaying the others")
-        self._messages = read_messages(self.bag_path, self.topics)  # checks the types at once
-        self.total = sum(available[topic][1] for topic in self.topics if topic in available)
+        if self.source_map:
+            translation = translate(self.bag_path, SourceMap.from_yaml(self.source_map))
+            self.get_logger().info(f"imported {self.bag_path} with {self.source_map}: {translation.summary()}")
+            self._messages = (item for item in translation.messages)
+            self.total = len(translation.messages)
+            available = {COMMANDS: ("sensor_msgs/msg/JointState", 0),
+                         BACKPRESSURE_TOPIC: ("body_scheme_msgs/msg/MarkerPoses", 0)}
+            self.topics = list(available)
+        else:
+            available = bag_topics(self.bag_path)
+            missing = [topic for topic in self.topics if topic not in available]
+            if missing:
+                self.get_logger().warn(f"bag {self.bag_path} has no topic(s) {missing}; replaying the others")
+            self._messages = read_messages(self.bag_path, self.topics)  # checks the types at once
+            self.total = sum(available[topic][1] for topic in self.topics if topic in available)
         self.publishers_by_topic = {
             topic: self.create_publisher(MESSAGE_CLASSES[available[topic][0]], topic.lstrip("/"), RELIABLE)
             for topic in self.topics if topic in available}

@@ -25,6 +25,7 @@ from . import conversions
 from .bag_io import bag_topics, read_messages, session_info
 from .message_feed import feed_message, learn_sample
 from .settings import SchemeSettings
+from .sources import translate
 
 __all__ = ["ReplayResult", "default_params_file", "replay_bag", "COMMANDS", "OBSERVATIONS", "GROUND_TRUTH"]
 
@@ -54,6 +55,9 @@ class ReplayResult:
         Wall time of the learning loop.
     info : dict or None
         The bag's ``/session/info``.
+    imported : collections.Counter or None
+        With a source map: the recording's poses and samples, and what the import dropped by reason
+        (:class:`.sources.Translation`).
     """
 
     settings: SchemeSettings
@@ -64,6 +68,7 @@ class ReplayResult:
     n_commands: int = 0
     seconds: float = 0.0
     info: dict | None = None
+    imported: Counter | None = None
 
 
 def default_params_file():
@@ -125,16 +130,19 @@ def _edge_records(learner):
     return [{k: status[k] for k in keys} for status in learner.edge_status()]
 
 
-def replay_bag(path, settings, progress=None):
+def replay_bag(path, settings, progress=None, source_map=None):
     """Learn from a bag's commands and observations as scheme_node would.
 
     Parameters
     ----------
     path : str or os.PathLike
-        Session bag (rosbag2 directory).
+        Session bag (rosbag2 directory), or with ``source_map`` another stack's bag or a table.
     settings : SchemeSettings
     progress : callable, optional
         Called with the number of command messages read so far.
+    source_map : SourceMap, optional
+        How another stack's recording becomes commands and observations (:mod:`.sources`); it then has no ground
+        truth.
 
     Returns
     -------
@@ -147,17 +155,26 @@ def replay_bag(path, settings, progress=None):
     InvalidInputError
         If the bag has no commands or observations, or its joints are not the settings' ``joint_names``.
     """
-    topics = bag_topics(path)
-    missing = [t for t in (COMMANDS, OBSERVATIONS) if topics.get(t, (None, 0))[1] == 0]
-    if missing:
-        raise InvalidInputError(f"bag {path} has no messages on {missing}: nothing to learn from")
-    info = session_info(path) if "/session/info" in topics else None
-    if info is not None and "joint_names" in info and not set(settings.joint_names) <= set(info["joint_names"]):
-        raise InvalidInputError(f"the bag's joints are {info['joint_names']}, the settings' joint_names are "
+    if source_map is not None:
+        translation = translate(path, source_map)
+        messages, info = translation.messages, None
+        command_stamps = [item.log_time * 1e-9 for item in messages if item.topic == COMMANDS]
+        truth = [None] * len(command_stamps)
+    else:
+        topics = bag_topics(path)
+        missing = [t for t in (COMMANDS, OBSERVATIONS) if topics.get(t, (None, 0))[1] == 0]
+        if missing:
+            raise InvalidInputError(f"bag {path} has no messages on {missing}: nothing to learn from")
+        info = session_info(path) if "/session/info" in topics else None
+        messages = read_messages(path, [COMMANDS, OBSERVATIONS])
+        command_stamps, truth = _command_stamps_and_truth(path)
+    names = source_map.joint_names if source_map is not None else (info or {}).get("joint_names")
+    if names is not None and not set(settings.joint_names) <= set(names):
+        raise InvalidInputError(f"the recording's joints are {list(names)}, the settings' joint_names are "
                                 f"{list(settings.joint_names)}: pass the robot's parameter file with --params")
-    command_stamps, truth = _command_stamps_and_truth(path)
     learner, pairer = settings.new_learner(), settings.new_pairer()
-    result = ReplayResult(settings=settings, learner=learner, info=info)
+    result = ReplayResult(settings=settings, learner=learner, info=info,
+                          imported=translation.counts if source_map is not None else None)
 
     def learn(samples):
         for stamp, actions, observations in samples:
@@ -173,7 +190,7 @@ def replay_bag(path, settings, progress=None):
                                  "edges": _edge_records(learner), "prediction": prediction})
 
     start = time.perf_counter()
-    for item in read_messages(path, [COMMANDS, OBSERVATIONS]):
+    for item in messages:
         kind = "command" if item.topic == COMMANDS else "observations"
         samples, rejections = feed_message(pairer, kind, item.msg, settings.joint_names, settings.frame_id,
                                            settings.message_limits)
