@@ -16,7 +16,15 @@ observations at the rendered tracker's accuracy (10 mm, 5 deg). Writes to ``DIR`
 - ``learned.urdf``: :func:`body_scheme_core.prediction.learned_body.learned_urdf` (limits: the trained range);
 - with a nominal robot: ``report.txt``, ``report.json`` (per joint ``axis_deg``, ``origin_mm``, ``marker_mm``,
   ``marker_deg``; ``max_*``) and ``report.png`` (the learned body against the nominal one at zero actions, and the
-  deviations per joint).
+  deviations per joint);
+- ``accuracy.txt``, ``accuracy.json`` and ``accuracy.png``: how accurate it is on poses no fit saw
+  (:func:`body_scheme_core.calibration.accuracy_report` on the learner's history window): the 5-fold
+  cross-validated prediction error of every observed part (mm, deg; it includes the sensor's own noise), the same
+  for the nominal robot when one is given (its root pose fitted per fold), each joint's standard deviation (the
+  jackknife over the folds' refits: axis deg, origin mm), and the held-out error against the number of poses;
+- with ``--repeat-state`` (a second session's state of the same robot): ``repeatability.json``, the two learned
+  bodies' difference at every joint (axis deg, origin mm), as :func:`~body_scheme_core.prediction.calibration_report`
+  compares a body with its specification.
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ import sys
 import numpy as np
 from tqdm import tqdm
 
+from body_scheme_core.calibration import accuracy_report
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.learning import load_state
 from body_scheme_core.prediction import calibration_report, format_report, learned_tree, learned_urdf
@@ -36,12 +45,15 @@ from body_scheme_core.world import load_markers_yaml, tree_from_urdf
 
 from .robot_option import add_camera_arguments, resolve_robot
 
-__all__ = ["calibrate", "plot_report", "main"]
+__all__ = ["calibrate", "learned_accuracy", "format_accuracy", "plot_accuracy", "plot_report", "main"]
+
+#: Folds of the cross-validation.
+FOLDS = 5
 
 
-def calibrate(learner, joint_names, out, nominal=None, prefix=""):
-    """Write ``learned.urdf`` (and, given the nominal ``KinematicTree``, the report files) to ``out``; returns the
-    report (or None)."""
+def calibrate(learner, joint_names, out, nominal=None, prefix="", repeat=None):
+    """Write ``learned.urdf``, the accuracy files (and, given the nominal ``KinematicTree``, the report files;
+    given a second session's learner ``repeat``, ``repeatability.json``) to ``out``; returns the report (or None)."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scheme = learner.body_scheme
@@ -49,6 +61,15 @@ def calibrate(learner, joint_names, out, nominal=None, prefix=""):
         raise BodySchemeError(f"the state has no body scheme yet ({learner.phase}, step {learner.step})")
     body = learned_tree(scheme, joint_names, *learner.trained_range(), prefix=prefix, nominal=nominal)
     (out / "learned.urdf").write_text(learned_urdf(body))
+    accuracy = learned_accuracy(learner, joint_names, nominal)
+    (out / "accuracy.json").write_text(json.dumps(accuracy, indent=2, allow_nan=False) + "\n")
+    (out / "accuracy.txt").write_text(format_accuracy(accuracy))
+    plot_accuracy(accuracy, out / "accuracy.png")
+    if repeat is not None:
+        if repeat.body_scheme is None:
+            raise BodySchemeError("the second session's state (--repeat-state) has no body scheme yet")
+        other = learned_tree(repeat.body_scheme, joint_names, *repeat.trained_range())
+        (out / "repeatability.json").write_text(json.dumps(calibration_report(other, body.tree), indent=2) + "\n")
     if nominal is None:
         return None
     report = calibration_report(body, nominal)
@@ -56,6 +77,56 @@ def calibrate(learner, joint_names, out, nominal=None, prefix=""):
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     plot_report(body, nominal, report, out / "report.png")
     return report
+
+
+def learned_accuracy(learner, joint_names, nominal=None):
+    """:func:`~body_scheme_core.calibration.accuracy_report` of the learner's body scheme on its history window."""
+    actions, observations = learner.samples()
+    if len(actions) < 2 * FOLDS:
+        raise BodySchemeError(f"{len(actions)} poses in the learner's history: cross-validation needs at least "
+                              f"{2 * FOLDS}")
+    return accuracy_report(learner.body_scheme, learner.root_pose, actions, observations, learner.noise.sigma_trans,
+                           learner.noise.sigma_rot, joint_names, *learner.trained_range(), nominal=nominal,
+                           folds=FOLDS, axis_sigmas=learner.noise.axis_sigmas)
+
+
+def format_accuracy(accuracy):
+    """The accuracy report as text: one line per part, the nominal robot's, each joint's std, the curve."""
+    lines = [f"held-out prediction error, {accuracy['folds']}-fold cross-validation over {accuracy['n_poses']} poses "
+             f"(includes the sensor's noise):"]
+    for part, figures in accuracy["cv"].items():
+        nominal = (accuracy["nominal_cv"] or {}).get(part)
+        spec = f"   nominal robot: mean {nominal['mean_mm']:.2f} mm" if nominal else ""
+        lines.append(f"  part {part:>4s}: mean {figures['mean_mm']:.2f} mm, rms {figures['rms_mm']:.2f} mm, "
+                     f"95 % {figures['p95_mm']:.2f} mm, {figures['mean_deg']:.2f} deg over {figures['n']}{spec}")
+    lines.append("parameter standard deviation per joint (jackknife over the folds):")
+    for row in accuracy["joint_std"]:
+        origin = "-" if row["origin_mm"] is None else f"{row['origin_mm']:.2f} mm"
+        lines.append(f"  {row['joint']:24s} axis {row['axis_deg']:.3f} deg, origin {origin}")
+    lines.append("held-out error against the number of poses: " + ", ".join(
+        f"{point['poses']}: {point['cv_mm']:.2f} mm" for point in accuracy["curve"]))
+    return "\n".join(lines) + "\n"
+
+
+def plot_accuracy(accuracy, path):
+    """The held-out error against the number of poses (and the nominal robot's, dashed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    curve = accuracy["curve"]
+    ax.plot([p["poses"] for p in curve], [p["cv_mm"] for p in curve], "o-", label="learned, refitted per fold")
+    if accuracy["nominal_cv_mm"] is not None:
+        ax.axhline(accuracy["nominal_cv_mm"], color="0.5", ls="--", label="nominal robot (all poses)")
+    ax.set_xscale("log")
+    ax.set_xlabel("poses")
+    ax.set_ylabel(f"{accuracy['folds']}-fold held-out error (mm)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def plot_report(body, nominal, report, path):
@@ -148,6 +219,8 @@ def main(argv=None):
     parser.add_argument("--perception", choices=("rendered", "noise"), default="rendered",
                         help="--simulate: our tracker on rendered images, or noise at its accuracy "
                              "(default: %(default)s)")
+    parser.add_argument("--repeat-state", help="a second session's learner state of the same robot: write "
+                                               "repeatability.json (the two learned bodies' difference per joint)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output directory")
     args = parser.parse_args(argv)
@@ -166,11 +239,13 @@ def main(argv=None):
         names = (args.joint_names.split(",") if args.joint_names else
                  list(nominal.action_joint_names) if nominal is not None else
                  [f"joint_{k}" for k in range(learner.n_actions)])
-        report = calibrate(learner, names, args.out, nominal, args.prefix)
+        repeat = load_state(args.repeat_state) if args.repeat_state else None
+        report = calibrate(learner, names, args.out, nominal, args.prefix, repeat)
     except (OSError, BodySchemeError) as error:
         print(f"calibrate: {error}", file=sys.stderr)
         return 1
-    print(f"wrote {pathlib.Path(args.out) / 'learned.urdf'}")
+    print(f"wrote {pathlib.Path(args.out) / 'learned.urdf'} and accuracy.txt, accuracy.json, accuracy.png")
+    print((pathlib.Path(args.out) / "accuracy.txt").read_text(), end="")
     if report is not None:
         print(format_report(report))
         print(f"max: axis {report['max_axis_deg']:.3f} deg, origin {report['max_origin_mm']:.2f} mm, marker "

@@ -87,3 +87,32 @@ def test_every_failure_to_load_a_robot_is_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("calibrate: "), (name, err)
     assert "--package-path" in err[0]
+
+
+def test_the_accuracy_report_cross_validates_and_two_sessions_give_the_repeatability(tmp_path, capsys):
+    """accuracy.json: held-out errors at the sensor's noise and close to the true robot's, small joint stds, an
+    error curve that falls with the poses; repeatability.json: two sessions' learned bodies agree per joint."""
+    urdf_path, markers_path = robot_files("planar_2dof")
+    robot = load_robot("planar_2dof")
+    for seed in (0, 1):
+        session = make_session(robot, 150, seed=seed, sigma_trans=0.005, sigma_rot=math.radians(2.0))
+        learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, action_lower=robot.action_lower,
+                                    action_upper=robot.action_upper)
+        for actions, observations in zip(session.actions, session.observations, strict=True):
+            learner.update(actions, observations)
+        save_state(learner, tmp_path / f"state{seed}.json")
+    out = tmp_path / "out"
+    assert main(["--state", str(tmp_path / "state0.json"), "--urdf", str(urdf_path), "--markers", str(markers_path),
+                 "--repeat-state", str(tmp_path / "state1.json"), "--out", str(out)]) == 0
+    accuracy = json.loads((out / "accuracy.json").read_text())
+    assert 2.0 < accuracy["cv_mm"] < 8.0  # 5 mm 3D RMS noise: a mean distance of about 4.6 mm
+    assert accuracy["cv_mm"] < 1.2 * accuracy["nominal_cv_mm"]
+    assert sorted(accuracy["cv"]) == sorted([*map(str, robot.marker_ids), "all"])
+    assert [row["joint"] for row in accuracy["joint_std"]] == list(robot.action_joint_names)
+    assert all(row["axis_deg"] < 1.0 and row["origin_mm"] < 5.0 for row in accuracy["joint_std"])
+    assert accuracy["curve"][0]["cv_mm"] > accuracy["curve"][-1]["cv_mm"]
+    assert (out / "accuracy.png").stat().st_size > 5_000 and "jackknife" in (out / "accuracy.txt").read_text()
+    repeat = json.loads((out / "repeatability.json").read_text())
+    assert [row["joint"] for row in repeat["joints"]] == list(robot.action_joint_names)
+    assert repeat["max_axis_deg"] < 2.0 and repeat["max_origin_mm"] < 5.0
+    assert "held-out prediction error" in capsys.readouterr().out

@@ -263,6 +263,12 @@ class BodySchemeLearner(JointFitSteps):
         A = np.stack([a for _, a, _ in self._history])
         return A.min(axis=0), A.max(axis=0)
 
+    def samples(self):
+        """The history window (the joint fit's data): ``(actions (n, m), observations)``, oldest first; e.g. to
+        cross-validate the body scheme (:func:`~body_scheme_core.calibration.cross_validate`)."""
+        A = np.array([a for _, a, _ in self._history], dtype=float).reshape(-1, self.n_actions)
+        return A, [dict(obs) for _, _, obs in self._history]
+
     @property
     def consistency(self):
         """Per part, the lack-of-fit test of the last joint fit
