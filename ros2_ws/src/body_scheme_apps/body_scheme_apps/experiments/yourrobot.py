@@ -12,6 +12,9 @@ priors, 10 mm / 5 deg, as every rendered experiment) learns from scratch. Then:
 
 - the learned body scheme as a URDF is compared with the robot's (:func:`~body_scheme_core.prediction.learned_body.
   calibration_report`): joint axes and origins in the parent marker's frame;
+- how accurate it is as ``calibrate`` tells a user (:func:`~body_scheme_core.calibration.accuracy_report` on the
+  learner's history window): the 5-fold cross-validated marker position error, the learned structure refitted per
+  fold, next to the robot's own URDF's (its root pose fitted per fold); both include the tracker's noise;
 - IK on the learned body scheme (within the trained range) sends the end-effector marker to 30 positions it reached
   at random commands; each solution is executed on the true robot and the distance from the target measured.
 
@@ -48,6 +51,9 @@ for _robot in ROBOTS:
                                               f"specified one (mm)",
         f"yourrobot_{_robot}_ik_true_err_mm_median": f"{_robot}: median distance (mm) between an IK target and where "
                                                       f"the true robot's end-effector marker goes at the solution",
+        f"yourrobot_{_robot}_cv_mm": f"{_robot}: 5-fold cross-validated mean marker position error of the learned "
+                                     f"body scheme (mm, with the tracker's noise)",
+        f"yourrobot_{_robot}_nominal_cv_mm": f"{_robot}: the same for the robot's URDF (mm)",
     })
 PAPER = {}
 TARGETS = {**{f"yourrobot_{r}_max_axis_deg": 1.0 for r in ROBOTS}, **{f"yourrobot_{r}_max_origin_mm": 5.0
@@ -72,6 +78,7 @@ def _urdf(robot):
 
 def run(seed, perception="iiwa", quick=False):
     """One robot's run (``perception``: a key of :data:`ROBOTS`); see the module docstring."""
+    from body_scheme_core.calibration import accuracy_report
     from body_scheme_core.control import solve_ik, trained_bounds
     from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
     from body_scheme_core.prediction import calibration_report, learned_tree
@@ -110,6 +117,11 @@ def run(seed, perception="iiwa", quick=False):
     out[key + "max_axis_deg"] = float(report["max_axis_deg"])
     out[key + "max_origin_mm"] = float(report["max_origin_mm"])
     out["curves"] = {"robot": robot, "body": body, "nominal": nominal, "report": report}
+    actions, observations = learner.samples()
+    accuracy = accuracy_report(scheme, learner.root_pose, actions, observations, learner.noise.sigma_trans,
+                               learner.noise.sigma_rot, nominal.action_joint_names, *learner.trained_range(),
+                               nominal=nominal, axis_sigmas=learner.noise.axis_sigmas, curve_points=0)
+    out[key + "cv_mm"], out[key + "nominal_cv_mm"] = accuracy["cv_mm"], accuracy["nominal_cv_mm"]
     # IK: targets the end-effector marker truly reached, in the camera frame; solutions executed on the true robot.
     effector = nominal.marker_ids[-1]
     camera2root = np.linalg.inv(camera.world2camera)

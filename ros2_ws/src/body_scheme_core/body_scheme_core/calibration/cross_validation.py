@@ -172,7 +172,7 @@ def accuracy_report(scheme, world2root, actions, observations, sigma_trans, sigm
         The robot's specification with its markers: its cross-validated error too (its root pose fitted per fold).
     folds, seed : int
     curve_points : int
-        Sizes of the held-out error curve (geometric from ``2 * folds`` poses to all of them).
+        Sizes of the held-out error curve (geometric from ``2 * folds`` poses to all of them); 0: no curve.
 
     Returns
     -------
