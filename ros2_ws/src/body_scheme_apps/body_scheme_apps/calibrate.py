@@ -22,6 +22,11 @@ observations at the rendered tracker's accuracy (10 mm, 5 deg). Writes to ``DIR`
   cross-validated prediction error of every observed part (mm, deg; it includes the sensor's own noise), the same
   for the nominal robot when one is given (its root pose fitted per fold), each joint's standard deviation (the
   jackknife over the folds' refits: axis deg, origin mm), and the held-out error against the number of poses;
+- with the robot's URDF (``--urdf``, or the simulated robot's): ``calibrated.urdf``, the robot's own file with the
+  learned joint axes (a drop-in replacement: its links, names, meshes and limits, each learned joint's ``<origin>``
+  moved onto its learned axis; :func:`body_scheme_core.prediction.calibrated_urdf`), ``calibrated_diff.txt`` (per
+  joint: how far its origin moved, mm and deg, and its axis) and ``calibrated.markers.yaml`` (the markers' learned
+  places on those links);
 - with ``--repeat-state`` (a second session's state of the same robot): ``repeatability.json``, the two learned
   bodies' difference at every joint (axis deg, origin mm), as :func:`~body_scheme_core.prediction.calibration_report`
   compares a body with its specification.
@@ -40,8 +45,15 @@ from tqdm import tqdm
 from body_scheme_core.calibration import accuracy_report
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.learning import load_state
-from body_scheme_core.prediction import calibration_report, format_report, learned_tree, learned_urdf
-from body_scheme_core.world import load_markers_yaml, tree_from_urdf
+from body_scheme_core.prediction import (
+    calibrated_urdf,
+    calibration_report,
+    format_diff,
+    format_report,
+    learned_tree,
+    learned_urdf,
+)
+from body_scheme_core.world import Marker, load_markers_yaml, markers_to_yaml, tree_from_urdf
 
 from .robot_option import add_camera_arguments, resolve_robot
 
@@ -51,9 +63,10 @@ __all__ = ["calibrate", "learned_accuracy", "format_accuracy", "plot_accuracy", 
 FOLDS = 5
 
 
-def calibrate(learner, joint_names, out, nominal=None, prefix="", repeat=None):
-    """Write ``learned.urdf``, the accuracy files (and, given the nominal ``KinematicTree``, the report files;
-    given a second session's learner ``repeat``, ``repeatability.json``) to ``out``; returns the report (or None)."""
+def calibrate(learner, joint_names, out, nominal=None, prefix="", repeat=None, urdf_text=None):
+    """Write ``learned.urdf``, the accuracy files (and, given the nominal ``KinematicTree``, the report files; with
+    its ``urdf_text`` too, the calibrated URDF; given a second session's learner ``repeat``, ``repeatability.json``)
+    to ``out``; returns the report (or None)."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scheme = learner.body_scheme
@@ -72,6 +85,12 @@ def calibrate(learner, joint_names, out, nominal=None, prefix="", repeat=None):
         (out / "repeatability.json").write_text(json.dumps(calibration_report(other, body.tree), indent=2) + "\n")
     if nominal is None:
         return None
+    if urdf_text is not None:
+        calibrated = calibrated_urdf(urdf_text, body, nominal, scheme.root)
+        (out / "calibrated.urdf").write_text(calibrated.text)
+        (out / "calibrated_diff.txt").write_text(format_diff(calibrated))
+        (out / "calibrated.markers.yaml").write_text(markers_to_yaml(
+            [Marker(part, link, place) for part, (link, place) in calibrated.markers.items()]))
     report = calibration_report(body, nominal)
     (out / "report.txt").write_text(format_report(report) + "\n")
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -179,6 +198,13 @@ def plot_report(body, nominal, report, path):
     plt.close(fig)
 
 
+def _urdf_text(robot):
+    """The URDF text of a shipped robot's name or a URDF path."""
+    from body_scheme_sim.robots import robot_files
+
+    return pathlib.Path(robot_files(robot, require_markers=False)[0]).read_text()
+
+
 def _simulated(choice, steps, seed, perception="rendered"):
     """A learner taught by a babbling session in the simulator (:class:`~body_scheme_apps.robot_option.RobotChoice`),
     and the robot's nominal tree."""
@@ -229,18 +255,20 @@ def main(argv=None):
             choice = resolve_robot(args.simulate, args.markers, args.camera, args.package_path,
                                    pathlib.Path(args.out) / "markers.yaml", args.seed)
             learner, nominal = _simulated(choice, args.steps, args.seed, args.perception)
+            urdf_text = _urdf_text(choice.robot)
         else:
             learner = load_state(args.state)
-            nominal = None
+            nominal = urdf_text = None
             if args.urdf or args.markers:
                 if not (args.urdf and args.markers):
                     parser.error("--urdf and --markers go together")
-                nominal = tree_from_urdf(pathlib.Path(args.urdf).read_bytes(), load_markers_yaml(args.markers))
+                urdf_text = pathlib.Path(args.urdf).read_text()
+                nominal = tree_from_urdf(urdf_text, load_markers_yaml(args.markers))
         names = (args.joint_names.split(",") if args.joint_names else
                  list(nominal.action_joint_names) if nominal is not None else
                  [f"joint_{k}" for k in range(learner.n_actions)])
         repeat = load_state(args.repeat_state) if args.repeat_state else None
-        report = calibrate(learner, names, args.out, nominal, args.prefix, repeat)
+        report = calibrate(learner, names, args.out, nominal, args.prefix, repeat, urdf_text)
     except (OSError, BodySchemeError) as error:
         print(f"calibrate: {error}", file=sys.stderr)
         return 1

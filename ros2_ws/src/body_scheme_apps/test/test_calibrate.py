@@ -2,14 +2,16 @@
 
 import json
 import math
+import pathlib
 
+import numpy as np
 import pytest
 from urdf_parser_py.urdf import URDF
 
 from body_scheme_apps.calibrate import main
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import save_state
-from body_scheme_core.world import make_session
+from body_scheme_core.world import Marker, load_markers_yaml, make_session, resolve_meshes, tree_from_urdf
 from body_scheme_sim.robots import load_robot, robot_files
 
 
@@ -57,6 +59,44 @@ def test_a_robots_urdf_alone_is_enough_to_simulate_and_calibrate(tmp_path, capsy
     assert {"markers.yaml", "learned.urdf", "report.json", "report.png"} <= {p.name for p in out.iterdir()}
     report = json.loads((out / "report.json").read_text())
     assert len(report["joints"]) == 7 and report["max_axis_deg"] < 3.0
+    _check_the_calibrated_urdf(out, pathlib.Path(urdf), pybullet_data.getDataPath())
+
+
+def _check_the_calibrated_urdf(out, nominal_urdf, package_path):
+    """calibrated.urdf is the robot's file (its links, meshes, limits) with moved joint origins: it loads in
+    urdf_parser_py and in pybullet (its meshes resolved as the nominal file's), and with calibrated.markers.yaml its
+    forward kinematics is the learned body scheme's (learned.urdf) to 0.1 mm."""
+    import pybullet
+
+    text = (out / "calibrated.urdf").read_text()
+    calibrated, nominal = URDF.from_xml_string(text), URDF.from_xml_string(nominal_urdf.read_text())
+    assert [link.name for link in calibrated.links] == [link.name for link in nominal.links]
+    assert [(j.name, j.type, j.limit and j.limit.upper) for j in calibrated.joints] == \
+        [(j.name, j.type, j.limit and j.limit.upper) for j in nominal.joints]
+    assert "<calibration" not in text and text.count("<mesh") == nominal_urdf.read_text().count("<mesh") > 0
+    resolved, missing = resolve_meshes(text, nominal_urdf.parent, [package_path])
+    assert missing == []
+    (out / "resolved.urdf").write_text(resolved)
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        body = pybullet.loadURDF(str(out / "resolved.urdf"), physicsClientId=client)
+        assert pybullet.getNumJoints(body, physicsClientId=client) == len(nominal.joints)
+    finally:
+        pybullet.disconnect(client)
+    markers = load_markers_yaml(out / "calibrated.markers.yaml")
+    tree = tree_from_urdf(text, markers)
+    learned_text = (out / "learned.urdf").read_text()
+    learned = tree_from_urdf(learned_text, [Marker(m.id, f"marker_{m.id}") for m in markers],
+                             joint_actions={name: k for k, name in enumerate(tree.action_joint_names)})
+    root = min(m.id for m in markers)
+    rng = np.random.default_rng(0)
+    diff = (out / "calibrated_diff.txt").read_text()
+    assert all(name in diff for name in tree.action_joint_names)
+    for a in rng.uniform(-0.5, 0.5, size=(20, tree.n_actions)):
+        got, want = tree.marker_poses(a), learned.marker_poses(a)
+        for m in markers:
+            relative = np.linalg.inv(got[root]) @ got[m.id], np.linalg.inv(want[root]) @ want[m.id]
+            assert np.linalg.norm(relative[0][:3, 3] - relative[1][:3, 3]) < 1e-4
 
 
 def _write(path, text):

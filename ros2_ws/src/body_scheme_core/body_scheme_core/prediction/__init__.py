@@ -3,11 +3,13 @@
 :class:`BodyScheme` chains the local models of a spanning tree from the root part to predict every part's pose for
 an action vector, with its propagated uncertainty (:mod:`.scheme`); :mod:`.uncertainty` carries the joint fit's
 covariance to a part's position; :mod:`.learned_body` writes the learned body as a robot description (URDF) and
-compares it with the robot's specification.
+compares it with the robot's specification; :mod:`.calibrated_urdf` writes the robot's own URDF with the learned
+joint axes (a drop-in replacement).
 """
 
 from __future__ import annotations
 
+from .calibrated_urdf import CalibratedURDF, calibrated_urdf, format_diff
 from .learned_body import (
     LearnedBody,
     LearnedJoint,
@@ -33,4 +35,7 @@ __all__ = [
     "learned_urdf",
     "calibration_report",
     "format_report",
+    "CalibratedURDF",
+    "calibrated_urdf",
+    "format_diff",
 ]
