@@ -140,6 +140,7 @@ class ArmDriver:
         self._held = np.zeros(len(self.robot_joints))  # the robot's last known posture (action order)
         self._lock = threading.Lock()
         self.pub_trajectory = node.create_publisher(JointTrajectory, f"{controller}/joint_trajectory", 10)
+        self.joint_states_topic = node.resolve_topic_name(joint_states_topic)
         # Taken in batches every JOINT_STATE_PERIOD: a joint state DDS overwrote in a flood is counted, not lost
         # unseen (body_scheme_nodes.intake).
         self._joint_states = BatchIntake(node, JointState, joint_states_topic, JOINT_STATE_DEPTH, max_message_bytes)
@@ -174,8 +175,10 @@ class ArmDriver:
     def _on_joint_states(self, msg):
         try:
             _, positions = conversions.actions_from_joint_state(msg, self.joint_names)
-        except BodySchemeError:
-            self._count("joint_states_rejected")
+        except BodySchemeError as error:
+            with self._lock:
+                self._counts["joint_states_rejected"] += 1
+                self.joint_state_problem = str(error)
             return
         lower, upper = (bound[self._index] for bound in self.plausible)
         outside = np.flatnonzero((positions < lower) | (positions > upper))

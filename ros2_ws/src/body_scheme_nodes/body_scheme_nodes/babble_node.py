@@ -13,6 +13,12 @@ and ``dwell`` seconds have passed. ``joint_names`` limits the commanded joints t
 arm without its gripper; give scheme_node the same list). The ``control_msgs``
 ``FollowJointTrajectory`` action is not used: control_msgs is not on the PyPI route (docs/your-robot.md).
 
+**Pre-flight.** Nothing is sent until every check passes (:mod:`.preflight`; each failing one is logged as one line
+every 5 s and named on /diagnostics): joint states fresh and naming the configured joints, a subscriber on the
+controller's trajectory topic, fresh observations on ``camera_topic``, a ``sensor_msgs/CameraInfo`` on
+``camera_info_topic``, and every marker of ``part_ids`` (any one if empty) seen while the arm stands at its start
+posture. ``preflight_skip`` lists checks skipped on purpose.
+
 It stops by itself (a trajectory to where the arm is, clamped within the limits: the controller holds it there) when
 scheme_node's /diagnostics status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning
 stalled), when the camera goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s), or when the joint
@@ -26,7 +32,8 @@ Subscriptions
 -------------
 /joint_states : sensor_msgs/JointState              (``joint_states_topic``)
 /diagnostics : diagnostic_msgs/DiagnosticArray      the status ``<watch_diagnostics, resolved>: body scheme``
-observations : body_scheme_msgs/MarkerPoses         (``camera_topic``) the camera watchdog
+observations : body_scheme_msgs/MarkerPoses         (``camera_topic``) the camera watchdog and pre-flight
+camera/camera_info : sensor_msgs/CameraInfo         (``camera_info_topic``) pre-flight
 body_scheme/exploration_command : sensor_msgs/JointState   ``mode: active``: scheme_node's suggestions
 
 Publishers
@@ -52,7 +59,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import CameraInfo, JointState
 from std_srvs.srv import Trigger
 
 from body_scheme_core.errors import InvalidInputError
@@ -61,6 +68,7 @@ from body_scheme_msgs.msg import MarkerPoses
 from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .intake import create_sized_subscription
+from .preflight import CHECKS, PreflightFacts, preflight_failures
 from .scheme_diagnostics import status_name
 from .spin import run_node
 
@@ -90,6 +98,8 @@ class BabbleNode(Node):
     """See the module docstring."""
 
     def __init__(self, **node_options):
+        from .sim_node import declare_list_parameter  # as the driver's parameters (sim_node loads pybullet)
+
         super().__init__("babble_node", **node_options)
         self.monotonic = time.monotonic  # the watchdogs' clock (s); tests inject their own
         p = self.declare_parameter
@@ -103,6 +113,12 @@ class BabbleNode(Node):
         self.camera_timeout = p("camera_timeout", 3.0).value
         self.wait_for_frame = p("wait_for_frame", True).value
         self.joint_state_timeout = p("joint_state_timeout", 3.0).value
+        camera_info_topic = p("camera_info_topic", "camera/camera_info").value
+        self.part_ids = tuple(declare_list_parameter(self, "part_ids", int))
+        self.preflight_skip = tuple(declare_list_parameter(self, "preflight_skip", str))
+        unknown = sorted(set(self.preflight_skip) - set(CHECKS))
+        if unknown:
+            raise InvalidInputError(f"preflight_skip names unknown checks {unknown}; the checks are {list(CHECKS)}")
         self.mode = p("mode", "random").value
         self.suggestion_timeout = p("suggestion_timeout", 1.0).value
         if self.mode not in ("random", "active"):
@@ -110,7 +126,7 @@ class BabbleNode(Node):
         if not self.suggestion_timeout >= 0:
             raise InvalidInputError(f"suggestion_timeout must be >= 0 s, got {self.suggestion_timeout!r}")
         self.state = "paused" if p("start_paused", False).value else "waiting"
-        update_period = p("update_period", 0.02).value
+        update_period = self.update_period = p("update_period", 0.02).value
         if not (self.dwell >= 0 and self.camera_timeout >= 0 and self.error_hold >= 0 and update_period > 0
                 and self.steps >= 0 and self.joint_state_timeout >= 0):
             raise InvalidInputError("dwell, camera_timeout, joint_state_timeout, error_hold and steps must be >= 0 "
@@ -128,6 +144,9 @@ class BabbleNode(Node):
         self.idle_since = None  # monotonic time the loop became ready for the next step
         self.last_tick = None  # monotonic time of the loop's last tick
         self.error_since = None  # monotonic time the watched status turned ERROR (None: it is not)
+        self.camera_info = False  # a CameraInfo arrived
+        self.seen_markers = set()  # markers observed since the first joint state (the start posture)
+        self.preflight = []  # the failing pre-flight checks' lines (empty once passed)
 
         work = MutuallyExclusiveCallbackGroup()
         self.pub_action = self.create_publisher(JointState, self.action_topic, 100)
@@ -139,6 +158,12 @@ class BabbleNode(Node):
 
         subscribe(DiagnosticArray, "/diagnostics", self._on_diagnostics)
         subscribe(MarkerPoses, camera_topic, self._on_camera)
+        subscribe(CameraInfo, camera_info_topic, self._on_camera_info)
+        self._facts = PreflightFacts(joint_states_topic=self.driver.joint_states_topic,
+                                     controller_topic=self.driver.pub_trajectory.topic_name,
+                                     camera_topic=self.resolve_topic_name(camera_topic),
+                                     camera_info_topic=self.resolve_topic_name(camera_info_topic),
+                                     expected_markers=self.part_ids)
         if self.mode == "active":
             subscribe(JointState, "body_scheme/exploration_command", self._on_suggestion)
         for name, handler in (("pause", self._on_pause), ("resume", self._on_resume), ("stop", self._on_stop)):
@@ -155,6 +180,11 @@ class BabbleNode(Node):
     def _on_camera(self, msg):
         self.last_camera = self.monotonic()
         self.last_frame_stamp = max(self.last_frame_stamp, conversions.seconds_from_stamp(msg.header.stamp))
+        if self.state == "waiting" and self.driver.positions is not None:
+            self.seen_markers.update(int(i) for i in msg.marker_ids)
+
+    def _on_camera_info(self, _msg):
+        self.camera_info = True
 
     def _on_suggestion(self, msg):
         try:
@@ -220,8 +250,7 @@ class BabbleNode(Node):
         if self.state in ("stopped", "paused", "done") and self.driver.goal is None:
             return
         if self.state == "waiting":
-            if self.driver.positions is None:
-                self.get_logger().info("waiting for /joint_states", throttle_duration_sec=5.0)
+            if not self._preflight_passed(now):
                 return
             self.state, self.started = "idle", now
         if self.state != "stopped":
@@ -280,6 +309,27 @@ class BabbleNode(Node):
         self.counts["suggestions_refused"] += 1
         return False
 
+    def _preflight_passed(self, now):
+        """Run the pre-flight checks (module docstring); log each failing one, once every 5 s."""
+        facts = self._facts
+        facts.joint_state_age, facts.joint_state_problem = self.driver.joint_state_age(), \
+            self.driver.joint_state_problem
+        facts.controller_subscribers = self.driver.pub_trajectory.get_subscription_count()
+        facts.camera_age = None if self.last_camera is None else now - self.last_camera
+        facts.camera_info, facts.seen_markers = self.camera_info, self.seen_markers
+        fresh = self.joint_state_timeout or self.camera_timeout or 3.0
+        self.preflight = [line for _, line in preflight_failures(facts, fresh, self.preflight_skip)]
+        if self.preflight:
+            self.counts["preflight_waits"] += 1
+            if self.counts["preflight_waits"] % max(1, round(5.0 / self.update_period)) == 1:
+                for line in self.preflight:
+                    self.get_logger().warn(f"pre-flight: {line}")
+            return False
+        skipped = f" (skipped: {list(self.preflight_skip)})" if self.preflight_skip else ""
+        self.get_logger().info(f"pre-flight passed: {', '.join(c for c in CHECKS if c not in self.preflight_skip)}"
+                               f"{skipped}; babbling starts")
+        return True
+
     def _quiet(self, now):
         """Why babbling must stop because the camera or the joint states went quiet, or ""."""
         if self.camera_timeout > 0:
@@ -298,6 +348,8 @@ class BabbleNode(Node):
                  "paused": DiagnosticStatus.WARN, "waiting": DiagnosticStatus.WARN}.get(self.state,
                                                                                       DiagnosticStatus.OK)
         message = self.state + (f": {self.stop_reason}" if self.stop_reason else "")
+        if self.state == "waiting" and self.preflight:
+            message += " (pre-flight: " + "; ".join(self.preflight) + ")"
         values = dict(state=self.state, **self.counts, **{f"driver.{k}": v for k, v in self.driver.counts.items()})
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()

@@ -10,8 +10,9 @@ joint_commands : sensor_msgs/JointState  (reliable, depth 10)
     As a ros2_control ``JointTrajectoryController``: the arm moves from where it is through the points over their
     ``time_from_start``, by cubics where the points give velocities, else by straight lines; joints not named hold;
     an empty trajectory is rejected, as Jazzy's controller does. While it moves no picture is taken; at rest, one
-    every ``camera_period``. From the first trajectory on, ``joint_commands`` is the action signal of whoever sends
-    them and is no longer executed.
+    every ``camera_period``, from the moment a publisher of trajectories appears (a pre-flight sees the camera).
+    From the first trajectory on, ``joint_commands`` is the action signal of whoever sends them and is no longer
+    executed.
 
 Publishers
 ----------
@@ -188,7 +189,8 @@ class SimNode(Node):
             self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
             self.babbling_timer = self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
-        self.create_subscription(JointTrajectory, f"{controller}/joint_trajectory", self._on_trajectory, 10)
+        self.sub_trajectory = self.create_subscription(JointTrajectory, f"{controller}/joint_trajectory",
+                                                       self._on_trajectory, 10)
         self.pub_joint_states = self.create_publisher(JointState, "/joint_states", 10)
         # Its own group, as a real arm's joint_state_broadcaster is its own process: rendering does not hold it up.
         self.create_timer(self.joint_state_period, self._publish_joint_states,
@@ -348,6 +350,9 @@ class SimNode(Node):
         elif self._next_frame is not None and now >= self._next_frame:  # at rest
             self._next_frame = now + self.camera_period
             self._publish_frame(now)
+        elif self._next_frame is None and not self._controller and not self.babbling \
+                and self.sub_trajectory.get_publisher_count() > 0:
+            self._next_frame = now  # a trajectory client is there: the camera streams before its first goal too
 
     # -- the work -------------------------------------------------------------------------------------------------
     def _now(self):

@@ -13,8 +13,9 @@ import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import CameraInfo, JointState
 from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_msgs.msg import MarkerPoses
@@ -22,6 +23,8 @@ from body_scheme_nodes.babble_node import BabbleNode, watched_status
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "babble_node.yaml"
 BUILT_IN = {"use_sim_time", "start_type_description_service"}
+#: In-process tests without a controller or camera: skip those pre-flight checks on purpose.
+NO_INPUTS_BUT_JOINT_STATES = Parameter("preflight_skip", value=["controller", "camera", "camera_info", "markers"])
 
 
 @contextlib.contextmanager
@@ -123,7 +126,8 @@ def test_resume_before_the_first_joint_state_waits_for_it():
 def test_joint_states_that_go_quiet_stop_the_babbling():
     """The arm reported once and then nothing for joint_state_timeout: the reason names the joint states."""
     clock = [50.0]
-    with babble_node([Parameter("joint_state_timeout", value=3.0), Parameter("camera_timeout", value=0.0)]) as node:
+    with babble_node([Parameter("joint_state_timeout", value=3.0), Parameter("camera_timeout", value=0.0),
+                      NO_INPUTS_BUT_JOINT_STATES]) as node:
         node.monotonic = node.driver.clock = lambda: clock[0]
         node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
         node._on_timer()
@@ -138,7 +142,7 @@ def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_f
     """A tick long after the previous one (the process was paused) neither judges the camera's silence nor sends:
     the frame that waited in the queue meanwhile is read first and babbling goes on; a silence seen by a tick on time
     stops it."""
-    with babble_node([Parameter("camera_timeout", value=0.2)]) as node:
+    with babble_node([Parameter("camera_timeout", value=0.2), NO_INPUTS_BUT_JOINT_STATES]) as node:
         node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
         node._on_timer()
         assert node.state == "idle"
@@ -208,3 +212,59 @@ def test_the_watched_status_is_this_robots_scheme_node_by_its_exact_name():
 def test_bad_parameters_stop_the_node_with_a_reason(name, value, message):
     with pytest.raises(InvalidInputError, match=message):
         declared_parameters([Parameter(name, value=value)])
+
+
+# ---------------------------------------------------------------------- pre-flight
+@pytest.mark.parametrize("missing, line", [
+    ("joint_states", "joint_states: no fresh joint state naming the configured joints on /joint_states: none yet"),
+    ("controller", "controller: nothing subscribes to /joint_trajectory_controller/joint_trajectory"),
+    ("camera", "camera: no fresh observations on /observations"),
+    ("camera_info", "camera_info: no sensor_msgs/CameraInfo on /camera/camera_info"),
+    ("markers", "markers: not seen at the start posture: [2] (seen: [1])"),
+])
+def test_each_missing_input_is_named_in_one_line_and_nothing_is_commanded(missing, line):
+    """With one pre-flight input missing, babble_node names it (the log line and /diagnostics) and sends nothing;
+    skipping that check on purpose lets it start. Without joint states or frames no marker can have been seen at the
+    start posture either: that is the second line (and skipped with it)."""
+    follows = ["markers"] if missing in ("joint_states", "camera") else []
+    for skip in ([], [missing, *follows]):
+        with babble_node([Parameter("part_ids", value=[1, 2]), Parameter("preflight_skip", value=skip)]) as node:
+            sent = []
+            node.driver.pub_trajectory.publish = sent.append
+            controller = None
+            if missing != "controller":
+                controller = node.create_subscription(JointTrajectory, node.driver.pub_trajectory.topic_name,
+                                                      lambda _: None, 10)
+            if missing != "joint_states":
+                node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
+            if missing != "camera":
+                node._on_camera(MarkerPoses(marker_ids=[1] if missing == "markers" else [1, 2]))
+            if missing != "camera_info":
+                node._on_camera_info(CameraInfo())
+            for _ in range(3):
+                node._on_timer()
+            if skip:
+                # Started; it moves once it knows where the arm is (without a joint state the driver sends nothing).
+                assert node.state == "idle" and node.preflight == [], (missing, node.preflight)
+                assert bool(sent) == (missing != "joint_states")
+            else:
+                assert node.state == "waiting" and sent == [] and node.counts["actions"] == 0
+                assert len(node.preflight) == 1 + len(follows) and node.preflight[0].startswith(line), node.preflight
+            del controller
+
+
+def test_markers_seen_before_the_arm_reported_do_not_count_and_a_refused_joint_state_is_named():
+    with babble_node([Parameter("part_ids", value=[1])]) as node:
+        node._on_camera(MarkerPoses(marker_ids=[1]))  # before any joint state: not the start posture
+        node.driver._on_joint_states(JointState(name=["elbow"], position=[0.0]))
+        node._on_camera_info(CameraInfo())
+        node._on_timer()
+        assert any(line.startswith("markers: not seen at the start posture: [1] (none seen)")
+                   for line in node.preflight)
+        assert any("the last was refused: JointState lacks joint(s)" in line for line in node.preflight)
+
+
+def test_an_unknown_check_to_skip_is_refused():
+    with pytest.raises(InvalidInputError, match="preflight_skip names unknown checks"):
+        with babble_node([Parameter("preflight_skip", value=["cameras"])]):
+            pass
