@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InvalidInputError
+from ..models import EngineeredModel
+from ..prediction import BodyScheme, calibration_report, learned_tree
 from ..transforms import rotational_error, translational_error
 from .joint_fit import calibrate
 
@@ -182,9 +184,6 @@ def accuracy_report(scheme, world2root, actions, observations, sigma_trans, sigm
         jackknife std of its axis, deg, and origin, mm, over the folds' refits), ``curve`` (``[{poses, cv_mm}]``),
         ``folds``, ``n_poses``.
     """
-    from ..models.engineered import EngineeredModel
-    from ..prediction import BodyScheme, calibration_report, learned_tree
-
     A = np.asarray(actions, dtype=float)
     learned = cross_validate(refit_scheme(scheme, world2root, A, observations, sigma_trans, sigma_rot, axis_sigmas),
                              A, observations, folds, seed)
