@@ -1,5 +1,7 @@
 """Other stacks' recordings (aruco_ros, apriltag_ros, motion capture, reflectors, trajectories, tables) as samples."""
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -128,3 +130,32 @@ def test_the_offline_replay_learns_the_true_tree_from_apriltag_ros_tf(tmp_path):
     assert result.imported["samples"] == 60 and not result.rejected
     learned = {frozenset((e["parent"], e["child"])) for e in result.learner.edge_status()}
     assert learned == {frozenset(edge) for edge in tree.marker_tree_edges()}
+
+
+def test_table_rows_closer_than_the_observation_delay_keep_their_own_poses(tmp_path):
+    """Rows 50 ms apart (or without stamps): each observation is the row's own and comes before the next command."""
+    rows = [{"stamp": 0.05 * k, "joints": {"j1": 0.1 * k}, "poses": {"1": [0, 0, k + 1.0, 0, 0, 0, 1]}}
+            for k in range(4)]
+    (tmp_path / "t.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    (tmp_path / "map.yaml").write_text("joints: {names: [j1]}\nframe: table\n")
+    translation = translate(tmp_path / "t.jsonl", SourceMap.from_yaml(tmp_path / "map.yaml"))
+    stream = [(item.topic, item.msg) for item in translation.messages]
+    assert [topic for topic, _ in stream] == ["/joint_commands", "/observations"] * 4
+    for k in range(4):
+        (_, command), (_, observation) = stream[2 * k], stream[2 * k + 1]
+        assert command.position[0] == pytest.approx(0.1 * k) and observation.poses[0].pose.position.z == k + 1.0
+
+
+def test_malformed_table_rows_are_counted_never_a_crash(tmp_path):
+    lines = ['{"stamp": 0, "joints": {"j1": 0}, "poses": [1, 2]}',                 # poses not an object
+             '{"stamp": 1, "joints": {"j1": 0}, "poses": null, "points": {"4": [1]}}',   # a point of no body
+             '{"stamp": 2, "joints": {"j1": 0}, "poses": {"one": [0, 0, 1, 0, 0, 0, 1]}}',  # not a marker id
+             '{"stamp": 3, "joints": {"j1": "x"}}',                                 # a joint value that is no number
+             '{"stamp": 2, "joints": {"j1": 0}, "poses": {"1": [0, 0, 1, 0, 0, 0, 1]}}',    # stamp not after row 2's
+             '{"stamp": 4, "joints": {"j1": 0}, "poses": {"1": [0, 0, 1, 0, 0, 0]}}',       # six numbers
+             '{"stamp": 5, "joints": {"j1": 0}, "poses": {"1": [0, 0, 1, 0, 0, 0, 1]}}']    # fine
+    (tmp_path / "t.jsonl").write_text("\n".join(lines) + "\n")
+    (tmp_path / "map.yaml").write_text("joints: {names: [j1]}\nframe: table\n")
+    translation = translate(tmp_path / "t.jsonl", SourceMap.from_yaml(tmp_path / "map.yaml"))
+    assert translation.counts["invalid_row"] == 3 and translation.counts["invalid_pose"] == 3
+    assert translation.counts["samples"] == 1 and translation.counts["unseen"] == 3

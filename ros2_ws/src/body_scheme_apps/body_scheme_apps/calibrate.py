@@ -74,10 +74,14 @@ def calibrate(learner, joint_names, out, nominal=None, prefix="", repeat=None, u
         raise BodySchemeError(f"the state has no body scheme yet ({learner.phase}, step {learner.step})")
     body = learned_tree(scheme, joint_names, *learner.trained_range(), prefix=prefix, nominal=nominal)
     (out / "learned.urdf").write_text(learned_urdf(body))
-    accuracy = learned_accuracy(learner, joint_names, nominal)
-    (out / "accuracy.json").write_text(json.dumps(accuracy, indent=2, allow_nan=False) + "\n")
-    (out / "accuracy.txt").write_text(format_accuracy(accuracy))
-    plot_accuracy(accuracy, out / "accuracy.png")
+    if len(learner.samples()[0]) >= 2 * FOLDS:
+        accuracy = learned_accuracy(learner, joint_names, nominal)
+        (out / "accuracy.json").write_text(json.dumps(accuracy, indent=2, allow_nan=False) + "\n")
+        (out / "accuracy.txt").write_text(format_accuracy(accuracy))
+        plot_accuracy(accuracy, out / "accuracy.png")
+    else:
+        (out / "accuracy.txt").write_text(f"no accuracy report: {len(learner.samples()[0])} poses in the learner's "
+                                          f"history, cross-validation needs at least {2 * FOLDS}\n")
     if repeat is not None:
         if repeat.body_scheme is None:
             raise BodySchemeError("the second session's state (--repeat-state) has no body scheme yet")
@@ -262,7 +266,7 @@ def main(argv=None):
             if args.urdf or args.markers:
                 if not (args.urdf and args.markers):
                     parser.error("--urdf and --markers go together")
-                urdf_text = pathlib.Path(args.urdf).read_text()
+                urdf_text = pathlib.Path(args.urdf).read_bytes().decode("utf-8", errors="replace")
                 nominal = tree_from_urdf(urdf_text, load_markers_yaml(args.markers))
         names = (args.joint_names.split(",") if args.joint_names else
                  list(nominal.action_joint_names) if nominal is not None else
@@ -272,7 +276,7 @@ def main(argv=None):
     except (OSError, BodySchemeError) as error:
         print(f"calibrate: {error}", file=sys.stderr)
         return 1
-    print(f"wrote {pathlib.Path(args.out) / 'learned.urdf'} and accuracy.txt, accuracy.json, accuracy.png")
+    print(f"wrote {pathlib.Path(args.out) / 'learned.urdf'} and the accuracy report (accuracy.*)")
     print((pathlib.Path(args.out) / "accuracy.txt").read_text(), end="")
     if report is not None:
         print(format_report(report))

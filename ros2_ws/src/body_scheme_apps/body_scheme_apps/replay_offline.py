@@ -305,8 +305,10 @@ def main(argv=None):
         with tqdm(total=n_commands, desc=f"replaying {bag.name}", unit="step", disable=args.quiet) as bar:
             result = replay_bag(bag, settings, progress=lambda done: bar.update(done - bar.n), source_map=source_map)
         if not result.steps:
-            raise BodySchemeError(f"no command was paired with an observation (rejected: {dict(result.rejected)}); "
-                                  "check the pairing parameters in the parameter file")
+            imported = f"; imported: {dict(result.imported)}" if result.imported is not None else ""
+            raise BodySchemeError(f"no command was paired with an observation (rejected: {dict(result.rejected)}"
+                                  f"{imported}); check the pairing parameters in the parameter file"
+                                  f"{' and the source map' if imported else ''}")
         if args.part is not None and args.part not in result.learner.part_ids:
             raise BodySchemeError(f"--part {args.part} is not a part: {list(result.learner.part_ids)}")
         report = build_report(result, bag, part=args.part)

@@ -32,6 +32,8 @@ from .errors import InvalidInputError
 
 __all__ = ["CommandObservationPairer", "still_periods"]
 
+_CHUNK = 256  # samples tested at once while a still period is extended
+
 
 class CommandObservationPairer:
     """Turn two time-stamped streams into learning samples.
@@ -159,12 +161,22 @@ def still_periods(stamps, values, tolerance, min_duration):
         raise InvalidInputError(f"need tolerance > 0 and min_duration >= 0, got {tolerance}, {min_duration}")
     periods, i, n = [], 0, len(stamps)
     while i < n:
-        j = i + 1
-        while j < n and np.max(np.abs(values[j] - values[i])) <= tolerance:
-            j += 1
-        if stamps[j - 1] - stamps[i] >= min_duration:
-            periods.append((float(stamps[i]), float(stamps[j - 1]), values[i:j].mean(axis=0)))
-            i = j
-        else:
+        # The samples up to min_duration after the start must all hold (one vectorised test per start) ...
+        e = int(np.searchsorted(stamps, stamps[i] + min_duration, side="left"))
+        if e >= n:
+            break  # the recording ends before any later start could last min_duration
+        if np.any(np.abs(values[i:e + 1] - values[i]) > tolerance):
             i += 1
+            continue
+        # ... and the period then runs until the first sample that moved (searched in chunks).
+        j = e + 1
+        while j < n:
+            moved = np.flatnonzero(np.any(np.abs(values[j:j + _CHUNK] - values[i]) > tolerance, axis=1))
+            if moved.size:
+                j += int(moved[0])
+                break
+            j += _CHUNK
+        j = min(j, n)
+        periods.append((float(stamps[i]), float(stamps[j - 1]), values[i:j].mean(axis=0)))
+        i = j
     return periods

@@ -59,6 +59,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, JointState
 from std_srvs.srv import Trigger
 
@@ -74,6 +75,8 @@ from .spin import run_node
 
 #: Random draws per step before the step is skipped (counted) because every draw was refused.
 MAX_DRAWS = 100
+#: s between two logs of the failing pre-flight checks.
+PREFLIGHT_LOG_PERIOD = 5.0
 #: s to wait for a camera frame stamped after the action when the camera watchdog is off (camera_timeout 0).
 FRAME_WAIT = 3.0
 #: s between two ticks of the loop past which this process was paused (a busy machine): the executor runs the tick
@@ -126,7 +129,7 @@ class BabbleNode(Node):
         if not self.suggestion_timeout >= 0:
             raise InvalidInputError(f"suggestion_timeout must be >= 0 s, got {self.suggestion_timeout!r}")
         self.state = "paused" if p("start_paused", False).value else "waiting"
-        update_period = self.update_period = p("update_period", 0.02).value
+        update_period = p("update_period", 0.02).value
         if not (self.dwell >= 0 and self.camera_timeout >= 0 and self.error_hold >= 0 and update_period > 0
                 and self.steps >= 0 and self.joint_state_timeout >= 0):
             raise InvalidInputError("dwell, camera_timeout, joint_state_timeout, error_hold and steps must be >= 0 "
@@ -147,6 +150,7 @@ class BabbleNode(Node):
         self.camera_info = False  # a CameraInfo arrived
         self.seen_markers = set()  # markers observed since the first joint state (the start posture)
         self.preflight = []  # the failing pre-flight checks' lines (empty once passed)
+        self._preflight_logged = None  # monotonic time they were last logged
 
         work = MutuallyExclusiveCallbackGroup()
         self.pub_action = self.create_publisher(JointState, self.action_topic, 100)
@@ -158,7 +162,9 @@ class BabbleNode(Node):
 
         subscribe(DiagnosticArray, "/diagnostics", self._on_diagnostics)
         subscribe(MarkerPoses, camera_topic, self._on_camera)
-        subscribe(CameraInfo, camera_info_topic, self._on_camera_info)
+        # Camera drivers publish CameraInfo best effort (sensor data QoS): a best-effort subscription matches both.
+        create_sized_subscription(self, CameraInfo, camera_info_topic, self._on_camera_info, qos_profile_sensor_data,
+                                  max_bytes, self._oversized, work)
         self._facts = PreflightFacts(joint_states_topic=self.driver.joint_states_topic,
                                      controller_topic=self.driver.pub_trajectory.topic_name,
                                      camera_topic=self.resolve_topic_name(camera_topic),
@@ -321,7 +327,8 @@ class BabbleNode(Node):
         self.preflight = [line for _, line in preflight_failures(facts, fresh, self.preflight_skip)]
         if self.preflight:
             self.counts["preflight_waits"] += 1
-            if self.counts["preflight_waits"] % max(1, round(5.0 / self.update_period)) == 1:
+            if self._preflight_logged is None or now - self._preflight_logged >= PREFLIGHT_LOG_PERIOD:
+                self._preflight_logged = now
                 for line in self.preflight:
                     self.get_logger().warn(f"pre-flight: {line}")
             return False

@@ -33,7 +33,9 @@ second before the observation if the period is longer (inside scheme_node's defa
 joint names, and per body ``<id>.x <id>.y <id>.z <id>.qx <id>.qy <id>.qz <id>.qw`` (a pose) or ``<id>.<point>.x
 <id>.<point>.y <id>.<point>.z`` (the points of the map's ``points`` by label); an empty cell is not observed. JSON
 lines: ``{"stamp": s, "joints": {name: value}, "poses": {"<id>": [x, y, z, qx, qy, qz, qw]}, "points": {"<id>":
-{"<point>": [x, y, z]}}}``. Without stamps, row ``k`` is commanded at ``k`` s; its observation follows 0.1 s later.
+{"<point>": [x, y, z]}}}``. Without stamps, row ``k`` is commanded at ``k`` s; stamps must increase. A row's
+observation follows its command by 0.1 s, or half the time to the next row if that is shorter: a row's poses are its
+own, whatever the spacing.
 
 Everything that is dropped is counted by reason in :attr:`Translation.counts` (never silently).
 """
@@ -185,7 +187,8 @@ class Translation:
     counts : collections.Counter
         ``poses`` (still periods or rows), ``samples`` (with at least one body observed), and what was dropped by
         reason: ``unseen`` (a pose in which no body was observed), ``wrong_frame``, ``invalid_pose``,
-        ``too_few_points``, ``joints_missing`` (a joint message without the map's joints), ``invalid_row``.
+        ``too_few_points``, ``joints_missing`` (a joint message without the map's joints or with a value that is not
+        finite), ``invalid_row`` (no valid joint values, or a stamp not after the row before), ``ignored_columns``.
     """
 
     messages: list = field(default_factory=list)
@@ -206,13 +209,14 @@ def translate(path, source_map):
         If the recording has no joint values, or a table's header lacks a joint.
     """
     path = pathlib.Path(path)
-    if path.suffix in TABLE_SUFFIXES:
-        return _samples(*_table(path, source_map), source_map)
-    return _samples(*_bag(path, source_map), source_map)
+    counts = Counter()
+    rows = _table(path, source_map, counts) if path.suffix in TABLE_SUFFIXES else _bag(path, source_map, counts)
+    return _messages(rows, counts, source_map)
 
 
 # ---------------------------------------------------------------------- bags
-def _bag(path, source_map):
+def _bag(path, source_map, counts):
+    """The bag's samples: ``[(start of the still period, values, {id: (stamp, pose or point) per key})]``."""
     if not source_map.bodies:
         raise InvalidInputError(f"bag {path}: the source map names no bodies (marker id -> tf, topic or points)")
     available = bag_topics(path)
@@ -228,7 +232,6 @@ def _bag(path, source_map):
             if kind is not None and kind not in wanted:
                 raise InvalidInputError(f"bag {path}: body {body.marker_id}'s topic {topic} is of type {kind}, "
                                         f"not one of {list(wanted)}")
-    counts = Counter()
     joint_stamps, joint_values, trajectory = [], [], []
     seen = defaultdict(list)  # (marker id, point label or "") -> [(stamp, pose or point)]
     by_frame = {body.tf: body for body in source_map.bodies if body.tf}
@@ -263,14 +266,15 @@ def _bag(path, source_map):
                 _keep(seen, counts, source_map, (body.marker_id, ""), msg.header, item.log_time,
                       lambda m=msg, b=body: _pose_of(m, b))
     if trajectory:
-        periods = _trajectory_periods(trajectory, source_map.still_time)
+        periods = _trajectory_periods(sorted(trajectory, key=lambda goal: goal[0]), source_map.still_time)
     elif joint_values:
-        periods = still_periods(joint_stamps, np.array(joint_values), source_map.still_tolerance,
-                                source_map.still_time)
+        order = np.argsort(joint_stamps, kind="stable")  # header stamps may jitter out of the log order
+        periods = still_periods(np.asarray(joint_stamps)[order], np.array(joint_values)[order],
+                                source_map.still_tolerance, source_map.still_time)
     else:
         raise InvalidInputError(f"bag {path}: no message on {source_map.joint_topic} names the joints "
                                 f"{list(source_map.joint_names)}")
-    return periods, seen, counts, source_map.settle_time
+    return _in_periods(periods, seen, source_map)
 
 
 def _stamp(stamp, log_time):
@@ -330,36 +334,63 @@ def _pose_of(msg, body):
 
 
 # ---------------------------------------------------------------------- tables
-def _table(path, source_map):
+def _table(path, source_map, counts):
+    """The table's rows as samples (each row one pose; its stamps must increase)."""
     try:
         text = path.read_text()
-    except OSError as error:
+    except (OSError, UnicodeDecodeError) as error:
         raise InvalidInputError(f"cannot read the table {path}: {error}") from error
-    rows = _csv_rows(path, text, source_map) if path.suffix == ".csv" else _jsonl_rows(path, text)
-    counts, seen, periods = Counter(), defaultdict(list), []
-    points_of = {body.marker_id: body.points for body in source_map.bodies if body.points}
+    rows = _csv_rows(path, text, source_map, counts) if path.suffix == ".csv" else _jsonl_rows(path, text)
+    points_of = {body.marker_id: body for body in source_map.bodies if body.points}
+    samples, last = [], -math.inf
     for k, row in enumerate(rows):
         try:
-            stamp = float(row.get("stamp", k * TABLE_PERIOD))
+            stamp = float(row["stamp"]) if row.get("stamp") not in (None, "") else k * TABLE_PERIOD
             values = np.array([float(row["joints"][name]) for name in source_map.joint_names])
-            if not (math.isfinite(stamp) and np.all(np.isfinite(values))):
-                raise ValueError("not finite")
-        except (KeyError, TypeError, ValueError):
+            if not (math.isfinite(stamp) and np.all(np.isfinite(values)) and stamp > last):
+                raise ValueError("not finite, or not after the row before")
+            poses, points = row.get("poses") or {}, row.get("points") or {}
+            if not (isinstance(poses, dict) and isinstance(points, dict)):
+                raise TypeError("poses and points must be objects keyed by marker id")
+        except (KeyError, TypeError, ValueError, AttributeError):
             counts["invalid_row"] += 1
             continue
-        periods.append((stamp, stamp + TABLE_DELAY, values))
-        for marker_id, numbers in row.get("poses", {}).items():
-            _append(seen, counts, (int(marker_id), ""), stamp + TABLE_DELAY,
+        last = stamp
+        found = defaultdict(list)
+        for marker_id, numbers in poses.items():
+            _append(found, counts, _marker_id(marker_id), stamp + TABLE_DELAY,
                     lambda n=numbers: transform_from_pose(_floats(n[:3]), _floats(n[3:7])))
-        for marker_id, labelled in row.get("points", {}).items():
+        for marker_id, labelled in points.items():
+            body = points_of.get(_marker_id(marker_id))
+            if body is None or not isinstance(labelled, dict):
+                counts["invalid_pose"] += 1
+                continue
             for label, xyz in labelled.items():
-                if label in points_of.get(int(marker_id), {}):
-                    _append(seen, counts, (int(marker_id), label), stamp + TABLE_DELAY, lambda v=xyz: _floats(v))
+                if label in body.points:
+                    _append(found, counts, (body.marker_id, label), stamp + TABLE_DELAY, lambda v=xyz: _floats(v))
                 else:
                     counts["invalid_pose"] += 1
-    if not periods:
+        samples.append((stamp, values, {key: items[0] for key, items in found.items() if items and key[0] is not None}))
+        if found.get((None, "")):
+            counts["invalid_pose"] += len(found[(None, "")])
+    if not samples and not counts["invalid_row"]:
         raise InvalidInputError(f"table {path}: no row with values of the joints {list(source_map.joint_names)}")
-    return periods, seen, counts, 0.0
+    # A row's observation follows its command by TABLE_DELAY, or half the time to the next row if that is shorter:
+    # always before the next row's command, so the pairing cannot give a row another row's poses.
+    for k, (stamp, values, found) in enumerate(samples):
+        gap = samples[k + 1][0] - stamp if k + 1 < len(samples) else math.inf
+        delay = min(TABLE_DELAY, gap / 2)
+        samples[k] = (stamp, values, {key: (stamp + delay, item) for key, (_, item) in found.items()})
+    return samples
+
+
+def _marker_id(key):
+    """``(id, "")`` of a table's marker key ("7" or 7); ``(None, "")`` for anything else."""
+    try:
+        marker_id = int(key)
+    except (TypeError, ValueError):
+        return (None, "")
+    return (marker_id, "") if str(marker_id) == str(key).strip() and marker_id >= 0 else (None, "")
 
 
 def _floats(values):
@@ -369,12 +400,16 @@ def _floats(values):
     return array
 
 
-def _csv_rows(path, text, source_map):
+def _csv_rows(path, text, source_map, counts):
     reader = csv.DictReader(text.splitlines())
     header = reader.fieldnames or []
     missing = [name for name in source_map.joint_names if name not in header]
     if missing:
         raise InvalidInputError(f"table {path}: no column for the joints {missing} (header: {header})")
+    known = {"stamp", *source_map.joint_names}
+    ignored = [c for c in header if c not in known and not _body_column(c)]
+    if ignored:
+        counts["ignored_columns"] += len(ignored)
     rows = []
     for line in reader:
         row = {"joints": {name: line[name] for name in source_map.joint_names}, "poses": {}, "points": {}}
@@ -389,11 +424,18 @@ def _csv_rows(path, text, source_map):
             label, _, axis = rest.rpartition(".")
             if not label and axis in _POSE_FIELDS:
                 row["poses"].setdefault(marker, [math.nan] * 7)[_POSE_FIELDS.index(axis)] = _number(cell)
-            elif label and axis in "xyz":
+            elif label and axis in ("x", "y", "z"):
                 row["points"].setdefault(marker, {}).setdefault(label, [math.nan] * 3)["xyz".index(axis)] = \
                     _number(cell)
         rows.append(row)
     return rows
+
+
+def _body_column(column):
+    """Whether a CSV column is ``<id>.<field>`` of a pose or ``<id>.<point>.<axis>`` of a point."""
+    marker, _, rest = column.partition(".")
+    label, _, axis = rest.rpartition(".")
+    return marker.isdigit() and ((not label and axis in _POSE_FIELDS) or (bool(label) and axis in ("x", "y", "z")))
 
 
 def _number(cell):
@@ -419,34 +461,40 @@ def _jsonl_rows(path, text):
 
 
 # ---------------------------------------------------------------------- periods and observations -> messages
-def _samples(periods, seen, counts, settle_time, source_map):
-    """One command and one observation message per still period in which a body was observed."""
+def _in_periods(periods, seen, source_map):
+    """Per still period: its start, values and each key's first sample at least ``settle_time`` into it."""
     for key in seen:
         seen[key].sort(key=lambda item: item[0])
     stamps = {key: [stamp for stamp, _ in values] for key, values in seen.items()}
-    translation = Translation(counts=counts)
-    # Bags hold only mapped bodies; a table's pose columns name their bodies themselves.
-    points_of = {body.marker_id: body for body in source_map.bodies if body.points}
-    marker_ids = sorted({marker_id for marker_id, _ in seen} | set(points_of))
+    samples = []
     for start, end, values in periods:
+        found = {}
+        for key, key_stamps in stamps.items():
+            k = bisect.bisect_left(key_stamps, start + source_map.settle_time)
+            if k < len(key_stamps) and key_stamps[k] <= end:
+                found[key] = seen[key][k]
+        samples.append((start, values, found))
+    return samples
+
+
+def _messages(samples, counts, source_map):
+    """One command and one observation message per sample in which a body was observed."""
+    translation = Translation(counts=counts)
+    points_of = {body.marker_id: body for body in source_map.bodies if body.points}
+    for start, values, found in samples:
         counts["poses"] += 1
         poses, latest = {}, -math.inf
-        for marker_id in marker_ids:
+        for marker_id in sorted({marker_id for marker_id, _ in found} | set(points_of)):
             body = points_of.get(marker_id)
-            found = {}
-            for label in list(body.points) if body is not None else [""]:
-                key = (marker_id, label)
-                k = bisect.bisect_left(stamps.get(key, []), start + settle_time)
-                if k < len(stamps.get(key, [])) and stamps[key][k] <= end:
-                    found[label] = seen[key][k]
-            if not found:
+            mine = {label: item for (part, label), item in found.items() if part == marker_id}
+            if not mine:
                 continue
-            pose = found[""][1] if body is None else _registered(body, found)
+            pose = mine[""][1] if body is None else _registered(body, mine)
             if pose is None:
                 counts["too_few_points"] += 1
                 continue
             poses[marker_id] = pose
-            latest = max(latest, *(stamp for stamp, _ in found.values()))
+            latest = max(latest, *(stamp for stamp, _ in mine.values()))
         if not poses:
             counts["unseen"] += 1
             continue

@@ -3,7 +3,8 @@
 :func:`~.learned_body.learned_urdf` describes the body scheme in links of its own (a link per part). A user who
 calibrates wants the robot's file back, corrected: its links, names, meshes, limits and fixed joints as they are, and
 each joint the body scheme learned moved onto the learned axis line. :func:`calibrated_urdf` edits the nominal URDF's
-joint ``<origin>`` elements and nothing else (no ``<calibration>`` tags, which most drivers ignore):
+joint ``<origin>`` elements (the file is written again by ElementTree: its comments and declaration are not kept; no
+``<calibration>`` tags, which most drivers ignore):
 
 - every link frame is computed at zero actions in the robot's base frame. The learned body is placed there by its root
   marker (whose place on the base comes from the nominal marker file: the base is as well placed as that marker);
@@ -37,6 +38,9 @@ from ..transforms import invert_transform, rotational_error, rotvec_matrix, xyz_
 from .learned_body import _aligned
 
 __all__ = ["CalibratedURDF", "calibrated_urdf", "format_diff"]
+
+#: A continuous joint is a revolute one without limits.
+_KIND = {"continuous": "revolute"}
 
 
 @dataclass
@@ -86,13 +90,17 @@ def calibrated_urdf(urdf_text, body, nominal, root):
     zero = np.zeros(nominal.n_actions)
     nominal_links = nominal.link_poses(zero)
     learned_links = body.tree.link_poses(np.zeros(body.tree.n_actions))
-    base2root = nominal.marker_poses(zero)[root]  # the learned body's root frame in the base frame
+    specified_markers = nominal.marker_poses(zero)
+    if root not in specified_markers or set(body.marker_poses(np.zeros(body.n_actions))) - set(specified_markers):
+        raise InvalidInputError(f"the nominal robot's markers {sorted(specified_markers)} lack the learned body's "
+                                f"(root {root})")
+    base2root = specified_markers[root]  # the learned body's root frame in the base frame
     learned_joints = {j.name: j for j in body.tree.joints if j.type in ("revolute", "prismatic")}
     # Each learned joint's axis line in the base frame, and the point of it nearest the specified joint origin.
     lines = {}
     for joint in nominal.joints:
         learned = learned_joints.get(joint.name)
-        if learned is not None and learned.type == joint.type:
+        if learned is not None and learned.type == _KIND.get(joint.type, joint.type):
             frame = base2root @ learned_links[learned.parent] @ learned.origin
             axis = frame[:3, :3] @ learned.axis
             spec = (nominal_links[joint.parent] @ joint.origin)[:3, 3]
@@ -112,9 +120,9 @@ def calibrated_urdf(urdf_text, body, nominal, root):
         point, axis = lines[joint.name]
         corrected = np.eye(4)
         corrected[:3, :3] = _aligned(chained[:3, :3], joint.axis, axis)
-        corrected[:3, 3] = point if joint.type == "revolute" else chained[:3, 3]
+        corrected[:3, 3] = point if learned_joints[joint.name].type == "revolute" else chained[:3, 3]
         following = [j for j in nominal.joints if j.parent == joint.child and j.name in lines]
-        if joint.type == "revolute" and following:
+        if learned_joints[joint.name].type == "revolute" and following:
             corrected = _twisted(corrected, joint.axis, following[0].origin[:3, 3], lines[following[0].name][0])
         frames[joint.child] = corrected
         origins[joint.name] = invert_transform(frames[joint.parent]) @ corrected
@@ -123,7 +131,7 @@ def calibrated_urdf(urdf_text, body, nominal, root):
                      "origin_mm": 1e3 * float(np.linalg.norm(origins[joint.name][:3, 3] - joint.origin[:3, 3])),
                      "origin_deg": math.degrees(float(rotational_error(origins[joint.name], joint.origin))),
                      "axis_deg": math.degrees(math.acos(float(np.clip(axis @ spec_axis, -1, 1))))})
-    for element in robot.iter("joint"):
+    for element in robot.findall("joint"):  # not the <joint> of a <transmission> or <ros2_control>
         if element.get("name") in origins:
             origin = element.find("origin")
             if origin is None:

@@ -62,7 +62,24 @@ def test_the_calibrated_urdf_moves_the_bent_joint_and_predicts_as_the_body_schem
     assert "joint3" in format_diff(result) and "<calibration" not in result.text
 
 
-def test_a_urdf_that_does_not_parse_is_refused(bent):
+def test_a_continuous_joint_is_calibrated_and_ros2_control_joints_are_left_alone(bent):
+    """A continuous joint is a revolute one; the <joint> elements of <ros2_control> and <transmission> are not
+    joints of the kinematics and get no <origin>."""
+    nominal, _, learner, body = bent
+    text = tree_to_urdf(nominal).replace('type="revolute"', 'type="continuous"', 1).replace(
+        "</robot>", '<ros2_control name="arm" type="system"><joint name="joint3"><command_interface name="position"/>'
+                    '</joint></ros2_control><transmission name="t"><joint name="joint2"/></transmission></robot>')
+    specified = tree_from_urdf(text, nominal.markers)
+    assert specified.joint("joint1").type == "continuous"
+    result = calibrated_urdf(text, body, specified, learner.root)
+    assert {row["joint"] for row in result.diff} == set(nominal.action_joint_names)
+    assert '<joint name="joint3"><command_interface' in result.text and '<joint name="joint2" />' in result.text
+
+
+def test_a_urdf_that_does_not_parse_or_lacks_the_root_marker_is_refused(bent):
     nominal, _, learner, body = bent
     with pytest.raises(InvalidInputError, match="does not parse"):
         calibrated_urdf("<robot", body, nominal, learner.root)
+    other = tree_from_urdf(tree_to_urdf(nominal), [m for m in nominal.markers if m.id != learner.root])
+    with pytest.raises(InvalidInputError, match="lack the learned body's"):
+        calibrated_urdf(tree_to_urdf(nominal), body, other, learner.root)
