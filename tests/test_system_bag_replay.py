@@ -103,7 +103,7 @@ def test_other_stacks_recordings_replay_through_the_nodes_to_the_true_tree(layou
     """bag_replay with a source map feeds another stack's recording (tags on /tf, a motion-capture PoseStamped per
     body, a table) to scheme_node, which learns the true tree."""
     tree = planar_2dof()
-    session = make_session(tree, 60, seed=0, sigma_trans=0.01, sigma_rot=np.radians(3.0))
+    session = make_session(tree, 30, seed=0, sigma_trans=0.01, sigma_rot=np.radians(3.0))  # true from step 4 on
     recording, map_path, params = write_layout(session, tmp_path / layout, layout)
     collector = Collector(ros_node)
     parameters = yaml.safe_load(params.read_text())["/**"]["ros__parameters"]
@@ -113,8 +113,8 @@ def test_other_stacks_recordings_replay_through_the_nodes_to_the_true_tree(layou
                                                              "rate": 0.0, "start_delay": 0.5})
     assert spin_until(lambda: collector.done is not None, timeout=40, progress=lambda: collector.step), (
         replay.output(), scheme.output())
-    assert collector.done is True and "samples 60" in replay.output(), replay.output()
+    assert collector.done is True and "samples 30" in replay.output(), replay.output()
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: collector.step == 60, timeout=60, progress=lambda: collector.step), scheme.output()
+    assert spin_until(lambda: collector.step == 30, timeout=60, progress=lambda: collector.step), scheme.output()
     assert spin_until(lambda: {frozenset((e.parent_id, e.child_id)) for e in collector.structure.edges} == true_edges,
                       timeout=10), scheme.output()
