@@ -55,7 +55,7 @@ import yaml
 from sensor_msgs.msg import JointState
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.learning import register_points
+from body_scheme_core.learning import MIN_SPREAD, point_spread, register_points
 from body_scheme_core.pairing import still_periods
 from body_scheme_core.transforms import transform_from_pose
 
@@ -77,7 +77,6 @@ MAX_OBSERVATION_DELAY = 1.0
 #: Tables: seconds between a row's command and its observation, and between rows without stamps.
 TABLE_DELAY, TABLE_PERIOD = 0.1, 1.0
 _POSE_FIELDS = ("x", "y", "z", "qx", "qy", "qz", "qw")
-_MIN_POINT_SPREAD = 1e-3  # m: points closer to one line than this do not give an orientation
 
 
 @dataclass(frozen=True)
@@ -165,15 +164,10 @@ def _body(path, key, value):
         if coordinates.shape != (3,) or not np.all(np.isfinite(coordinates)):
             raise InvalidInputError(f"{where}: point {label!r} needs coordinates [x, y, z], got {xyz!r}")
         points[str(label)] = coordinates
-    if "points" in value and (len(points) < 3 or _spread(np.array(list(points.values()))) < _MIN_POINT_SPREAD):
+    if "points" in value and (len(points) < 3 or point_spread(list(points.values())) < MIN_SPREAD):
         raise InvalidInputError(f"{where}: needs at least three points not on one line")
     return BodySource(marker_id=key, tf=str(value.get("tf") or "").lstrip("/"), topic=str(value.get("topic") or ""),
                       index=index, points=points)
-
-
-def _spread(points):
-    """Second singular value of the centred points per point: 0 for points on one line."""
-    return float(np.linalg.svd(points - points.mean(axis=0), compute_uv=False)[1] / math.sqrt(len(points)))
 
 
 @dataclass
@@ -514,6 +508,6 @@ def _registered(body, found):
     if len(labels) < 3:
         return None
     local = np.array([body.points[label] for label in labels])
-    if _spread(local) < _MIN_POINT_SPREAD:
+    if point_spread(local) < MIN_SPREAD:
         return None
     return register_points(local, np.array([found[label][1] for label in labels]))

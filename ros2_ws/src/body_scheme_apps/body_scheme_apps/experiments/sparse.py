@@ -37,7 +37,7 @@ import numpy as np
 
 from body_scheme_apps.experiments.runner import aggregate
 from body_scheme_core.control import ExplorationPolicy, excursion_plan
-from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner, same_chain
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner, register_points, same_chain
 from body_scheme_core.models import EngineeredModel, chain_from_engineered
 from body_scheme_core.transforms import transform_from_rotvec, transform_from_xyz_rpy
 from body_scheme_core.world import Fault, KinematicTree, Marker, ObservationModel, default_world2root, make_session
@@ -219,19 +219,8 @@ def _observe(tree, commands, rng, points=False):
     for k in range(len(session.observations)):
         true = session.true_poses[k, list(tree.marker_ids).index(2)]
         measured = (true[:3, :3] @ offsets.T).T + true[:3, 3] + rng.normal(0, POINT_NOISE, offsets.shape)
-        out.append({2: _kabsch(offsets, measured)})
+        out.append({2: register_points(offsets, measured)})
     return out
-
-
-def _kabsch(local, measured):
-    """The pose that maps the points ``local`` (k, 3) onto ``measured`` (k, 3) best (least squares)."""
-    a, b = local - local.mean(0), measured - measured.mean(0)
-    u, _, vt = np.linalg.svd(b.T @ a)
-    d = np.sign(np.linalg.det(u @ vt))
-    R = u @ np.diag([1.0, 1.0, d]) @ vt
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, measured.mean(0) - R @ local.mean(0)
-    return T
 
 
 def _fault(tree, robot, commands, seed, quick):

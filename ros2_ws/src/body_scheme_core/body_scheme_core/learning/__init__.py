@@ -72,7 +72,16 @@ from .quality import (
 )
 from .relative import PartPairs, RelativeObservations
 from .repair import Change, Repair, Replacement, bridge_relative_complexity, tree_halves
-from .root_pose import OFFSET_SAMPLES, OUTLIER_SIGMAS, RootPoseEstimator, RootWatch, register_points, still_part
+from .root_pose import (
+    MIN_SPREAD,
+    OFFSET_SAMPLES,
+    OUTLIER_SIGMAS,
+    RootPoseEstimator,
+    RootWatch,
+    point_spread,
+    register_points,
+    still_part,
+)
 from .structure import (
     CANDIDATE_KINDS,
     action_subsets,
@@ -142,6 +151,8 @@ __all__ = [
     "RootPoseEstimator",
     "RootWatch",
     "register_points",
+    "point_spread",
+    "MIN_SPREAD",
     "OUTLIER_SIGMAS",
     "OFFSET_SAMPLES",
     "BodySchemeConfig",

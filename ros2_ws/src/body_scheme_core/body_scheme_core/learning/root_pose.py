@@ -21,7 +21,8 @@ import numpy as np
 from ..transforms import invert_transform, project_to_rotation, rotational_error
 from .validity import ValidityMonitor
 
-__all__ = ["still_part", "RootPoseEstimator", "RootWatch", "register_points", "OUTLIER_SIGMAS", "OFFSET_SAMPLES"]
+__all__ = ["still_part", "RootPoseEstimator", "RootWatch", "register_points", "point_spread", "MIN_SPREAD",
+           "OUTLIER_SIGMAS", "OFFSET_SAMPLES"]
 
 #: Points whose residual after the first fit exceeds this many times the median residual are dropped (about 4.6 sigma
 #: per axis for Gaussian noise).
@@ -30,7 +31,7 @@ OUTLIER_SIGMAS = 3.0
 OFFSET_SAMPLES = 10
 # Below this many points, or points (nearly) on a line, the registration's rotation is not determined.
 _MIN_POINTS = 6
-_MIN_SPREAD = 1e-3  # m, second singular value of the centred points / sqrt(n)
+MIN_SPREAD = 1e-3  # m, second singular value of the centred points / sqrt(n) (point_spread)
 
 
 def register_points(P, Q):
@@ -140,10 +141,14 @@ class RootPoseEstimator:
 
 
 def _well_spread(P):
-    if len(P) < _MIN_POINTS:
-        return False
-    singular = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
-    return singular[1] / np.sqrt(len(P)) > _MIN_SPREAD
+    return len(P) >= _MIN_POINTS and point_spread(P) > MIN_SPREAD
+
+
+def point_spread(P):
+    """How far points ``P`` (n, 3) are from one line: the second singular value of the centred points per
+    ``sqrt(n)`` (m); below :data:`MIN_SPREAD` they do not determine a rotation."""
+    P = np.asarray(P, dtype=float)
+    return float(np.linalg.svd(P - P.mean(axis=0), compute_uv=False)[1] / np.sqrt(len(P)))
 
 
 class RootWatch:
