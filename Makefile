@@ -62,8 +62,8 @@ $(STAMPS)/build: $(STAMPS)/cmake-fixed $(PKG_SOURCES) $(PYPI_INTERFACE_SOURCES)
 # Every test (pytest over each package's test/ and the cross-package tests/) plus lint: the tests without DDS on
 # every core, then the DDS system tests one at a time (each starts its own node processes).
 test: build
-	$(RUN) python -m pytest -m "not system" -n auto
-	$(RUN) python -m pytest -m system
+	$(RUN) python -m pytest -m "not system" -n auto --durations=15
+	$(RUN) python -m pytest -m system --durations=15
 	$(MAKE) --no-print-directory lint
 
 # The inner loop: every test but the DDS system tests and the ones marked slow, on every core (target: under 90 s).

@@ -72,6 +72,7 @@ CORE_LAYERS = {
     "transforms": 1, "state_values": 1, "events": 1,  # rigid-transform maths, saved-value readers, the learner's events
     "models": 2, "perception": 2, "pairing": 2,  # local models (Sec. III-A/B); the camera and the commands
     "world": 3,  # kinematic trees, robots, faults and sessions: the bodies we learn
+    "plates": 3,  # several tags on one rigid plate: one pose (perception)
     "prediction": 4,  # the body scheme and its predictions (Sec. III-C/D, Eq. 8)
     "calibration": 5, "control": 5,  # the joint fit; IK and exploration (Sec. III-D)
     "learning": 6,  # structure search, learning and adaptation (Sec. III-A-C, III-E)

@@ -65,6 +65,13 @@ def test_tracker_node_turns_rendered_images_into_marker_poses(start_node, ros_no
         errors += [np.linalg.norm(observed[i][:3, 3] - truth[i][:3, 3]) for i in observed]
     assert len(errors) >= 15 * 3
     assert np.median(errors) <= DOCUMENTED_TRANS_ERROR_MEDIAN
+    # Each pose carries its covariance from the corners' noise: positive definite, largest along the ray.
+    for item in listener.observed[listener.matched()[-1]].poses:
+        covariance = np.array(item.covariance).reshape(6, 6)
+        ray = np.array([item.pose.position.x, item.pose.position.y, item.pose.position.z])
+        ray /= np.linalg.norm(ray)
+        assert np.all(np.linalg.eigvalsh(covariance) > 0.0)
+        assert ray @ covariance[:3, :3] @ ray > 0.9 * np.linalg.eigvalsh(covariance[:3, :3])[-1]
 
     # The PoseArray twin carries the same stamp and the same positions.
     key = next(k for k in listener.matched() if k in listener.arrays)

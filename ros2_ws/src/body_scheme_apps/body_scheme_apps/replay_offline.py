@@ -128,6 +128,7 @@ def build_report(result, bag, part=None):
         "n_commands": result.n_commands, "n_steps": len(steps), "seconds": result.seconds,
         "steps_per_second": len(steps) / result.seconds if result.seconds > 0 else None,
         "rejected": dict(sorted(result.rejected.items())),
+        "corrected": dict(sorted(learner.corrected.items())),
         "imported": None if result.imported is None else dict(sorted(result.imported.items())),
         "steps": steps,
         "events": [event.to_dict() for event in result.events],
@@ -193,6 +194,8 @@ def format_summary(report):
         lines.append("imported: " + ", ".join(f"{k} {n}" for k, n in report["imported"].items()))
     rejected = report["rejected"]
     lines.append("rejected inputs: " + (", ".join(f"{k} {n}" for k, n in rejected.items()) or "none"))
+    if report.get("corrected"):
+        lines.append("corrected inputs: " + ", ".join(f"{k} {n}" for k, n in report["corrected"].items()))
     part = report["end_effector"]
     if part is None:
         lines.append("end effector: none (no body scheme)")

@@ -67,33 +67,33 @@ def test_a_figure_where_higher_is_better_has_a_minimum_target(tmp_path):
 
 
 def test_command_writes_results_json_with_seed_commit_and_std_twins(tmp_path, capsys):
-    """One quick Table I run end to end: results.json has the figures, _std twins, seed, commit and runs; --check
-    passes."""
-    code = main(["--only", "table1", "--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1", "--quiet",
+    """One quick run end to end (Fig. 7: one of the cheapest with a plot; each experiment's own run is tested in its
+    test file): results.json has the figures, _std twins, seed, commit and runs; --check passes."""
+    code = main(["--only", "fig7", "--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1", "--quiet",
                  "--out", str(tmp_path), "--md", str(tmp_path / "RESULTS.md"), "--check"])
     assert code == 0
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["seed"] == 0 and results["runs"] == 1 and results["commit"]
-    assert math.isfinite(results["blocked_recovery_failure"]) and "blocked_recovery_failure_std" in results
+    assert math.isfinite(results["fig7_pred_err_mm_50"]) and "fig7_pred_err_mm_50_std" in results
     assert results["rendered"] == {}
-    assert (tmp_path / "table1_blocked.png").exists() and "Table I" in (tmp_path / "RESULTS.md").read_text()
+    assert (tmp_path / "fig7.png").exists() and "fig7.png" in (tmp_path / "RESULTS.md").read_text()
 
 
 def test_keep_reruns_one_experiment_and_keeps_the_others_figures(tmp_path):
-    """--only zoo --keep over an earlier Table I run: results.json and RESULTS.md have both, the seconds add up."""
+    """--only transmission --keep over an earlier Fig. 7 run: results.json and RESULTS.md have both (and the
+    Fig. 7 plot), the seconds add up."""
     common = ["--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1", "--quiet", "--out", str(tmp_path),
               "--md", str(tmp_path / "RESULTS.md")]
-    assert main(["--only", "table1", *common]) == 0
+    assert main(["--only", "fig7", *common]) == 0
     first = json.loads((tmp_path / "results.json").read_text())
-    assert main(["--only", "zoo", "--keep", *common]) == 0
+    plots = sorted(p.name for p in tmp_path.glob("fig7*.png"))
+    assert main(["--only", "transmission", "--keep", *common]) == 0
     results = json.loads((tmp_path / "results.json").read_text())
-    assert results["blocked_recovery_failure"] == first["blocked_recovery_failure"]
-    assert results["zoo_exceptions"] == 0.0 and results["seconds"] >= first["seconds"]
-    assert set(results["runs_per_experiment"]) == {"table1", "zoo"}
+    assert results["fig7_pred_err_mm_50"] == first["fig7_pred_err_mm_50"] and plots
+    assert math.isfinite(results["transmission_ee_err_mm"]) and results["seconds"] >= first["seconds"]
+    assert set(results["runs_per_experiment"]) == {"fig7", "transmission"}
     text = (tmp_path / "RESULTS.md").read_text()
-    assert "Table I" in text and "robot zoo" in text and "table1_blocked.png" in text and "--keep" in text
-    runs = json.loads((tmp_path / "zoo_runs.json").read_text())  # which seeds and levels went wrong
-    assert len(runs) == 4 and {r["variant"] for r in runs} == {"camera", "realcam", "paper", "harsh"}
+    assert all(name in text for name in plots) and "transmission" in text and "--keep" in text
 
 
 def test_keep_needs_an_earlier_results_file(tmp_path):
@@ -106,3 +106,11 @@ def test_command_rejects_bad_run_counts():
     """--runs 0 is a usage error."""
     with pytest.raises(SystemExit):
         main(["--runs", "0"])
+
+
+def test_a_run_into_another_directory_writes_its_report_there(tmp_path, monkeypatch):
+    """Without --md, a run with --out elsewhere writes RESULTS.md beside its results.json, not docs/RESULTS.md."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["--only", "transmission", "--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1",
+                 "--quiet", "--out", "elsewhere"]) == 0
+    assert (tmp_path / "elsewhere" / "RESULTS.md").is_file() and not (tmp_path / "docs").exists()

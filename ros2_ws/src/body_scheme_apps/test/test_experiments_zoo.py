@@ -58,3 +58,15 @@ def test_the_summary_of_runs_without_any_detection_is_nan_not_an_error():
     summary = zoo.summarize([_run("camera", detected_at=None)])
     assert summary["zoo_fault_detected_fraction"] == 0.0
     assert math.isnan(summary["zoo_fault_detection_steps_median"])
+
+
+def test_the_plot_writes_every_runs_fields_beside_it(tmp_path):
+    """``zoo_runs.json`` lists each run's :data:`zoo.RUN_FIELDS` (which seeds and levels went wrong), sorted."""
+    import json
+
+    runs = [{**_run(level), "seed": seed, "n_actions": 3, "n_markers": 4, "repairs": 0, "cpu_seconds": 1.0}
+            for seed in (1, 0) for level in ("paper", "camera")]
+    assert zoo.plot(runs, tmp_path / "zoo")
+    table = json.loads((tmp_path / "zoo_runs.json").read_text())
+    assert [(r["seed"], r["variant"]) for r in table] == [(0, "camera"), (0, "paper"), (1, "camera"), (1, "paper")]
+    assert all(set(r) == set(zoo.RUN_FIELDS) for r in table)

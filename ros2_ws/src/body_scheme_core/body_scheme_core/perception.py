@@ -12,6 +12,11 @@ gives two solutions for a square, the true one and a mirrored one; when the best
 better than the other (ratio of their reprojection errors at or above ``max_ambiguity``), the marker's orientation
 is a coin toss and the detection is rejected rather than reported with a possibly mirrored orientation.
 
+Each pose comes with its covariance (:func:`pose_covariance`): the corners' noise (``corner_sigma_px``) through the
+PnP Jacobian, first order, over ``(x, y, z, rot_x, rot_y, rot_z)`` as ``geometry_msgs/PoseWithCovariance`` has it.
+It is large along the ray and grows with the distance squared: what a monocular camera can and cannot tell.
+:meth:`MarkerTracker.detect_markers` also gives IPPE's other solution and both reprojection errors.
+
 Measured accuracy
 -----------------
 On the simulator's 640x480 images of ``powercube_6dof`` (8 cm markers, 10 cm on the base, 1.6-2.2 m from the
@@ -31,14 +36,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from body_scheme_core.errors import InvalidInputError
 
 __all__ = [
     "MarkerTracker",
+    "MarkerDetection",
+    "pose_covariance",
+    "pose_from_pnp",
     "check_image",
     "rejection_kind",
     "marker_object_points",
@@ -57,6 +67,68 @@ DOCUMENTED_ROT_ERROR_MEDIAN = math.radians(1.5)
 DOCUMENTED_ROT_ERROR_P90 = math.radians(5.0)
 #: Documented lower bound of the fraction of geometrically visible markers the tracker detects (measured: 0.84).
 DOCUMENTED_DETECTION_RATE = 0.75
+
+
+@dataclass(frozen=True)
+class MarkerDetection:
+    """One marker's pose from its corners (:meth:`MarkerTracker.detect_markers`).
+
+    Attributes
+    ----------
+    pose : ndarray, shape (4, 4)
+        ``camera2marker``, IPPE's better solution.
+    covariance : ndarray, shape (6, 6)
+        Of ``pose`` over ``(x, y, z, rot_x, rot_y, rot_z)`` (:func:`pose_covariance`).
+    alternative : ndarray, shape (4, 4), or None
+        IPPE's other solution (the orientation mirrored about the ray, nearly), None when there is none.
+    errors : tuple of float
+        RMS reprojection errors (px) of ``pose`` and, if any, of ``alternative``.
+    """
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    alternative: np.ndarray | None
+    errors: tuple
+
+
+def pose_from_pnp(rvec, tvec):
+    """``camera2object`` (4, 4) of OpenCV's rotation vector and translation."""
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))[0]
+    T[:3, 3] = np.ravel(tvec)
+    return T
+
+
+def pose_covariance(object_points, rvec, tvec, camera_matrix, dist_coeffs=None, sigma_px=0.5):
+    """Covariance (6, 6) of a PnP pose from independent corner noise of ``sigma_px`` pixels per coordinate.
+
+    First order: ``sigma_px^2 (J^T J)^-1`` with ``J`` the Jacobian of the projected points by the rotation vector
+    and the translation (``cv2.projectPoints``), then mapped to ``(x, y, z, rot_x, rot_y, rot_z)``: the position in
+    the camera frame and small rotations about the camera frame's fixed axes (ROS's ``PoseWithCovariance``).
+
+    Parameters
+    ----------
+    object_points : ndarray, shape (n, 3)
+    rvec, tvec : array-like, shape (3,)
+        The pose (OpenCV's rotation vector and translation, camera from object).
+    camera_matrix : ndarray, shape (3, 3)
+    dist_coeffs : ndarray or None
+    sigma_px : float
+    """
+    rvec = np.asarray(rvec, dtype=float).reshape(3)
+    tvec = np.asarray(tvec, dtype=float).reshape(3)
+    _, jacobian = cv2.projectPoints(np.asarray(object_points, dtype=float), rvec, tvec, camera_matrix, dist_coeffs)
+    J = jacobian[:, :6]  # d(u, v) / d(rvec, tvec)
+    params = sigma_px**2 * np.linalg.pinv(J.T @ J)
+    # d(fixed-axis rotation) / d(rvec): columns log(R(r + h e_i) R(r)^T) / h, central differences.
+    R, h = Rotation.from_rotvec(rvec), 1e-6
+    M = np.column_stack([((Rotation.from_rotvec(rvec + h * e) * R.inv()).as_rotvec()
+                          - (Rotation.from_rotvec(rvec - h * e) * R.inv()).as_rotvec()) / (2 * h) for e in np.eye(3)])
+    T = np.zeros((6, 6))
+    T[:3, 3:] = np.eye(3)
+    T[3:, :3] = M
+    cov = T @ params @ T.T
+    return 0.5 * (cov + cov.T)
 
 
 def marker_object_points(size):
@@ -197,6 +269,9 @@ class MarkerTracker:
         ``"apriltag"``, ``"subpix"``, ``"contour"`` or ``"none"`` (OpenCV's ``CORNER_REFINE_*``). ``"apriltag"``
         fits lines to the marker's edges; on small, distant markers the other methods place the corners up to
         0.7 px inside the marker, which biases the distance by several centimetres.
+    corner_sigma_px : float
+        Standard deviation (px) of a detected corner's coordinates, for each pose's covariance
+        (:func:`pose_covariance`; the learner may learn a scale on it).
 
     Attributes
     ----------
@@ -206,7 +281,7 @@ class MarkerTracker:
 
     def __init__(self, camera_matrix, dist_coeffs=None, marker_sizes=0.08, dictionary="DICT_4X4_50",
                  min_side_px=6.0, max_reprojection_error=2.0, corner_refinement="apriltag", default_size=None,
-                 max_ambiguity=0.8):
+                 max_ambiguity=0.8, corner_sigma_px=0.5):
         self.camera_matrix = _check_camera_matrix(camera_matrix)
         self.dist_coeffs = _check_dist_coeffs(dist_coeffs)
         self.marker_sizes, self.default_size = _check_marker_sizes(marker_sizes, default_size)
@@ -216,6 +291,9 @@ class MarkerTracker:
         self.max_ambiguity = float(max_ambiguity)
         if not 0.0 < self.max_ambiguity <= 1.0:
             raise InvalidInputError(f"max_ambiguity must be in (0, 1], got {max_ambiguity}")
+        self.corner_sigma_px = float(corner_sigma_px)
+        if not (math.isfinite(self.corner_sigma_px) and self.corner_sigma_px > 0.0):
+            raise InvalidInputError(f"corner_sigma_px must be a finite number > 0, got {corner_sigma_px}")
         parameters = cv2.aruco.DetectorParameters()
         parameters.cornerRefinementMethod = _corner_refinement(corner_refinement)
         self._detector = cv2.aruco.ArucoDetector(_dictionary(dictionary), parameters)
@@ -226,7 +304,7 @@ class MarkerTracker:
         return self.marker_sizes.get(int(marker_id), self.default_size)
 
     def detect(self, image):
-        """Detect markers and estimate their poses.
+        """Detect markers and estimate their poses (:meth:`detect_markers` without the details).
 
         Parameters
         ----------
@@ -244,6 +322,19 @@ class MarkerTracker:
         InvalidInputError
             If the image has the wrong type, dtype or shape.
         """
+        detections, rejected = self.detect_markers(image)
+        return {marker_id: d.pose for marker_id, d in detections.items()}, rejected
+
+    def detect_markers(self, image):
+        """Detect markers and estimate their poses, covariances and IPPE's other solutions.
+
+        Returns
+        -------
+        detections : dict of int to MarkerDetection
+            Every marker that was detected once and whose pose is valid.
+        rejected : list of (int, str)
+            Marker id and reason for every detection that did not become a pose.
+        """
         gray = check_image(image)
         corners, ids, _ = self._detector.detectMarkers(gray)
         self.counts["images"] += 1
@@ -257,16 +348,16 @@ class MarkerTracker:
             if marker_id in repeated:
                 rejected.append((marker_id, "repeated marker id in one image"))
                 continue
-            camera2marker, reason = self._pose(marker_id, np.asarray(image_points, dtype=float).reshape(4, 2))
-            if camera2marker is None:
+            detection, reason = self._pose(marker_id, np.asarray(image_points, dtype=float).reshape(4, 2))
+            if detection is None:
                 rejected.append((marker_id, reason))
             else:
-                poses[marker_id] = camera2marker
+                poses[marker_id] = detection
         self.counts["poses"] += len(poses)
         return poses, rejected
 
     def _pose(self, marker_id, image_points):
-        """``(camera2marker, None)`` or ``(None, reason)`` for one detection's corners, shape (4, 2)."""
+        """``(MarkerDetection, None)`` or ``(None, reason)`` for one detection's corners, shape (4, 2)."""
         size = self.size_of(marker_id)
         if size is None:
             return None, "no size known for this marker id"
@@ -289,10 +380,11 @@ class MarkerTracker:
         error = math.sqrt(np.mean(np.sum((projected.reshape(4, 2) - image_points) ** 2, axis=1)))
         if error > self.max_reprojection_error:
             return None, f"reprojection error: {error:.2f} px > {self.max_reprojection_error} px"
-        camera2marker = np.eye(4)
-        camera2marker[:3, :3] = cv2.Rodrigues(rvec)[0]
-        camera2marker[:3, 3] = tvec[:, 0]
-        return camera2marker, None
+        covariance = pose_covariance(object_points, rvec, tvec, self.camera_matrix, self.dist_coeffs,
+                                     self.corner_sigma_px)
+        alternative = pose_from_pnp(rvecs[1], tvecs[1]) if n > 1 and np.all(np.isfinite(tvecs[1])) else None
+        return MarkerDetection(pose_from_pnp(rvec, tvec), covariance, alternative,
+                               tuple(float(e) for e in errors[:2])), None
 
 
 def rejection_kind(reason):

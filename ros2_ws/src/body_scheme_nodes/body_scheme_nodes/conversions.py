@@ -379,13 +379,17 @@ def distortion_from_info(msg):
     return d
 
 
-def tracked_poses_msgs(header, poses):
-    """``(MarkerPoses, PoseArray)`` of tracked ``{id: camera2marker}``, both carrying ``header`` unchanged.
+def tracked_poses_msgs(header, poses, covariances=None):
+    """``(MarkerPoses, PoseArray)`` of tracked ``{id: camera2marker}``, both carrying ``header`` unchanged;
+    ``covariances``: ``{id: (6, 6)}`` over (x, y, z, rot_x, rot_y, rot_z) into each pose's covariance.
 
     The image's header is copied as is (not through float seconds) so that consumers can match stamps exactly.
     """
     markers = marker_poses_msg(0.0, header.frame_id, poses)
     markers.header = header
+    for marker_id, item in zip(markers.marker_ids, markers.poses, strict=True):
+        if covariances is not None and marker_id in covariances:
+            item.covariance = np.asarray(covariances[marker_id], dtype=float).ravel().tolist()
     array = PoseArray(header=header)
     array.poses = [item.pose for item in markers.poses]
     return markers, array

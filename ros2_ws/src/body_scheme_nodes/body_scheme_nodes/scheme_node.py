@@ -477,7 +477,8 @@ class SchemeNode(Node):
         # Events are cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
         values.update(scheme_diagnostics.counter_values({
             "rejected": rejected, "events": {k: n for k, n in self.event_counts.items() if k != "input_rejected"},
-            "restamped": self.restamped, "shed": self.shed, "received": self.received}))
+            "restamped": self.restamped, "shed": self.shed, "received": self.received,
+            "corrected": learner.corrected}))
         for kind, intake in self._intake.items():  # inside DDS, before the node saw them (body_scheme_nodes.intake)
             values[f"lost.{kind}_messages"] = intake.lost
             values[f"lost.{kind}_full_queue_takes"] = intake.full_queue_takes

@@ -29,6 +29,8 @@ corner_refinement : string "apriltag"  apriltag | subpix | contour | none
 min_side_px : double 6.0               smaller detections are rejected
 max_reprojection_error : double 2.0    px; worse poses are rejected
 max_ambiguity : double 0.8             reject poses whose mirrored IPPE solution reprojects nearly as well (1: off)
+corner_sigma_px : double 0.5           px, corner noise behind each pose's covariance on observations (through the
+                                       PnP Jacobian: large along the ray, growing with the distance squared)
 image_reliability : string best_effort image QoS: best_effort (sensor data) or reliable
 process_period : double 0.01 s         period of the detection timer
 """
@@ -102,6 +104,7 @@ class TrackerNode(Node):
             "min_side_px": self.declare_parameter("min_side_px", 6.0).value,
             "max_reprojection_error": self.declare_parameter("max_reprojection_error", 2.0).value,
             "max_ambiguity": self.declare_parameter("max_ambiguity", 0.8).value,
+            "corner_sigma_px": self.declare_parameter("corner_sigma_px", 0.5).value,
         }
         process_period = self.declare_parameter("process_period", 0.01).value
         reliability = self.declare_parameter("image_reliability", "best_effort").value
@@ -155,7 +158,7 @@ class TrackerNode(Node):
         try:
             tracker = self._tracker_for(info)
             image = conversions.image_from_msg(msg)
-            poses, rejected = tracker.detect(image)
+            detections, rejected = tracker.detect_markers(image)
         except InvalidInputError as error:
             self.rejected["image"] += 1
             self.get_logger().warn(f"image rejected: {error}", throttle_duration_sec=5.0)
@@ -163,9 +166,10 @@ class TrackerNode(Node):
         for _, reason in rejected:
             self.rejected[rejection_kind(reason)] += 1
         self.counts["processed"] += 1
-        self.counts["poses"] += len(poses)
-        self.counts["detections"] += len(poses) + len(rejected)
-        markers, array = conversions.tracked_poses_msgs(msg.header, poses)
+        self.counts["poses"] += len(detections)
+        self.counts["detections"] += len(detections) + len(rejected)
+        markers, array = conversions.tracked_poses_msgs(msg.header, {i: d.pose for i, d in detections.items()},
+                                                        {i: d.covariance for i, d in detections.items()})
         self.pub_observations.publish(markers)
         self.pub_poses.publish(array)
 

@@ -97,3 +97,14 @@ def test_a_joint_named_twice_is_refused_not_last_wins():
     msg = JointState(name=["a", "b", "a"], position=[1.0, 2.0, 3.0])
     with pytest.raises(InvalidInputError, match=r"\['a'\] more than once"):
         conversions.actions_from_joint_state(msg, ["a", "b"])
+
+
+def test_tracked_poses_carry_each_detections_covariance():
+    from std_msgs.msg import Header
+
+    poses = {3: np.eye(4), 5: np.eye(4)}
+    covariance = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    markers, array = conversions.tracked_poses_msgs(Header(frame_id="camera"), poses, {5: covariance})
+    assert list(markers.marker_ids) == [3, 5] and len(array.poses) == 2
+    assert np.all(np.array(markers.poses[0].covariance) == 0.0)  # not estimated
+    assert np.array_equal(np.array(markers.poses[1].covariance).reshape(6, 6), covariance)

@@ -59,7 +59,9 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0, help="first seed")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: cores)")
     parser.add_argument("--out", default="docs/results", help="directory for results.json and the plots")
-    parser.add_argument("--md", default="docs/RESULTS.md", help="the RESULTS.md to write ('' for none)")
+    parser.add_argument("--md", default=None,
+                        help="the RESULTS.md to write ('' for none; default: docs/RESULTS.md with the default --out, "
+                             "else RESULTS.md in --out)")
     parser.add_argument("--check", action="store_true", help="exit 1 unless all figures are finite and sane")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--keep", action="store_true",
@@ -69,6 +71,8 @@ def main(argv=None):
         parser.error("--runs must be >= 1 and --rendered-runs >= 0")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.md is None:  # a run into another directory never overwrites the committed report
+        args.md = "docs/RESULTS.md" if out == pathlib.Path("docs/results") else str(out / "RESULTS.md")
     if args.keep and not (out / "results.json").is_file():
         raise SystemExit(f"--keep needs an earlier {out / 'results.json'}")  # before minutes of runs, not after
     experiments = {name: experiment_module(name) for name in args.only}

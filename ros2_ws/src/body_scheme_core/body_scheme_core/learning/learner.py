@@ -50,7 +50,7 @@ from ..errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, N
 from ..events import Event, format_errors
 from ..models import ChainModel, GPModel, RigidJointModel
 from ..prediction import BodyScheme
-from ..transforms import invert_transform
+from ..transforms import invert_transform, mirror_about_ray
 from .adaptation import Adaptation
 from .bootstrap import Bootstrap
 from .chain import ChainTargets
@@ -110,7 +110,10 @@ class BodySchemeLearner(JointFitSteps):
         Number of accepted :meth:`update` calls so far.
     rejected : collections.Counter
         Rejected observations by reason: ``unknown_id``, ``bad_shape``, ``not_finite``, ``not_rigid``,
-        ``out_of_workspace``, ``flipped``.
+        ``out_of_workspace``, ``flipped`` (a mirrored orientation where the scheme does not explain the position).
+    corrected : collections.Counter
+        Observations taken in corrected, by kind: ``flipped`` (an orientation mirrored about the camera's ray, taken
+        as its mirror image: the one the calibrated scheme predicts, at the position it predicts).
     noise : NoiseModel
         The marker noise the learner works with: its prior, then its estimate
         (:mod:`~body_scheme_core.calibration.noise_model`).
@@ -123,6 +126,7 @@ class BodySchemeLearner(JointFitSteps):
         self.step = 0
         self.last_stamp = None
         self.rejected = Counter()
+        self.corrected = Counter()
         self._history = deque(maxlen=config.history_length)
         self._root_pose = RootPoseEstimator(config.root_window, self.root)
         if initial_models is None:
@@ -418,9 +422,13 @@ class BodySchemeLearner(JointFitSteps):
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))
         cal = self._calibrated
         flipped = [] if cal is None else mirrored_observations(cal.scheme, cal.world2root, a, valid,
-                                                               self.noise.theta_rot)
-        for part, detail in flipped:
-            del valid[part]
+                                                               self.noise.theta_rot, self.noise.theta_trans)
+        for part, detail, placed in flipped:
+            if placed:  # the scheme explains where the part is: its mirrored orientation is the true one
+                valid[part] = mirror_about_ray(valid[part])
+                self.corrected["flipped"] += 1
+                continue
+            del valid[part]  # the scheme does not know where the part is (a change?): neither orientation is trusted
             self.rejected["flipped"] += 1
             events.append(Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part))
         return valid

@@ -72,6 +72,7 @@ def learner_to_state(self):
         "step": self.step,
         "last_stamp": self.last_stamp,
         "rejected": dict(self.rejected),
+        "corrected": dict(self.corrected),
         "bootstrapping": self._bootstrapping,
         "found": self._bootstrap.found,
         "tree": None if self._tree is None else list(self._tree),
@@ -133,8 +134,11 @@ def learner_from_state(cls, state):
         self.action_upper = _bounds_from_json(state["action_upper"], self.n_actions, "action_upper")
         self.step = integer(state["step"], "step")
         self.last_stamp = None if state["last_stamp"] is None else number(state["last_stamp"], "last_stamp")
-        self.rejected = Counter({str(k): integer(v, f"rejected[{k!r}]")
-                                 for k, v in mapping(state["rejected"], "rejected").items()})
+        self.rejected, self.corrected = (Counter({str(k): integer(v, f"{name}[{k!r}]")
+                                                  for k, v in mapping(value, name).items()})
+                                         for name, value in (("rejected", state["rejected"]),
+                                                             ("corrected", state.get("corrected", {}))))
+        # (files written before flips were corrected have no "corrected")
         bootstrapping, found = boolean(state["bootstrapping"], "bootstrapping"), boolean(state["found"], "found")
         tree = None if state["tree"] is None else [integer(i, "tree id") for i in listing(state["tree"], "tree")]
         tree_since = integer(state["tree_since"], "tree_since")
@@ -316,7 +320,7 @@ def snapshot(learner, journal):
             "_root_since")},
         "unexplained": dict(learner._unexplained),
         "lists": {"_tree": None if learner._tree is None else list(learner._tree),
-                  "rejected": Counter(learner.rejected),
+                  "rejected": Counter(learner.rejected), "corrected": Counter(learner.corrected),
                   "_history": deque(learner._history, maxlen=learner._history.maxlen)},
         "root_pose": (learner._root_pose, copy.copy(learner._root_pose), deque(learner._root_pose._samples,
                                                                                 maxlen=learner._root_pose._samples.maxlen)),
@@ -340,7 +344,7 @@ def restore(learner, saved):
     learner._tree = saved["lists"]["_tree"]
     learner._unexplained = saved["unexplained"]
     learner._adaptation.root = learner.root
-    learner.rejected = saved["lists"]["rejected"]
+    learner.rejected, learner.corrected = saved["lists"]["rejected"], saved["lists"]["corrected"]
     learner._history.clear()
     learner._history.extend(saved["lists"]["_history"])  # the deque is shared with the adaptation object
     estimator, fields, samples = saved["root_pose"]
