@@ -19,8 +19,13 @@ from body_scheme_nodes.graph import NodeProcess
 
 @pytest.fixture
 def domain_id():
-    """A ROS domain id of this test alone (localhost-only discovery)."""
-    return random.Random(os.getpid() + time.monotonic_ns()).randint(1, 100)
+    """A ROS domain id of this test alone (localhost-only discovery): random within this pytest-xdist worker's share of
+    1-100, so that tests running at once (``pytest -m system -n 2``) never meet."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    share = 100 // max(workers, 1)
+    return random.Random(os.getpid() + time.monotonic_ns()).randint(1 + index * share, (index + 1) * share)
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
 
 pytestmark = pytest.mark.system
 
-ROBOT = "powercube_6dof"
+ROBOT = "arm_4dof"  # the 6-DOF arm learns the same way through the same nodes, in more CI time
 MARGIN = 0.05
 
 
@@ -171,9 +171,8 @@ def test_active_babbling_follows_the_scheme_nodes_suggestions_and_learns_the_tru
     """mode active with scheme_node's exploration on: the graph learns the true tree from scratch, commands are
     scheme_node's suggestions, or counted fallbacks and refusals (suggestions past babble_node's margin: random
     draws instead), after the first, random one, and every goal stays within the limits less the margin. The camera
-    is sim_node's noise model and the arm has four joints (images, the tracker and the 6-DOF arm are the test above's;
-    here they would only cost CI time)."""
-    robot = "arm_4dof"
+    is sim_node's noise model (images and the tracker are the test above's; here they would only cost CI time)."""
+    robot = ROBOT
     tree = load_robot(robot)
     ids, names = list(tree.marker_ids), list(tree.action_joint_names)
     watcher = Watcher(ros_node)

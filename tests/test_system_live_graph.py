@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -41,20 +39,6 @@ def test_the_monitor_joins_the_domain_of_the_nodes(monkeypatch):
     assert domain_id() == 0 and domain_id({}) == 0
 
 
-def test_live_graph_learns_detects_recovers_and_moves_the_arm(ros_env, tmp_path):
-    """From scratch: the true structure, a blocked joint detected and recovered, repair reinstates, IK reaches targets.
-
-    Noise-model perception with 10 mm / 3 deg marker noise, so the learned model is accurate enough for the stated
-    IK tolerance: the simulated end effector (ground truth) ends within 60 mm of each target (measured 12-42 mm).
-    """
-    result = run_live_demo(tmp_path, steps=240, period=0.04, faults=("100:block_joint:5:0.8", "170:repair"),
-                           perception="noise", n_targets=3, sigma_trans=0.01, sigma_rot=math.radians(3.0),
-                           env=ros_env, log=lambda text: None)
-    assert_story(result, block=100, repair=170, ik_tolerance=0.06)
-    assert np.mean([e for s, e in result.prediction_error if s >= 200]) < 0.08, format_summary(result)  # ~45 mm
-    assert_recording_decodes(tmp_path / "session", result.recorded)
-
-
 def assert_recording_decodes(bag, recorded):
     """The demo's mcap decodes channel by channel with the mcap library's ROS 2 support, from its embedded schemas
     alone (as Foxglove reads it), and holds every recorded topic with the counts the recorder wrote."""
@@ -82,7 +66,8 @@ def assert_recording_decodes(bag, recorded):
 
 
 def test_live_graph_with_rendered_images_learns_detects_recovers_and_moves_the_arm(ros_env, tmp_path):
-    """The product's pipeline: camera images -> tracker_node -> scheme_node -> control_node, from scratch.
+    """The product's pipeline: camera images -> tracker_node -> scheme_node -> control_node, from scratch, recorded
+    to an mcap that decodes.
 
     The true structure is learned from ArUco poses alone, the blocked end-effector joint is detected and its model
     replaced, the repair reinstates the remembered model (all on /diagnostics too), and IK on the learned scheme
@@ -92,3 +77,7 @@ def test_live_graph_with_rendered_images_learns_detects_recovers_and_moves_the_a
                            perception="rendered", n_targets=3, env=ros_env, log=lambda text: None)
     assert result.n_observations >= 0.9 * result.steps, format_summary(result)  # tracker_node's reached scheme_node
     assert_story(result, block=120, repair=220, ik_tolerance=0.06)
+    # After the repair the scheme predicts the tool again (measured 1.5 mm against the true pose; the noise-model
+    # twin of this test, 45 mm at 10 mm / 3 deg, went in CI time's cuts).
+    assert np.mean([e for s, e in result.prediction_error if s >= 260]) < 0.03, format_summary(result)
+    assert_recording_decodes(tmp_path / "session", result.recorded)

@@ -40,7 +40,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from body_scheme_core.errors import InvalidInputError
 
@@ -82,7 +81,7 @@ class MarkerDetection:
     alternative : ndarray, shape (4, 4), or None
         IPPE's other solution (the orientation mirrored about the ray, nearly), None when there is none.
     errors : tuple of float
-        RMS reprojection errors (px) of ``pose`` and, if any, of ``alternative``.
+        Reprojection errors (px, RMS over the corners) of ``pose`` and, if any, of ``alternative``.
     """
 
     pose: np.ndarray
@@ -97,6 +96,16 @@ def pose_from_pnp(rvec, tvec):
     T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))[0]
     T[:3, 3] = np.ravel(tvec)
     return T
+
+
+def _left_jacobian(r):
+    """The left Jacobian of SO(3) at rotation vector ``r`` (3,)."""
+    theta = float(np.linalg.norm(r))
+    K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * K
+    return (np.eye(3) + (1.0 - math.cos(theta)) / theta**2 * K
+            + (theta - math.sin(theta)) / theta**3 * (K @ K))
 
 
 def pose_covariance(object_points, rvec, tvec, camera_matrix, dist_coeffs=None, sigma_px=0.5):
@@ -120,13 +129,9 @@ def pose_covariance(object_points, rvec, tvec, camera_matrix, dist_coeffs=None, 
     _, jacobian = cv2.projectPoints(np.asarray(object_points, dtype=float), rvec, tvec, camera_matrix, dist_coeffs)
     J = jacobian[:, :6]  # d(u, v) / d(rvec, tvec)
     params = sigma_px**2 * np.linalg.pinv(J.T @ J)
-    # d(fixed-axis rotation) / d(rvec): columns log(R(r + h e_i) R(r)^T) / h, central differences.
-    R, h = Rotation.from_rotvec(rvec), 1e-6
-    M = np.column_stack([((Rotation.from_rotvec(rvec + h * e) * R.inv()).as_rotvec()
-                          - (Rotation.from_rotvec(rvec - h * e) * R.inv()).as_rotvec()) / (2 * h) for e in np.eye(3)])
     T = np.zeros((6, 6))
     T[:3, 3:] = np.eye(3)
-    T[3:, :3] = M
+    T[3:, :3] = _left_jacobian(rvec)  # d(fixed-axis rotation) / d(rvec): exp(J dr) R(r) = R(r + dr)
     cov = T @ params @ T.T
     return 0.5 * (cov + cov.T)
 
@@ -272,6 +277,9 @@ class MarkerTracker:
     corner_sigma_px : float
         Standard deviation (px) of a detected corner's coordinates, for each pose's covariance
         (:func:`pose_covariance`; the learner may learn a scale on it).
+    plates : dict of int to Plate, optional
+        Plates of several tags (:mod:`body_scheme_core.plates`, e.g. from a marker file's ``plate`` entries): their
+        tags give one pose under the plate's id from all their visible corners, not a pose each.
 
     Attributes
     ----------
@@ -281,7 +289,7 @@ class MarkerTracker:
 
     def __init__(self, camera_matrix, dist_coeffs=None, marker_sizes=0.08, dictionary="DICT_4X4_50",
                  min_side_px=6.0, max_reprojection_error=2.0, corner_refinement="apriltag", default_size=None,
-                 max_ambiguity=0.8, corner_sigma_px=0.5):
+                 max_ambiguity=0.8, corner_sigma_px=0.5, plates=None):
         self.camera_matrix = _check_camera_matrix(camera_matrix)
         self.dist_coeffs = _check_dist_coeffs(dist_coeffs)
         self.marker_sizes, self.default_size = _check_marker_sizes(marker_sizes, default_size)
@@ -294,6 +302,8 @@ class MarkerTracker:
         self.corner_sigma_px = float(corner_sigma_px)
         if not (math.isfinite(self.corner_sigma_px) and self.corner_sigma_px > 0.0):
             raise InvalidInputError(f"corner_sigma_px must be a finite number > 0, got {corner_sigma_px}")
+        self.plates = dict(plates or {})
+        self._plate_of = {tag: plate_id for plate_id, plate in self.plates.items() for tag in plate.tags}
         parameters = cv2.aruco.DetectorParameters()
         parameters.cornerRefinementMethod = _corner_refinement(corner_refinement)
         self._detector = cv2.aruco.ArucoDetector(_dictionary(dictionary), parameters)
@@ -343,48 +353,70 @@ class MarkerTracker:
         ids = [int(i) for i in np.asarray(ids).ravel()]
         self.counts["detected"] += len(ids)
         repeated = {i for i in ids if ids.count(i) > 1}
-        poses, rejected = {}, []
+        poses, rejected, on_plates = {}, [], {}
         for marker_id, image_points in zip(ids, corners, strict=True):
+            image_points = np.asarray(image_points, dtype=float).reshape(4, 2)
             if marker_id in repeated:
                 rejected.append((marker_id, "repeated marker id in one image"))
-                continue
-            detection, reason = self._pose(marker_id, np.asarray(image_points, dtype=float).reshape(4, 2))
-            if detection is None:
+            elif marker_id in self._plate_of and (reason := self._side_problem(image_points)) is not None:
                 rejected.append((marker_id, reason))
+            elif marker_id in self._plate_of:
+                on_plates.setdefault(self._plate_of[marker_id], {})[marker_id] = image_points
+            elif (detection := self._pose(marker_id, image_points))[0] is None:
+                rejected.append((marker_id, detection[1]))
             else:
-                poses[marker_id] = detection
+                poses[marker_id] = detection[0]
+        for plate_id, seen in on_plates.items():
+            detection, reason = self._plate_pose(plate_id, seen)
+            if detection is None:
+                rejected.append((plate_id, reason))
+            else:
+                poses[plate_id] = detection
         self.counts["poses"] += len(poses)
         return poses, rejected
+
+    def _side_problem(self, image_points):
+        """None, or why a detection's corners (4, 2) are too small or not finite to give a pose."""
+        sides = np.linalg.norm(image_points - np.roll(image_points, -1, axis=0), axis=1)
+        if not np.all(np.isfinite(image_points)) or sides.min() < self.min_side_px:
+            return f"degenerate detection: shortest side {sides.min():.1f} px < {self.min_side_px} px"
+        return None
+
+    def _checked(self, detection):
+        """``(detection, None)``, or ``(None, reason)`` if ambiguous, behind the camera or reprojecting badly."""
+        errors = detection.errors
+        if len(errors) > 1 and self.max_ambiguity < 1.0 and errors[0] >= self.max_ambiguity * errors[1]:
+            return None, (f"ambiguous pose: the mirrored solution reprojects almost as well ({errors[0]:.3f} vs "
+                          f"{errors[1]:.3f} px, ratio >= {self.max_ambiguity})")
+        if detection.pose[2, 3] <= 0:
+            return None, "pose behind the camera"
+        if errors[0] > self.max_reprojection_error:
+            return None, f"reprojection error: {errors[0]:.2f} px > {self.max_reprojection_error} px"
+        return detection, None
+
+    def _plate_pose(self, plate_id, corners):
+        """``(MarkerDetection, None)`` or ``(None, reason)`` for the corners of a plate's visible tags."""
+        detection = self.plates[plate_id].pose(corners, self.camera_matrix, self.dist_coeffs, self.corner_sigma_px)
+        return (None, "solvePnP found no pose") if detection is None else self._checked(detection)
 
     def _pose(self, marker_id, image_points):
         """``(MarkerDetection, None)`` or ``(None, reason)`` for one detection's corners, shape (4, 2)."""
         size = self.size_of(marker_id)
         if size is None:
             return None, "no size known for this marker id"
-        sides = np.linalg.norm(image_points - np.roll(image_points, -1, axis=0), axis=1)
-        if not np.all(np.isfinite(image_points)) or sides.min() < self.min_side_px:
-            return None, f"degenerate detection: shortest side {sides.min():.1f} px < {self.min_side_px} px"
+        if (problem := self._side_problem(image_points)) is not None:
+            return None, problem
         object_points = marker_object_points(size)
         n, rvecs, tvecs, errors = cv2.solvePnPGeneric(object_points, image_points, self.camera_matrix,
                                                       self.dist_coeffs, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         if n < 1 or not (np.all(np.isfinite(rvecs[0])) and np.all(np.isfinite(tvecs[0]))):
             return None, "solvePnP found no pose"
-        errors = np.ravel(errors)
-        if n > 1 and self.max_ambiguity < 1.0 and errors[0] >= self.max_ambiguity * errors[1]:
-            return None, (f"ambiguous pose: the mirrored solution reprojects almost as well ({errors[0]:.3f} vs "
-                          f"{errors[1]:.3f} px, ratio >= {self.max_ambiguity})")
-        rvec, tvec = rvecs[0], tvecs[0]
-        if tvec[2, 0] <= 0:
-            return None, "pose behind the camera"
-        projected, _ = cv2.projectPoints(object_points, rvec, tvec, self.camera_matrix, self.dist_coeffs)
-        error = math.sqrt(np.mean(np.sum((projected.reshape(4, 2) - image_points) ** 2, axis=1)))
-        if error > self.max_reprojection_error:
-            return None, f"reprojection error: {error:.2f} px > {self.max_reprojection_error} px"
-        covariance = pose_covariance(object_points, rvec, tvec, self.camera_matrix, self.dist_coeffs,
+        errors = math.sqrt(2.0) * np.ravel(errors)[:2]  # OpenCV's is per coordinate; ours per corner
+        covariance = pose_covariance(object_points, rvecs[0], tvecs[0], self.camera_matrix, self.dist_coeffs,
                                      self.corner_sigma_px)
         alternative = pose_from_pnp(rvecs[1], tvecs[1]) if n > 1 and np.all(np.isfinite(tvecs[1])) else None
-        return MarkerDetection(pose_from_pnp(rvec, tvec), covariance, alternative,
-                               tuple(float(e) for e in errors[:2])), None
+        return self._checked(MarkerDetection(pose_from_pnp(rvecs[0], tvecs[0]), covariance, alternative,
+                                             tuple(float(e) for e in errors)))
 
 
 def rejection_kind(reason):

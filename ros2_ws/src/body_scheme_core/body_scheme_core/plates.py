@@ -22,7 +22,7 @@ from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerDetection, marker_object_points, pose_covariance, pose_from_pnp
 from body_scheme_core.transforms import invert_transform, rotational_error
 
-__all__ = ["Plate", "plate_pose", "grid_plate"]
+__all__ = ["Plate", "plate_pose", "grid_plate", "plates_from_markers"]
 
 #: Two refined solutions whose orientations differ by less than this (rad) are the same solution.
 _SAME_ORIENTATION = math.radians(5.0)
@@ -49,6 +49,10 @@ class Plate:
                     or not np.all(np.isfinite(plate2tag)):
                 raise InvalidInputError(f"tag {tag_id}: size must be > 0 and its pose a finite (4, 4) transform")
 
+    def pose(self, corners, camera_matrix, dist_coeffs=None, sigma_px=0.5):
+        """:func:`plate_pose` of this plate."""
+        return plate_pose(self, corners, camera_matrix, dist_coeffs, sigma_px)
+
     def corners(self, tag_id):
         """The tag's four corners in the plate's frame, shape (4, 3), in the detector's order."""
         size, plate2tag = self.tags[tag_id]
@@ -69,6 +73,36 @@ def grid_plate(ids, size, gap, columns=2):
         plate2tag[:3, 3] = ((c - 0.5 * (columns - 1)) * pitch, (0.5 * (rows - 1) - r) * pitch, 0.0)
         tags[int(tag_id)] = (float(size), plate2tag)
     return Plate(tags)
+
+
+def plates_from_markers(markers):
+    """``{plate id: Plate}`` of the markers that name a ``plate`` (a marker file's entries, ``Marker`` objects).
+
+    A plate's id is the id of its reference marker, one of its own; its frame is that marker's, so the plate is
+    observed as the body part that marker stands for, better seen. Its markers must sit on one link.
+
+    Raises
+    ------
+    InvalidInputError
+        If a plate's id is none of its markers', or its markers sit on several links.
+    """
+    groups = {}
+    for marker in markers:
+        if marker.plate is not None:
+            groups.setdefault(marker.plate, []).append(marker)
+    plates = {}
+    for plate_id, members in sorted(groups.items()):
+        reference = next((m for m in members if m.id == plate_id), None)
+        if reference is None:
+            raise InvalidInputError(f"plate {plate_id} must be the id of one of its markers "
+                                    f"{sorted(m.id for m in members)}")
+        links = sorted({m.link for m in members})
+        if len(links) > 1:
+            raise InvalidInputError(f"the markers of plate {plate_id} sit on several links {links}: a plate is rigid")
+        to_reference = invert_transform(np.asarray(reference.link2marker, dtype=float))
+        plates[plate_id] = Plate({m.id: (m.size, to_reference @ np.asarray(m.link2marker, dtype=float))
+                                  for m in members})
+    return plates
 
 
 def _rms(object_points, image_points, rvec, tvec, camera_matrix, dist_coeffs):

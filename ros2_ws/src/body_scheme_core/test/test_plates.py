@@ -80,3 +80,23 @@ def test_other_ids_are_ignored_and_a_plate_unseen_gives_none():
 def test_a_bad_plate_is_refused(tags):
     with pytest.raises(InvalidInputError):
         Plate(tags)
+
+
+def test_markers_that_name_a_plate_make_one_in_the_frame_of_its_reference():
+    from body_scheme_core.plates import plates_from_markers
+    from body_scheme_core.world import Marker
+
+    offset = transform_from_rotvec([0.0, 0.0, 0.0], [0.07, 0.0, 0.0])
+    reference = transform_from_rotvec([0.0, 0.4, 0.0], [0.1, 0.0, 0.2])
+    markers = [Marker(3, "tool", reference, 0.05, plate=3), Marker(4, "tool", reference @ offset, 0.05, plate=3),
+               Marker(1, "base")]
+    plates = plates_from_markers(markers)
+    assert list(plates) == [3] and np.allclose(plates[3].tags[4][1], offset) and np.allclose(plates[3].tags[3][1],
+                                                                                              np.eye(4))
+    with pytest.raises(InvalidInputError, match="one of its markers"):
+        plates_from_markers([Marker(3, "tool", plate=9), Marker(4, "tool", plate=9)])
+    with pytest.raises(InvalidInputError, match="several links"):
+        plates_from_markers([Marker(3, "tool", plate=3), Marker(4, "wrist", plate=3)])
+    with pytest.raises(InvalidInputError, match="plate must be"):
+        Marker(3, "tool", plate=-1)
+    assert Marker.from_dict(markers[1].to_dict()).plate == 3 and "plate" not in markers[2].to_dict()

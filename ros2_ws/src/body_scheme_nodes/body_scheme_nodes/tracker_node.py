@@ -22,8 +22,9 @@ Parameters
 marker_size : double 0.08              edge length (m) of every marker not sized otherwise; 0.0: reject those ids
 marker_sizes.ids : int[] (unset)       ids with their own edge length ...
 marker_sizes.sizes : double[] (unset)  ... and those lengths (m, written as floats), same order
-markers_path : string ""               marker placement YAML of the robot (id, link, xyz, rpy, size); its sizes
-                                       are used, marker_sizes.* override them
+markers_path : string ""               marker placement YAML of the robot (id, link, xyz, rpy, size, plate); its
+                                       sizes are used, marker_sizes.* override them; markers with a ``plate``
+                                       give one pose per plate, under the plate's id
 dictionary : string "DICT_4X4_50"      OpenCV predefined ArUco dictionary
 corner_refinement : string "apriltag"  apriltag | subpix | contour | none
 min_side_px : double 6.0               smaller detections are rejected
@@ -54,6 +55,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker, rejection_kind
+from body_scheme_core.plates import plates_from_markers
 from body_scheme_core.world import load_markers_yaml
 from body_scheme_msgs.msg import MarkerPoses
 
@@ -67,8 +69,9 @@ IMAGE_QOS = {"best_effort": qos_profile_sensor_data,
              "reliable": QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)}
 
 
-def marker_sizes_from_parameters(markers_path, ids, sizes):
-    """``{id: edge length}`` from a marker placement file, overridden by the ``ids``/``sizes`` parameter arrays.
+def markers_from_parameters(markers_path, ids, sizes):
+    """``({id: edge length}, {plate id: Plate})`` from a marker placement file (its sizes and its markers' ``plate``
+    entries), the sizes overridden by the ``ids``/``sizes`` parameter arrays.
 
     Raises
     ------
@@ -77,13 +80,14 @@ def marker_sizes_from_parameters(markers_path, ids, sizes):
     """
     if len(ids) != len(sizes):
         raise InvalidInputError(f"marker_sizes.ids has {len(ids)} entries but marker_sizes.sizes has {len(sizes)}")
-    by_id = {}
+    markers = []
     if markers_path:
         if not os.path.isfile(markers_path):
             raise InvalidInputError(f"markers_path {markers_path!r} is not a file")
-        by_id.update({marker.id: marker.size for marker in load_markers_yaml(pathlib.Path(markers_path))})
+        markers = load_markers_yaml(pathlib.Path(markers_path))
+    by_id = {marker.id: marker.size for marker in markers}
     by_id.update({int(i): float(s) for i, s in zip(ids, sizes, strict=True)})
-    return by_id
+    return by_id, plates_from_markers(markers)
 
 
 class TrackerNode(Node):
@@ -92,7 +96,7 @@ class TrackerNode(Node):
     def __init__(self, **node_options):
         super().__init__("tracker_node", **node_options)
         default_size = self.declare_parameter("marker_size", 0.08).value
-        sizes = marker_sizes_from_parameters(
+        sizes, plates = markers_from_parameters(
             self.declare_parameter("markers_path", "").value,
             self.declare_parameter("marker_sizes.ids", Parameter.Type.INTEGER_ARRAY).value or [],
             self.declare_parameter("marker_sizes.sizes", Parameter.Type.DOUBLE_ARRAY).value or [])
@@ -105,6 +109,7 @@ class TrackerNode(Node):
             "max_reprojection_error": self.declare_parameter("max_reprojection_error", 2.0).value,
             "max_ambiguity": self.declare_parameter("max_ambiguity", 0.8).value,
             "corner_sigma_px": self.declare_parameter("corner_sigma_px", 0.5).value,
+            "plates": plates,
         }
         process_period = self.declare_parameter("process_period", 0.01).value
         reliability = self.declare_parameter("image_reliability", "best_effort").value

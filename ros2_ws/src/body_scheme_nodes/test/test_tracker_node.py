@@ -12,7 +12,7 @@ from sensor_msgs.msg import CameraInfo
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_nodes import conversions
-from body_scheme_nodes.tracker_node import TrackerNode, marker_sizes_from_parameters
+from body_scheme_nodes.tracker_node import TrackerNode, markers_from_parameters
 
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
 SIZE = 0.08
@@ -78,17 +78,21 @@ def test_a_camera_that_cannot_exist_is_refused(width, height, k, match):
 
 
 # ---------------------------------------------------------------------- tracker_node configuration
-def test_marker_sizes_come_from_the_marker_file_and_overrides(tmp_path):
-    """Sizes are read from the robot's marker file; the ids/sizes parameters override single ids."""
+def test_marker_sizes_and_plates_come_from_the_marker_file_and_overrides(tmp_path):
+    """Sizes are read from the robot's marker file; the ids/sizes parameters override single ids; markers that name
+    a plate make one."""
     markers_path = tmp_path / "arm.markers.yaml"
     markers_path.write_text("markers:\n- {id: 1, link: base, size: 0.1}\n- {id: 7, link: tool, size: 0.08}\n"
-                            "- {id: 8, link: tool}\n")
-    sizes = marker_sizes_from_parameters(str(markers_path), [7, 9], [0.05, 0.12])
-    assert sizes == {1: 0.1, 7: 0.05, 8: 0.05, 9: 0.12}  # id 8: the file format's default size, 0.05 m
+                            "- {id: 8, link: tool}\n- {id: 10, link: tool, plate: 10}\n"
+                            "- {id: 11, link: tool, xyz: [0.06, 0, 0], plate: 10}\n")
+    sizes, plates = markers_from_parameters(str(markers_path), [7, 9], [0.05, 0.12])
+    assert sizes == {1: 0.1, 7: 0.05, 8: 0.05, 9: 0.12, 10: 0.05, 11: 0.05}  # the file format's default, 0.05 m
+    assert list(plates) == [10] and sorted(plates[10].tags) == [10, 11]
+    assert np.allclose(plates[10].tags[11][1][:3, 3], [0.06, 0.0, 0.0])
     with pytest.raises(InvalidInputError, match="2 entries"):
-        marker_sizes_from_parameters("", [1, 2], [0.05])
+        markers_from_parameters("", [1, 2], [0.05])
     with pytest.raises(InvalidInputError, match="not a file"):
-        marker_sizes_from_parameters(str(tmp_path / "missing.yaml"), [], [])
+        markers_from_parameters(str(tmp_path / "missing.yaml"), [], [])
 
 
 def test_config_yaml_holds_the_node_defaults():

@@ -327,9 +327,10 @@ def load_markers_yaml(text_or_path):
     """Read markers from a placement file.
 
     The file is YAML: either a list of entries or a mapping with key ``markers`` holding that list. Each entry is
-    ``{id: int, link: str, xyz: [x, y, z], rpy: [roll, pitch, yaw], size: float}`` with ``xyz`` in m, ``rpy`` in rad
-    (URDF convention), ``size`` the marker's edge length in m; ``xyz``, ``rpy`` and ``size`` are optional (zero
-    pose, 0.05 m).
+    ``{id: int, link: str, xyz: [x, y, z], rpy: [roll, pitch, yaw], size: float, plate: int}`` with ``xyz`` in m,
+    ``rpy`` in rad (URDF convention), ``size`` the marker's edge length in m; ``xyz``, ``rpy``, ``size`` and
+    ``plate`` are optional (zero pose, 0.05 m, none). Markers with the same ``plate`` are one rigid plate whose pose
+    is that of the marker with that id (:func:`body_scheme_core.plates.plates_from_markers`).
 
     Parameters
     ----------

@@ -197,12 +197,16 @@ class Marker:
         Pose of the marker in the link frame (read-only). The marker's z axis is its outward normal.
     size : float
         Edge length of the square marker, m.
+    plate : int or None
+        The id of the plate the marker is glued on with others (:mod:`body_scheme_core.plates`): the id of one of
+        them, the plate's reference, whose pose the plate's is; None: a marker of its own.
     """
 
     id: int
     link: str
     link2marker: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     size: float = 0.05
+    plate: int | None = None
 
     def __post_init__(self):
         if isinstance(self.id, bool) or not isinstance(self.id, (int, np.integer)) or int(self.id) < 0:
@@ -214,26 +218,33 @@ class Marker:
         size = float(self.size)
         if not (math.isfinite(size) and size > 0):
             raise InvalidInputError(f"marker {self.id} size must be a finite number > 0, got {self.size!r}")
+        if self.plate is not None and (isinstance(self.plate, bool) or not isinstance(self.plate, (int, np.integer))
+                                       or int(self.plate) < 0):
+            raise InvalidInputError(f"marker {self.id} plate must be a marker id (an integer >= 0), got {self.plate!r}")
         object.__setattr__(self, "id", int(self.id))
         object.__setattr__(self, "link2marker", link2marker)
         object.__setattr__(self, "size", size)
+        object.__setattr__(self, "plate", None if self.plate is None else int(self.plate))
 
     def to_dict(self):
-        """Marker file entry ``{id, link, xyz, rpy, size}`` (plain floats)."""
+        """Marker file entry ``{id, link, xyz, rpy, size[, plate]}`` (plain floats)."""
         xyz, rpy = xyz_rpy_from_transform(self.link2marker)
-        return {"id": self.id, "link": self.link, "xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy],
-                "size": self.size}
+        entry = {"id": self.id, "link": self.link, "xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy],
+                 "size": self.size}
+        return entry if self.plate is None else {**entry, "plate": self.plate}
 
     @classmethod
     def from_dict(cls, data):
-        """Build from a marker file entry ``{id, link, xyz, rpy, size}`` (``xyz``, ``rpy``, ``size`` optional)."""
+        """Build from a marker file entry ``{id, link, xyz, rpy, size, plate}`` (all but ``id``, ``link`` optional)."""
         if not isinstance(data, dict):
             raise InvalidInputError(f"a marker entry must be a mapping, got {data!r}")
-        unknown = sorted(set(data) - {"id", "link", "xyz", "rpy", "size"})
+        unknown = sorted(set(data) - {"id", "link", "xyz", "rpy", "size", "plate"})
         if unknown or "id" not in data or "link" not in data:
-            raise InvalidInputError(f"a marker entry needs keys id, link and may have xyz, rpy, size; got {data!r}")
+            raise InvalidInputError(f"a marker entry needs keys id, link and may have xyz, rpy, size, plate; got "
+                                    f"{data!r}")
         link2marker = transform_from_xyz_rpy(data.get("xyz", [0.0, 0.0, 0.0]), data.get("rpy", [0.0, 0.0, 0.0]))
-        return cls(id=data["id"], link=data["link"], link2marker=link2marker, size=data.get("size", 0.05))
+        return cls(id=data["id"], link=data["link"], link2marker=link2marker, size=data.get("size", 0.05),
+                   plate=data.get("plate"))
 
 
 class KinematicTree:

@@ -51,7 +51,7 @@ from body_scheme_core.learning.persistence import encode_state, load_state, save
 from body_scheme_core.prediction.learned_body import learned_tree, learned_urdf
 from body_scheme_core.world import REPAIR, Fault, make_session, planar_2dof
 
-N_MUTATIONS = int(os.environ.get("BODY_SCHEME_FUZZ_MUTATIONS", "200"))  # make fuzz: 3,000
+N_MUTATIONS = int(os.environ.get("BODY_SCHEME_FUZZ_MUTATIONS", "120"))  # make fuzz: 3,000
 SEED = int(os.environ.get("BODY_SCHEME_FUZZ_SEED", "0"))
 #: Processes the mutations are shared among.
 WORKERS = int(os.environ.get("BODY_SCHEME_FUZZ_WORKERS", str(min(2, os.cpu_count() or 1))))
@@ -637,7 +637,7 @@ def test_the_real_states_load_and_work(states, tmp_path):
 @pytest.mark.timeout(1200)  # CPU-bound and always advancing: on a busy machine several times 300 s
 @pytest.mark.slow
 def test_every_mutation_of_a_state_file_is_refused_or_loads_into_a_learner_that_works(states, tmp_path):
-    """``N_MUTATIONS`` mutations (:func:`mutations`; 200 here, 3,000 in ``make fuzz``): each is refused with
+    """``N_MUTATIONS`` mutations (:func:`mutations`; 120 here, 3,000 in ``make fuzz``): each is refused with
     ModelFileError, or the learner it loads into answers scheme_node's queries, learns 50 steps and saves a state that
     loads again, without an exception."""
     bases, robot = states

@@ -31,7 +31,7 @@ from body_scheme_core.world import RANDOM_FAULTS, make_session, random_fault, ra
 STRESS = bool(os.environ.get("BODY_SCHEME_STRESS"))
 _COMMON = {"deadline": None, "database": None, "print_blob": True,
            "suppress_health_check": [HealthCheck.too_slow, HealthCheck.data_too_large]}
-settings.register_profile("ci", max_examples=10, derandomize=True, phases=[Phase.explicit, Phase.generate], **_COMMON)
+settings.register_profile("ci", max_examples=6, derandomize=True, phases=[Phase.explicit, Phase.generate], **_COMMON)
 settings.register_profile("stress", max_examples=600, **_COMMON)
 PROFILE = "stress" if STRESS else "ci"
 MAX_JOINTS = 14 if STRESS else 6
