@@ -358,14 +358,18 @@ class MarkerTracker:
             image_points = np.asarray(image_points, dtype=float).reshape(4, 2)
             if marker_id in repeated:
                 rejected.append((marker_id, "repeated marker id in one image"))
-            elif marker_id in self._plate_of and (reason := self._side_problem(image_points)) is not None:
-                rejected.append((marker_id, reason))
-            elif marker_id in self._plate_of:
-                on_plates.setdefault(self._plate_of[marker_id], {})[marker_id] = image_points
-            elif (detection := self._pose(marker_id, image_points))[0] is None:
-                rejected.append((marker_id, detection[1]))
+                continue
+            if marker_id in self._plate_of:  # its plate's pose comes from all of them, below
+                reason = self._side_problem(image_points)
+                if reason is None:
+                    on_plates.setdefault(self._plate_of[marker_id], {})[marker_id] = image_points
+                    continue
             else:
-                poses[marker_id] = detection[0]
+                detection, reason = self._pose(marker_id, image_points)
+                if detection is not None:
+                    poses[marker_id] = detection
+                    continue
+            rejected.append((marker_id, reason))
         for plate_id, seen in on_plates.items():
             detection, reason = self._plate_pose(plate_id, seen)
             if detection is None:
