@@ -125,8 +125,8 @@ replay: build
 experiments: build
 	$(RUN) python -m body_scheme_apps.experiments --runs 20 --rendered-runs 1 --out docs/results --md docs/RESULTS.md
 
-# CI's small version: 1 quick noise run + 1 quick rendered run each (the 2-core CI box must stay well under 30 min); fails
-# unless every figure is finite and sane.
+# The small version: 1 quick noise run + 1 quick rendered run each; fails unless every figure is finite and sane (CI runs
+# the same quick runs as tests: each experiment's test file and test_experiments_quick.py).
 experiments-quick: build
 	$(RUN) python -m body_scheme_apps.experiments --quick --runs 1 --rendered-runs 1 --out out/experiments-quick \
 		--md out/experiments-quick/RESULTS.md --check --quiet

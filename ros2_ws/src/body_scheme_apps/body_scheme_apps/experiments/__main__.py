@@ -1,9 +1,9 @@
 """``python -m body_scheme_apps.experiments``: run the paper's experiments and write plots, results.json, RESULTS.md.
 
 ``make experiments``: 20 noise-model runs and 1 rendered-camera run per experiment into ``docs/results/`` and
-``docs/RESULTS.md``. ``make experiments-quick`` (CI): 2 quick noise runs (fewer where the experiment asks for fewer)
-and 1 quick rendered run into ``out/experiments-quick/``, then checks that every figure is finite and within loose
-sanity bounds (exit 1 if not).
+``docs/RESULTS.md``. ``make experiments-quick``: 1 quick noise run (per noise level) and 1 quick rendered run into
+``out/experiments-quick/``, then checks that every figure is finite and within loose sanity bounds (exit 1 if not);
+CI runs the same quick runs as tests (each experiment's test file, ``test_experiments_quick.py``).
 ``--only NAME --keep`` reruns one experiment and keeps the others' figures and plots from the ``results.json`` in
 ``--out`` (the header then sums both runs' seconds and names the commit of this one).
 """
