@@ -42,12 +42,12 @@ import cv2
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.transforms import skew, transform_from_rotvec
 
 __all__ = [
     "MarkerTracker",
     "MarkerDetection",
     "pose_covariance",
-    "pose_from_pnp",
     "check_image",
     "rejection_kind",
     "marker_object_points",
@@ -90,18 +90,10 @@ class MarkerDetection:
     errors: tuple
 
 
-def pose_from_pnp(rvec, tvec):
-    """``camera2object`` (4, 4) of OpenCV's rotation vector and translation."""
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))[0]
-    T[:3, 3] = np.ravel(tvec)
-    return T
-
-
 def _left_jacobian(r):
     """The left Jacobian of SO(3) at rotation vector ``r`` (3,)."""
     theta = float(np.linalg.norm(r))
-    K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    K = skew(r)
     if theta < 1e-8:
         return np.eye(3) + 0.5 * K
     return (np.eye(3) + (1.0 - math.cos(theta)) / theta**2 * K
@@ -418,9 +410,9 @@ class MarkerTracker:
         errors = math.sqrt(2.0) * np.ravel(errors)[:2]  # OpenCV's is per coordinate; ours per corner
         covariance = pose_covariance(object_points, rvecs[0], tvecs[0], self.camera_matrix, self.dist_coeffs,
                                      self.corner_sigma_px)
-        alternative = pose_from_pnp(rvecs[1], tvecs[1]) if n > 1 and np.all(np.isfinite(tvecs[1])) else None
-        return self._checked(MarkerDetection(pose_from_pnp(rvecs[0], tvecs[0]), covariance, alternative,
-                                             tuple(float(e) for e in errors)))
+        poses = [transform_from_rotvec(np.ravel(r), np.ravel(t)) for r, t in zip(rvecs[:n], tvecs[:n], strict=True)]
+        alternative = poses[1] if n > 1 and np.all(np.isfinite(poses[1])) else None
+        return self._checked(MarkerDetection(poses[0], covariance, alternative, tuple(float(e) for e in errors)))
 
 
 def rejection_kind(reason):

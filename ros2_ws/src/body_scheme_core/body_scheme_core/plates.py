@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.perception import MarkerDetection, marker_object_points, pose_covariance, pose_from_pnp
-from body_scheme_core.transforms import invert_transform, rotational_error
+from body_scheme_core.perception import MarkerDetection, marker_object_points, pose_covariance
+from body_scheme_core.transforms import invert_transform, rotational_error, transform_from_rotvec
 
 __all__ = ["Plate", "plate_pose", "grid_plate", "plates_from_markers"]
 
@@ -105,6 +105,10 @@ def plates_from_markers(markers):
     return plates
 
 
+def _pose(rvec, tvec):
+    return transform_from_rotvec(np.ravel(rvec), np.ravel(tvec))
+
+
 def _rms(object_points, image_points, rvec, tvec, camera_matrix, dist_coeffs):
     projected, _ = cv2.projectPoints(object_points, rvec, tvec, camera_matrix, dist_coeffs)
     return math.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points) ** 2, axis=1)))
@@ -137,10 +141,10 @@ def plate_pose(plate, corners, camera_matrix, dist_coeffs=None, sigma_px=0.5):
     solutions = []
     for tag_id in seen:
         size, plate2tag = plate.tags[tag_id]
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker_object_points(size), image_points[4 * seen.index(tag_id):][:4],
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker_object_points(size), np.asarray(corners[tag_id], dtype=float),
                                                  camera_matrix, dist_coeffs, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
-            camera2plate = pose_from_pnp(rvec, tvec) @ invert_transform(np.asarray(plate2tag, dtype=float))
+            camera2plate = _pose(rvec, tvec) @ invert_transform(np.asarray(plate2tag, dtype=float))
             rvec = cv2.Rodrigues(camera2plate[:3, :3])[0]
             tvec = camera2plate[:3, 3].reshape(3, 1).copy()
             if len(seen) > 1:
@@ -152,10 +156,10 @@ def plate_pose(plate, corners, camera_matrix, dist_coeffs=None, sigma_px=0.5):
         return None
     solutions.sort(key=lambda s: s[0])
     error, rvec, tvec = solutions[0]
-    pose = pose_from_pnp(rvec, tvec)
+    pose = _pose(rvec, tvec)
     other = next((s for s in solutions[1:]
-                  if rotational_error(pose_from_pnp(s[1], s[2]), pose) > _SAME_ORIENTATION), None)
+                  if rotational_error(_pose(s[1], s[2]), pose) > _SAME_ORIENTATION), None)
     covariance = pose_covariance(object_points, rvec, tvec, camera_matrix, dist_coeffs, sigma_px)
-    return MarkerDetection(pose, covariance, None if other is None else pose_from_pnp(other[1], other[2]),
+    return MarkerDetection(pose, covariance, None if other is None else _pose(other[1], other[2]),
                            (error,) if other is None else (error, other[0]))
 
