@@ -495,17 +495,26 @@ def chordal_mean(R, weights):
     return project_to_rotation(np.einsum("kn,knij->kij", weights, R))
 
 
+#: The helper directions of :func:`perpendicular_basis`: a body diagonal, and a face diagonal perpendicular to it.
+_BASIS_HELPER = np.array([1.0, 1.0, -1.0]) / np.sqrt(3.0)
+_BASIS_HELPER_NEAR = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
+#: Where the basis switches helpers: ``|u . helper|`` at this value.
+_BASIS_SWITCH = 0.9
+
+
 def perpendicular_basis(u):
     """Two unit vectors ``(e1, e2)`` completing unit ``u`` (..., 3) to a right-handed basis, each (..., 3).
 
-    ``e1`` is the normalised cross product of ``u`` with the coordinate axis least aligned with it, so the basis is a
-    smooth function of ``u`` away from the switching points and deterministic everywhere.
+    ``e1`` is the normalised cross product of ``u`` with the body diagonal ``(1, 1, -1) / sqrt 3``, or, within 26 deg
+    of it (``|u . h| > 0.9``), with the face diagonal ``(1, -1, 0) / sqrt 2``. No basis is smooth on the whole sphere;
+    this one switches only on that cone, at least 0.08 in ``|u . h|`` away from every coordinate axis, face and body
+    diagonal and 30 / 60 deg direction in a coordinate plane: the axes a URDF's joints have. An axis near a switching
+    point would change the meaning of its increments, its covariance and a prior on it as it moves (a basis that
+    switched at the coordinate axes made the specification's prior of a chain pull towards wrong values).
     """
     u = np.asarray(u, dtype=float)
-    helper = np.zeros_like(u)
-    idx = np.argmin(np.abs(u), axis=-1)
-    np.put_along_axis(helper, idx[..., None], 1.0, axis=-1)
-    e1 = cross3(u, helper)
+    near = np.abs(u @ _BASIS_HELPER) > _BASIS_SWITCH
+    e1 = cross3(u, np.where(near[..., None], _BASIS_HELPER_NEAR, _BASIS_HELPER))
     e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
     return e1, cross3(u, e1)
 

@@ -13,6 +13,7 @@ from body_scheme_core.transforms import (
     check_transform,
     concat,
     invert_transform,
+    perpendicular_basis,
     pose_from_transform,
     project_to_rotation,
     relative_transform,
@@ -206,3 +207,23 @@ def test_transform_from_vector12_rejects_wrong_shape():
     """The 12-vector must have 12 components."""
     with pytest.raises(InvalidInputError):
         transform_from_vector12(np.zeros(11))
+
+
+def test_the_perpendicular_basis_is_smooth_at_a_urdfs_axes():
+    """perpendicular_basis completes u to a right-handed orthonormal basis, and moves by no more than u does near
+    every coordinate axis, face and body diagonal (a URDF's joint axes): an increment's meaning, a covariance and a
+    prior on an axis stay put while a fit turns it a little."""
+    import itertools
+
+    rng = np.random.default_rng(2)
+    directions = [np.array(v, dtype=float) / np.linalg.norm(v)
+                  for v in itertools.product((-1, 0, 1), repeat=3) if any(v)]
+    for u in directions:
+        e1, e2 = perpendicular_basis(u)
+        assert np.allclose(np.stack([e1, e2, u]) @ np.stack([e1, e2, u]).T, np.eye(3), atol=1e-12)
+        assert np.allclose(np.cross(e1, e2), u, atol=1e-12)
+        for _ in range(20):
+            v = u + rng.normal(0, 1e-4, 3)
+            v /= np.linalg.norm(v)
+            f1, _ = perpendicular_basis(v)
+            assert np.linalg.norm(f1 - e1) < 10 * np.linalg.norm(v - u)

@@ -14,9 +14,10 @@ seen. The learner is given no noise value.
   *poses*: the first step (every :data:`EVERY`) from which the held-out error stays within :data:`TARGET_MM`
   (:data:`N_STEPS` + 1 when never).
 - ``<robot>_urdf``: the true arm is its URDF with every joint's origin moved by 2 mm and turned by 0.5 deg (per axis,
-  random), as a real arm is off its specification; the learner starts from the URDF's chain with that much prior
-  uncertainty (:func:`~body_scheme_core.models.chain.chain_from_engineered`) and sees uniform commands: *poses* as
-  above, every step.
+  random), as a real arm is off its specification; the learner starts from the URDF's chain with three times that
+  as its prior tolerance per joint (:func:`~body_scheme_core.models.chain.chain_from_engineered`) and sees uniform
+  commands: *poses* as above, every step. *Bound*: the same for a joint fit of the same observations started at the
+  true arm and told the noise (:func:`_bound_curve`): what the data allow.
 - ``points``: the tool carries three reflectors (not collinear, 10 cm apart) measured with 0.5 mm noise each by a
   laser tracker or motion capture standing where the camera stood, rigid with the base and no base marker (the
   sensor as root, ``sensor_root``); the reflectors' pose (Kabsch) is the observation. The robot by seed in turn;
@@ -36,9 +37,11 @@ import pathlib
 import numpy as np
 
 from body_scheme_apps.experiments.runner import aggregate
+from body_scheme_core.calibration import calibrate
 from body_scheme_core.control import ExplorationPolicy, excursion_plan
 from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner, register_points, same_chain
 from body_scheme_core.models import EngineeredModel, chain_from_engineered
+from body_scheme_core.prediction import BodyScheme
 from body_scheme_core.transforms import transform_from_rotvec, transform_from_xyz_rpy
 from body_scheme_core.world import Fault, KinematicTree, Marker, ObservationModel, default_world2root, make_session
 
@@ -76,6 +79,9 @@ FIGURES = {
     **{f"sparse_{r}_poses_urdf": f"{r}, the URDF as prior (the arm 2 mm / 0.5 deg per joint off it): poses until the "
                                  f"held-out error stays within {TARGET_MM:g} mm ({N_URDF_STEPS + 1}: never)"
        for r in ROBOTS},
+    **{f"sparse_{r}_poses_urdf_bound": f"{r}: the same for a joint fit of the same observations started at the true "
+                                       f"arm and told the noise, without a prior: what the data allow (the scene's "
+                                       f"depth is known only to {1e3 * DEPTH:g} mm / sqrt(2 poses))" for r in ROBOTS},
     **{f"sparse_{r}_urdf_nominal_mm": f"{r}: the URDF's own held-out error on the perturbed arm (mm)" for r in ROBOTS},
     "sparse_points_heldout_mm": f"three reflectors on the tool (0.5 mm each), from scratch: held-out error after "
                                 f"{N_STEPS} poses (mm)",
@@ -162,6 +168,25 @@ def _learn(tree, A, observations, heldout, every, initial=None, sensor=False):
         if (k + 1) % every == 0 or k == len(A) - 1:
             curve.append((k + 1, heldout(learner)))
     return learner, curve, events
+
+
+def _bound_curve(tree, tool, A, observations, commands, world2root):
+    """What the observations allow: the held-out errors (mm) of a joint fit
+    (:func:`~body_scheme_core.calibration.calibrate`) of the first ``k`` observations, every :data:`EVERY` steps,
+    started at the true arm and base plate pose, told the noise, without a prior. The scene's depth is known only to
+    :data:`DEPTH` / sqrt(2 k) (the two plates' positions along the ray; nothing else tells it), which no learner
+    can beat."""
+    truth = chain_from_engineered(EngineeredModel.from_tree(tree, 1, 2))
+    base = world2root @ tree.marker_poses(A[0])[1]
+    sigmas = (LATERAL, DEPTH, ROTATION / math.sqrt(3.0))
+    true_tool = np.array([(world2root @ tree.marker_poses(a)[tool])[:3, 3] for a in commands])
+    curve = []
+    for k in range(EVERY, len(A) + 1, EVERY):
+        fit = calibrate(BodyScheme([1, tool], 1, [truth]), base, A[:k], observations[:k], NOISE["sigma_trans"],
+                        NOISE["sigma_rot"], axis_sigmas=lambda part: sigmas)
+        predicted = (fit.world2root @ fit.scheme.models[0].predict(commands))[:, :3, 3]
+        curve.append((k, 1e3 * float(np.median(np.linalg.norm(predicted - true_tool, axis=1)))))
+    return curve
 
 
 def _poses_to(curve, target, never):
@@ -270,7 +295,9 @@ def _with_urdf(robot, perception, seed, rng, quick, n_heldout, world2root):
         nominal_error = 1e3 * float(np.median([np.linalg.norm((p[1] @ spec[0].predict(a[None])[0])[:3, 3]
                                                               - p[tool][:3, 3])
                                                for a, p in zip(heldout_commands, poses, strict=True)]))
+        bound = _bound_curve(true, tool, uniform, session.observations, heldout_commands, world2root)
         return {f"sparse_{robot}_poses_urdf": float(_poses_to(curve, TARGET_MM, n + 1)),
+                f"sparse_{robot}_poses_urdf_bound": float(_poses_to(bound, TARGET_MM, n + 1)),
                 f"sparse_{robot}_urdf_nominal_mm": nominal_error, "curves": {f"{robot}_urdf": curve}, "events": []}
     poses = {}
     for how in ("random", "active"):
