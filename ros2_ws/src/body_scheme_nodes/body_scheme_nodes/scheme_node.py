@@ -54,7 +54,7 @@ checkpoint_path : string ""           state file; restored on start if it exists
 checkpoint_period : double 30.0 s
 urdf_path, markers_path : string ""   start from the engineered body scheme of this robot (paper Sec. IV-B/C)
                                       instead of bootstrapping; joints map to actions by ``joint_names``
-urdf_tolerance_trans : 0.005 m, urdf_tolerance_rot : 0.01745 rad   how far the robot may be from its URDF: markers
+urdf_tolerance_trans : 0.005 m, urdf_tolerance_rot : 0.01745 rad   how far each joint may be from its URDF: markers
                                       with unmarked links between them are joined by the URDF's chain, calibrated
                                       from there (0 for both: the URDF exact)
 stamp_tolerance : double 1.0 s        messages stamped further ahead of the node clock are refused (future_stamp)

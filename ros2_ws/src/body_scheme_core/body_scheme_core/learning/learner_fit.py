@@ -84,7 +84,7 @@ class JointFitSteps:
                 trial_cal = fitted[0]
                 score = (len(self._inconsistent_edges(trial_cal)), trial_cal.rms)
                 if best is None or score < best[0]:
-                    best = (score, k, trial_cal)
+                    best = (score, k, fitted)
                 if score[0] == 0:
                     break  # this tree explains every observation: no need to try the others
             k = suspects[-1] if best is None else best[1]
@@ -99,8 +99,8 @@ class JointFitSteps:
             self._tree = self._bootstrap.search(self._tree, step, events, why)
             if self._tree is None:
                 return
-            if best is not None and best[2].tree == tuple(self._tree):
-                self._calibrated = best[2]
+            if best is not None and best[2][0].tree == tuple(self._tree):
+                self._adopt(*best[2], step, events)  # its residuals teach the noise as any joint fit's
             else:
                 self._calibrate(step, events)
 
@@ -178,12 +178,15 @@ class JointFitSteps:
                           consistency), result
 
     def _calibrate(self, step, events):
-        """Joint fit of the current tree; after bootstrapping its models replace the tree's models. Then the noise
-        estimate learns from the fit's residuals, and a change of what the scheme explains is reported."""
+        """Joint fit of the current tree, adopted (:meth:`_adopt`)."""
         fitted = self._fit(self._tree, step)
         if fitted is None:
             return  # keep the previous estimate; the next step tries again
-        cal, result = fitted
+        self._adopt(*fitted, step, events)
+
+    def _adopt(self, cal, result, step, events):
+        """Make a joint fit of the current tree the learner's: the noise estimate learns from its residuals, after
+        bootstrapping its models replace the tree's, and a change of what it explains is reported."""
         self._calibrated = cal
         self._learn_noise(cal, result)
         if not self._bootstrapping:

@@ -119,7 +119,7 @@ class Repair:
             change = self._reinstate_from_memory(tree, failed, mismatch, halves, step, events)
             if change is not None:
                 return change
-        if failed.kind == "chain" or mismatch.search:
+        if failed.kind in ("chain", "gp") or mismatch.search:
             self._sample_chains(failed, mismatch, chain_at, step, events)
         candidates = pool.candidates_of(failed.id)
         if not candidates and mismatch.sampled_at < 0:
@@ -241,8 +241,10 @@ class Repair:
 
         A failed chain (since the change point): :func:`chain_replacements`, the chain fitted again (a bent link, a
         moved marker) and the chain without each joint (a blocked one). An edge searched for like a new one
-        (``mismatch.search``: the structure was wrong, not the body changed): a chain identified from scratch
-        (:func:`identify_chain`) on the whole history, as while bootstrapping.
+        (``mismatch.search``: the structure was wrong, not the body changed) or a failed GP (a pair that more actions
+        move than a GP of a few can follow: a tool past six joints, taken for a GP while the noise was still the
+        generous prior): a chain identified from scratch (:func:`identify_chain`) on the whole history, as while
+        bootstrapping.
         """
         pool = self.pool
         samples = []  # (step, a, target Z, sigma) of the failed pair, over the whole history

@@ -496,7 +496,7 @@ def specification_covariance(form, elements, q_ref, sigma_trans, sigma_rot, eps=
     A = np.linalg.lstsq(J_r, J_e, rcond=None)[0]
     variance = np.tile(np.r_[[sigma_trans**2] * 3, [sigma_rot**2] * 3], n_errors // 6)
     cov = (A * variance) @ A.T
-    return 0.5 * (cov + cov.T) + np.eye(form.N_PARAMS) * 1e-6 * min(sigma_trans, sigma_rot) ** 2
+    return 0.5 * (cov + cov.T) + np.eye(form.N_PARAMS) * 1e-6 * max(sigma_trans, sigma_rot) ** 2
 
 
 def chain_from_engineered(model, reference=None, prior=None, **hyperparameters):
