@@ -50,7 +50,7 @@ DATASETS = {"fanuc": ("fanuc_laser.jsonl", "smr_nest", (1e-4, math.radians(0.05)
             "tiago": ("tiago_mocap.jsonl", "hand_body", (1e-3, math.radians(0.5)))}
 TRAIN_FRACTION = 0.8
 CV_FOLDS = 5
-#: The URDF's place of its last link and of the prior: how far the real TIAGo may be from it (per parameter).
+#: The prior: how far each joint of the real TIAGo may be from its URDF (m, rad per axis).
 TIAGO_PRIOR = (0.003, math.radians(1.0))
 
 FIGURES = {

@@ -15,7 +15,7 @@ seen. The learner is given no noise value.
   (:data:`N_STEPS` + 1 when never).
 - ``<robot>_urdf``: the true arm is its URDF with every joint's origin moved by 2 mm and turned by 0.5 deg (per axis,
   random), as a real arm is off its specification; the learner starts from the URDF's chain with three times that
-  as its prior tolerance per joint (:func:`~body_scheme_core.models.chain.chain_from_engineered`) and sees uniform
+  as its prior tolerance per joint (:func:`~body_scheme_core.models.chain_spec.chain_from_engineered`) and sees uniform
   commands: *poses* as above, every step. *Bound*: the same for a joint fit of the same observations started at the
   true arm and told the noise (:func:`_bound_curve`): what the data allow.
 - ``points``: the tool carries three reflectors (not collinear, 10 cm apart) measured with 0.5 mm noise each by a

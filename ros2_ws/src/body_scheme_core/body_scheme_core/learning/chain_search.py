@@ -25,6 +25,7 @@ from scipy.optimize import least_squares
 
 from ..errors import BodySchemeError
 from ..models import ChainModel, PrismaticModel, RevoluteModel, chain_form, pose_residuals
+from ..models.chain_spec import increment_jacobian
 from ..transforms import chordal_mean, invert_transform, rotation_log, rotvec_matrix, transform_from_rotvec
 
 __all__ = ["Excursions", "find_excursions", "JointScrew", "identify_chain", "best_order",
@@ -356,7 +357,7 @@ def _from_pair(j, known, rows, A, Z, S, reference, M, parent, child):
 
 
 def register_chain(model, A, Z, sigma, starts=8, rng=0):
-    """A chain from the robot's specification (:func:`~body_scheme_core.models.chain.chain_from_engineered`) placed
+    """A chain from the robot's specification (:func:`~body_scheme_core.models.chain_spec.chain_from_engineered`) placed
     where the parts' markers are: ``parent2child = G chain(a) H`` with the parent marker's pose ``G`` on the first
     link and the child marker's ``H`` on the last one fitted to the observations, the specification's joints held.
 
@@ -375,7 +376,7 @@ def register_chain(model, A, Z, sigma, starts=8, rng=0):
     Returns
     -------
     model : ChainModel
-        A copy with the screws moved by ``G`` and ``M`` by ``G`` and ``H``; its covariance is the specification's.
+        A copy with the screws moved by ``G`` and ``M`` by ``G`` and ``H``, and its covariance with them.
     """
     A, Z = np.asarray(A, dtype=float), np.asarray(Z, dtype=float)
     S = np.broadcast_to(np.asarray(sigma, dtype=float), (len(Z), 2))
@@ -401,17 +402,24 @@ def register_chain(model, A, Z, sigma, starts=8, rng=0):
             best = result
     G, H = compose(best.x)
     form = model.form
-    params = model.params_.copy()
-    for kind, at in zip(form.TYPES, form.STORED_AT, strict=True):
-        params[at:at + 3] = G[:3, :3] @ params[at:at + 3]
-        if kind == "revolute":
-            params[at + 3:at + 6] = G[:3, :3] @ params[at + 3:at + 6] + G[:3, 3]
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = rotvec_matrix(params[-3:]), params[-6:-3]
-    M = G @ M @ H
-    params[-6:-3], params[-3:] = M[:3, 3], rotation_log(M[None, :3, :3])[0]
-    params = form.canonical(params[None])[0]
-    return model.with_params(params, model.param_cov_)
+
+    def placed(params):
+        params = params.copy()
+        for kind, at in zip(form.TYPES, form.STORED_AT, strict=True):
+            params[at:at + 3] = G[:3, :3] @ params[at:at + 3]
+            if kind == "revolute":
+                params[at + 3:at + 6] = G[:3, :3] @ params[at + 3:at + 6] + G[:3, 3]
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = rotvec_matrix(params[-3:]), params[-6:-3]
+        M = G @ M @ H
+        params[-6:-3], params[-3:] = M[:3, 3], rotation_log(M[None, :3, :3])[0]
+        return form.canonical(params[None])[0]
+
+    params = placed(model.params_)
+    # The covariance moves with the parameters: an increment's coordinates are in each axis' own basis.
+    A = increment_jacobian(form, params, lambda d: placed(form.retract(model.params_[None], d[None])[0]),
+                           form.N_PARAMS)
+    return model.with_params(params, A @ model.param_cov_ @ A.T)
 
 
 def chain_replacements(model, A, Z, sigma):

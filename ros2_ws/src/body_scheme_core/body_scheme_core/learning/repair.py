@@ -119,7 +119,7 @@ class Repair:
             change = self._reinstate_from_memory(tree, failed, mismatch, halves, step, events)
             if change is not None:
                 return change
-        if failed.kind in ("chain", "gp") or mismatch.search:
+        if failed.kind == "chain" or mismatch.search:
             self._sample_chains(failed, mismatch, chain_at, step, events)
         candidates = pool.candidates_of(failed.id)
         if not candidates and mismatch.sampled_at < 0:
@@ -128,7 +128,9 @@ class Repair:
             if mismatch.search:
                 self._sample(failed, mismatch, chain, chain_at, halves, step, events, mismatch.tau, bridges=True,
                              why="searched for like a new edge")
-            candidates = pool.candidates_of(failed.id)
+        if failed.kind == "gp" and not mismatch.search:  # besides its replacements: the pair may need a chain
+            self._sample_chains(failed, mismatch, chain_at, step, events)
+        candidates = pool.candidates_of(failed.id)
         if candidates:
             # Only candidates that reconnect the two halves of the tree as it is now (another repair may have moved
             # the cut since they were sampled).
@@ -247,14 +249,17 @@ class Repair:
         bootstrapping.
         """
         pool = self.pool
+        tried = self._chain_samples.get(failed.id, 0)
+        needed = max(CHAIN_MIN_SAMPLES, tried + max(CHAIN_RETRY, tried // 4))
+        if sum(s >= mismatch.tau for s, _, _ in self.history) < needed:
+            return  # not enough steps since the change point for the samples the retry needs
         samples = []  # (step, a, target Z, sigma) of the failed pair, over the whole history
         for rec_step, a, obs in self.history:
             index, targets = chain_at(a, obs).for_entries([failed], own=True)
             if index.size:
                 samples.append((rec_step, a, targets.Z[0], targets.sigma[0]))
         since = [k for k, item in enumerate(samples) if item[0] >= mismatch.tau]
-        tried = self._chain_samples.get(failed.id, 0)
-        if len(since) < max(CHAIN_MIN_SAMPLES, tried + max(CHAIN_RETRY, tried // 4)):
+        if len(since) < needed:
             return
         self._chain_samples[failed.id] = len(since)
         A, Z, S = (np.array([item[k] for item in samples]) for k in (1, 2, 3))
@@ -270,7 +275,7 @@ class Repair:
             if 2 <= len(identified.actions) <= self.config.max_chain_joints:
                 found.append(identified)
                 how.append(f"a chain identified from the excursions of the {len(A)} samples of the whole history "
-                           f"(the structure was wrong)")
+                           f"(the structure {'may have been' if failed.kind == 'gp' else 'was'} wrong)")
         except ChainNotIdentified:
             pass
         if not found:

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from ..errors import ModelFileError
 from .base import LocalModel, check_action_batch, check_observations
-from .chain import ChainModel, chain_form, chain_from_engineered
+from .chain import ChainModel, chain_form
+from .chain_spec import chain_from_engineered
 from .engineered import EngineeredModel, engineered_models
 from .gp import GPModel
 from .gp_batch import GPBatch

@@ -45,13 +45,12 @@ import numpy as np
 
 from ..errors import InvalidInputError, ModelFileError
 from ..limits import MAX_CHAIN_JOINTS
-from ..transforms import cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew, transform_from_rotvec
+from ..transforms import cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew
 from .base import check_observations
 from .rigid import RigidJointModel, _sigmas
 from .rigid_fit import fit_rms, least_squares_fit
 
-__all__ = ["ChainModel", "chain_form", "chain_from_engineered", "specification_covariance", "JOINT_TYPES",
-           "screw_transforms"]
+__all__ = ["ChainModel", "chain_form", "JOINT_TYPES", "screw_transforms"]
 
 #: Most actions a chain records as inert (found not to move its child).
 MAX_INERT_ACTIONS = 1000
@@ -440,89 +439,3 @@ class ChainModel(RigidJointModel):
         if not isinstance(types, list) or not all(isinstance(t, str) for t in types):
             raise ModelFileError(f"chain types must be a list of joint types, got {types!r:.80}")
         return cls(data["parent"], data["child"], data["actions"], types, **h)
-
-
-def _specification_params(elements, q_ref, errors=None):
-    """Stored chain parameters (per joint ``w, p`` or ``d``, then ``M``'s translation and rotation vector) of the
-    specification's ``elements`` at joint values ``q_ref`` ({action: q}); ``errors`` (k + 1, 6): each joint's origin
-    moved by ``exp([rotation vector, translation])`` before its motion, and the child's mount after the last joint
-    (a real robot off its specification)."""
-    G, params, types, moved = np.eye(4), [], [], 0
-    for element in elements:
-        if element[0] == "fixed":
-            G = G @ element[1]
-            continue
-        if errors is not None:
-            G = G @ transform_from_rotvec(errors[moved, 3:], errors[moved, :3])
-        moved += 1
-        kind, axis, action, gain, _ = element
-        w = gain * (G[:3, :3] @ axis)
-        w /= np.linalg.norm(w)
-        if kind == "revolute":
-            params += [w, G[:3, 3] - (G[:3, 3] @ w) * w]
-        else:
-            params.append(w)
-        types.append(kind)
-        E = np.eye(4)
-        if kind == "revolute":
-            E[:3, :3] = _rodrigues(axis[None], np.array([[q_ref[action]]]))[0, 0]
-        else:
-            E[:3, 3] = axis * q_ref[action]
-        G = G @ E
-    if errors is not None:
-        G = G @ transform_from_rotvec(errors[moved, 3:], errors[moved, :3])
-    return np.concatenate(params + [G[:3, 3], rotation_log(G[None, :3, :3])[0]]), tuple(types)
-
-
-def specification_covariance(form, elements, q_ref, sigma_trans, sigma_rot, eps=1e-6):
-    """The covariance of a local increment of the chain of ``form`` when the robot is off its specification
-    (``elements`` at joint values ``q_ref``, as :func:`chain_from_engineered` reads them) by ``sigma_trans`` (m, per
-    axis) and ``sigma_rot`` (rad, per axis) at every joint's origin and at the child's mount, independently: to first
-    order, the errors moved through the chain (numerical Jacobians of the stored parameters in the errors and in the
-    increment). An error at a joint near the parent moves every screw and ``M`` after it by its lever: a chain's
-    distal parameters are far less certain than any one joint."""
-    stored, _ = _specification_params(elements, q_ref)
-    n_errors = 6 * (sum(e[0] != "fixed" for e in elements) + 1)
-
-    def column(f, n, k):
-        step = np.zeros(n)
-        step[k] = eps
-        return (f(step) - f(-step)) / (2 * eps)
-
-    J_e = np.stack([column(lambda e: _specification_params(elements, q_ref, e.reshape(-1, 6))[0], n_errors, k)
-                    for k in range(n_errors)], axis=1)
-    J_r = np.stack([column(lambda d: form.retract(stored[None], d[None])[0], form.N_PARAMS, k)
-                    for k in range(form.N_PARAMS)], axis=1)
-    A = np.linalg.lstsq(J_r, J_e, rcond=None)[0]
-    variance = np.tile(np.r_[[sigma_trans**2] * 3, [sigma_rot**2] * 3], n_errors // 6)
-    cov = (A * variance) @ A.T
-    return 0.5 * (cov + cov.T) + np.eye(form.N_PARAMS) * 1e-6 * max(sigma_trans, sigma_rot) ** 2
-
-
-def chain_from_engineered(model, reference=None, prior=None, **hyperparameters):
-    """The :class:`ChainModel` of an :class:`~body_scheme_core.models.engineered.EngineeredModel` (the robot's
-    specification between two markers), with the specification's values at ``reference`` (the joints' actions,
-    default zeros) as its parameters: the start of a calibration.
-
-    Each joint's screw is its axis moved into the parent frame by the chain up to it at the reference posture; a
-    joint traversed from child to parent (``sign -1``) turns the other way. Mimic joints (an action moving two
-    joints) have no chain form and raise ``InvalidInputError``. ``prior`` ``(sigma_trans, sigma_rot)``: how far the
-    robot may be from its specification, per joint (m and rad per axis, at every joint's origin and at the child
-    marker's mount), as the chain's parameter covariance (:func:`specification_covariance`; a learner takes a given
-    chain's covariance as its prior until data fills its window); default: the specification exact.
-    """
-    elements = list(model._elements)
-    joints = [e for e in elements if e[0] != "fixed"]
-    actions = tuple(e[2] for e in joints)
-    if len(set(actions)) != len(actions) or any(abs(abs(e[3]) - 1.0) > 1e-12 for e in joints):
-        raise InvalidInputError(f"{model.describe()}: an action moves several joints or a joint at another rate "
-                                f"(a mimic joint); a chain takes one joint per action")
-    reference = np.zeros(len(actions)) if reference is None else np.asarray(reference, dtype=float)
-    q_ref = {e[2]: e[3] * r + e[4] for e, r in zip(joints, reference, strict=True)}
-    params, types = _specification_params(elements, q_ref)
-    chain = ChainModel(model.parent, model.child, actions, types, reference=reference, **hyperparameters)
-    form = chain.form
-    stored = form.canonical(params[None])[0]
-    cov = (np.eye(form.N_PARAMS) * 1e-12 if prior is None
-           else specification_covariance(form, elements, q_ref, *(float(v) for v in prior)))
-    return chain._set_fit(stored, cov, 0, 0.0)

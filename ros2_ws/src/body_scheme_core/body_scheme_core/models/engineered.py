@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from ..errors import InvalidInputError, ModelFileError
 from ..transforms import check_transform, invert_transform
 from .base import LocalModel, check_action_batch, check_observations
-from .chain import chain_from_engineered
+from .chain_spec import chain_from_engineered
 
 __all__ = ["EngineeredModel", "engineered_models", "chain_from_tree"]
 
@@ -272,10 +272,10 @@ def engineered_models(tree, tolerance=None):
     ----------
     tree : KinematicTree
     tolerance : (float, float), optional
-        How far the robot may be from its specification (m, rad). Given, an edge over two joints or more (markers
-        with unmarked links between them) becomes the specification's chain with that prior, which the joint fit
-        calibrates (:func:`~body_scheme_core.models.chain.chain_from_engineered`); an edge that has no chain form
-        (a mimic joint) stays an engineered model. Default: every edge an :class:`EngineeredModel`.
+        How far each joint may be from its specification (m, rad per axis). Given, an edge over two joints or more
+        (markers with unmarked links between them) becomes the specification's chain with that prior, which the
+        joint fit calibrates (:func:`~body_scheme_core.models.chain_spec.chain_from_engineered`); an edge that has
+        no chain form (a mimic joint) stays an engineered model. Default: every edge an :class:`EngineeredModel`.
 
     Returns
     -------

@@ -145,6 +145,22 @@ def test_a_specification_prior_is_every_joint_off_by_the_tolerance():
     assert np.all(std[:, 0] > 2 * sigma_t)
 
 
+def test_a_specification_prior_holds_at_a_half_turn():
+    """A marker mounted upside down (the chain's M a half turn, where a rotation vector flips its sign): the prior is
+    the same as a hair away from it, not bent by a difference across the flip."""
+    def engineered(angle):
+        chain = [{"type": "revolute", "axis": [0.0, 0.0, 1.0], "action": 0},
+                 {"type": "fixed", "transform": transform_from_xyz_rpy([0.3, 0, 0.1], [0, 0, 0]).tolist()},
+                 {"type": "revolute", "axis": [0.0, 1.0, 0.0], "action": 1},
+                 {"type": "fixed", "transform": transform_from_xyz_rpy([0.2, 0, 0], [angle, 0, 1.0]).tolist()}]
+        return EngineeredModel(1, 2, (0, 1), chain)
+
+    A = np.random.default_rng(4).uniform(-1, 1, size=(5, 2))
+    stds = [chain_from_engineered(engineered(angle), prior=(0.002, math.radians(0.5))).predict(A, return_std=True)[1]
+            for angle in (math.pi, math.pi - 1e-4)]
+    assert np.all(np.isfinite(stds[0])) and np.allclose(stds[0], stds[1], rtol=1e-3)
+
+
 def test_a_fit_needs_a_start_and_refines_from_a_perturbed_one():
     """A chain has no closed-form start; from the truth moved by 2 cm and 2 deg per joint the fit returns within
     noise on 40 samples."""
