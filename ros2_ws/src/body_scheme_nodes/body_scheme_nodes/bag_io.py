@@ -102,8 +102,9 @@ MESSAGE_CLASSES = {
 }
 
 # What a damaged file raises inside rosbags while reading (chunks that do not decompress, records cut short, message
-# bytes that are not CDR).
-_CORRUPT = (KeyError, ValueError, IndexError, AssertionError, EOFError, OSError, struct.error, ZstdError, SerdeError)
+# bytes that are not CDR, a record size garbled into a number no seek takes).
+_CORRUPT = (KeyError, ValueError, IndexError, AssertionError, EOFError, OSError, OverflowError, struct.error,
+            ZstdError, SerdeError)
 
 
 class BagError(BodySchemeError):

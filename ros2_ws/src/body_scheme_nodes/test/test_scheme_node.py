@@ -61,7 +61,9 @@ def test_engineered_start_from_urdf_and_marker_file(tmp_path):
 
 def test_a_tool_only_urdf_start_is_the_urdfs_chain_calibrated_from_the_tolerance(tmp_path):
     """Markers on the base and the tool only: the engineered start joins them by the URDF's chain of six joints,
-    with the tolerance as its prior covariance (0, 0: the URDF exact, an engineered model), predicting as the URDF."""
+    every joint off by the tolerance as its prior covariance (0, 0: the URDF exact, an engineered model), predicting
+    as the URDF."""
+    from body_scheme_core.models import EngineeredModel, chain_from_engineered
     from body_scheme_core.world import KinematicTree
 
     arm = powercube_6dof()
@@ -73,8 +75,10 @@ def test_a_tool_only_urdf_start_is_the_urdfs_chain_calibrated_from_the_tolerance
     names, parts = list(tree.action_joint_names), list(tree.marker_ids)
     (chain,) = engineered_body_scheme(str(urdf), str(markers_file), names, parts, (0.005, math.radians(1.0)))
     assert chain.kind == "chain" and len(chain.actions) == 6
-    assert np.sqrt(chain.param_cov_.diagonal().max()) == pytest.approx(math.radians(1.0))
-    assert np.sqrt(chain.param_cov_[-6:-3, -6:-3].diagonal()) == pytest.approx([0.005] * 3)
+    spec = chain_from_engineered(EngineeredModel.from_tree(tree, tree.root_marker, max(parts)),
+                                 prior=(0.005, math.radians(1.0)))  # every joint off by the tolerance
+    assert np.allclose(chain.param_cov_, spec.param_cov_)
+    assert np.all(np.sqrt(chain.param_cov_[-6:-3, -6:-3].diagonal()) > 0.005)  # the tool: more than one joint's
     a = np.random.default_rng(0).uniform(tree.action_lower, tree.action_upper)
     poses = tree.marker_poses(a)
     expected = np.linalg.inv(poses[tree.root_marker]) @ poses[max(parts)]

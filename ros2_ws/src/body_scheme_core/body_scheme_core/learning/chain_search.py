@@ -24,8 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import BodySchemeError
-from ..models import ChainModel, PrismaticModel, RevoluteModel, chain_form, pose_residuals
-from ..models.chain_spec import increment_jacobian
+from ..models import ChainModel, PrismaticModel, RevoluteModel, chain_form, increment_jacobian, pose_residuals
 from ..transforms import chordal_mean, invert_transform, rotation_log, rotvec_matrix, transform_from_rotvec
 
 __all__ = ["Excursions", "find_excursions", "JointScrew", "identify_chain", "best_order",

@@ -12,7 +12,7 @@ from __future__ import annotations
 from ..errors import ModelFileError
 from .base import LocalModel, check_action_batch, check_observations
 from .chain import ChainModel, chain_form
-from .chain_spec import chain_from_engineered
+from .chain_spec import chain_from_engineered, increment_jacobian
 from .engineered import EngineeredModel, engineered_models
 from .gp import GPModel
 from .gp_batch import GPBatch
@@ -43,6 +43,7 @@ __all__ = [
     "ChainModel",
     "chain_form",
     "chain_from_engineered",
+    "increment_jacobian",
     "RigidBatch",
     "RIGID_CLASSES",
     "DEFAULT_F_SCALE",
