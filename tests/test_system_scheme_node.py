@@ -589,12 +589,14 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
     assert spin_until(settled, timeout=30), (_values(collector), progress[-1:], process.output())
     assert count("received.command") == n
     assert count("shed.stale_samples") > 0 and 0 < count("step") < n
-    # Each observation message became one sample (learnt or shed) or was refused by the pairer.
+    # Each observation message became one sample (learnt or shed), was refused by the pairer, or was shed from the
+    # inbox before pairing (a loaded machine lets the inbox overflow: CI once had 184 such).
     pairer_refusals = sum(count(f"rejected.{reason}") for reason in
                           ("duplicate", "stale", "settling", "no_command", "out_of_order_observation"))
-    learnt_or_shed = count("step") + count("shed.stale_samples") + count("shed.samples")
-    assert learnt_or_shed + pairer_refusals == n, {k: v for k, v in _values(collector).items()
-                                                    if k.split(".")[0] in ("rejected", "shed", "step", "received")}
+    learnt_or_shed = (count("step") + count("shed.stale_samples") + count("shed.samples")
+                      + count("shed.observations_messages"))
+    assert learnt_or_shed + pairer_refusals == n, str({k: v for k, v in _values(collector).items()
+                                                       if k.split(".")[0] in ("rejected", "shed", "step", "received")})
     # How far learning is behind its input: each learnt sample was at most max_sample_age old when it was taken.
     values = _values(collector)
     assert 0.0 <= float(values["learning_lag_max_ms"]) <= 50.0 + 1e-6

@@ -12,7 +12,7 @@ pytestmark = pytest.mark.slow  # make test-fast leaves it out (docs/architecture
 #: have theirs; realdata needs the real datasets, which the project may not ship), at their cheapest noise levels
 #: (bodies, robots): the others are the same code on larger bodies, except sparse's ``fault`` (a block on a chain, 40 s
 #: of CPU; the learner's chain tests block a chain too); ``make experiments-quick`` runs every level.
-CASES = [("explore", "2dof"), ("explore", "arm7"), ("iksure", "paper"), ("iksure", "tracker"),
+CASES = [("explore", "2dof"), ("explore", "arm7"), ("iksure", "paper"), ("iksure", "realcam"),
          ("sparse", "iiwa"), ("sparse", "iiwa_urdf"), ("sparse", "points"), ("sparse", "active"),
          ("yourrobot", "xarm6")]
 

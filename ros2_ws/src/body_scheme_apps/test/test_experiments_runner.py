@@ -66,6 +66,20 @@ def test_a_figure_where_higher_is_better_has_a_minimum_target(tmp_path):
     assert met("fraction", 0.97, {}, module.MIN_TARGETS) and not met("fraction", 0.5, {}, module.MIN_TARGETS)
 
 
+def test_a_figure_in_both_target_tables_has_a_range(tmp_path):
+    """A coverage must be high enough and not too high (a bound that is right, not only safe): both limits shown,
+    met only between them."""
+    module = types.ModuleType("fake", "A title\n\nThe protocol.")
+    module.FIGURES, module.PAPER = {"coverage": "the coverage"}, {}
+    module.TARGETS, module.MIN_TARGETS = {"coverage": 0.98}, {"coverage": 0.9}
+    meta = {"commit": "abc", "seed": 0, "runs": 2, "rendered_runs": 0, "jobs": 1, "seconds": 1.0}
+    text = write_results_md(tmp_path / "R.md", {"fake": module}, {"coverage": 0.999, "coverage_std": 0.0}, {}, {},
+                            meta, "make experiments").read_text()
+    assert "| `coverage` | n/a | >= 0.90 and <= 0.98 | 1.00 ± 0.00 | n/a | **no** |" in text
+    assert [met("coverage", v, module.TARGETS, module.MIN_TARGETS) for v in (0.85, 0.95, 0.99)] == [False, True,
+                                                                                                   False]
+
+
 def test_command_writes_results_json_with_seed_commit_and_std_twins(tmp_path, capsys):
     """One quick run end to end (Fig. 7: one of the cheapest with a plot; each experiment's own run is tested in its
     test file): results.json has the figures, _std twins, seed, commit and runs; --check passes."""

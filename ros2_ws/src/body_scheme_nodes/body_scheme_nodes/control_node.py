@@ -42,9 +42,9 @@ body_scheme/explore_near : body_scheme_msgs/ExploreNear  (``explore_when_unsure`
 Parameters
 ----------
 part_id : int 7                      default part to move
-tolerance : double 0.005 m           IK success: the predicted distance to the target plus ``confidence`` standard
-                                     deviations of the predicted position below this
-confidence : double 2.0              sigmas (0: the model's word alone, however unsure)
+tolerance : double 0.005 m           IK success: the predicted distance to the target plus the radius holding the
+                                     true position at the ``confidence`` level below this
+confidence : double 2.0              level in sigmas (95.4 % at 2; 0: the model's word alone, however unsure)
 prefer_certain : bool false          use every restart and keep the least uncertain solution
 max_iterations : int 100, restarts : int 3
 max_snapshot_age : double 0.0 s      refuse to act on an older model (0: never stale)

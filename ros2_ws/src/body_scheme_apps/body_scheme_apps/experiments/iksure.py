@@ -2,8 +2,10 @@
 
 Protocol (one run per noise level, everything from ``seed``): the paper's 6-DOF arm
 (:func:`~body_scheme_core.world.powercube_6dof`) babbles :data:`N_STEPS` random commands, every marker seen, at
-the noise level of the run: ``paper`` (44 mm / 15 deg, 3D RMS) or ``tracker`` (our tracker's 10 mm / 5 deg); a
-:class:`~body_scheme_core.learning.learner.BodySchemeLearner` (noise priors of that level) learns from scratch. Then
+the noise level of the run: ``paper`` (44 mm / 15 deg, 3D RMS), ``tracker`` (our tracker's 10 mm / 5 deg), or
+``realcam`` (a real monocular camera's: 1 mm per axis across the ray, 20 mm along it, 2.5 deg, 10 % of the
+orientations mirrored about the ray); a :class:`~body_scheme_core.learning.learner.BodySchemeLearner` learns from
+scratch, with noise priors of that level (``realcam``: ``"auto"``, the noise learned, not told). Then
 :data:`N_TARGETS` targets, each the end effector's true position (marker 7, in the root marker's frame) at a random
 command within :func:`~body_scheme_core.control.ik.trained_bounds`, are solved by
 :func:`~body_scheme_core.control.ik.solve_ik` on the learned body scheme with a tolerance of :data:`TOLERANCE` (10 mm)
@@ -11,10 +13,12 @@ and ``confidence`` 2. The *true error* of an answer is the distance from the tar
 is at the answer's command.
 
 - *coverage*: over the answers the model reaches (``converged``), the fraction whose true error is within the
-  reported bound (``error_bound`` = residual + 2 sigma);
+  reported bound (``error_bound``: the residual plus the radius holding the true position at the two-sigma level,
+  95.4 %; a coverage between 0.9 and 0.98 says the bound is right, not only safe);
 - *false success rate*: over the answers reported as successes, the fraction whose true error exceeds 10 mm (0 when
   none is reported: read it with the success rate);
-- *success rate*: successes over targets (a solver that never claims success is of no use, however safe);
+- *sure rate*: successes over targets (a solver that never claims success is of no use, however safe), read
+  against the fraction of targets whose answer is *truly within* 10 mm;
 - *model-only false success rate*: the same as the false success rate for the model's word alone (``converged``,
   what ``success`` meant before the uncertainty): the figure the issue started from.
 - *after exploring*: for the first :data:`N_REFINE` answers the model reaches but is not sure of, a copy of the
@@ -48,7 +52,10 @@ __all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERC
 RUNS = 20
 PERCEPTIONS = ("noise",)
 #: Noise level -> (sigma_trans m, sigma_rot rad), 3D RMS: the paper's, and our tracker's on rendered images.
-LEVELS = {"paper": (PAPER_SIGMA_TRANS, PAPER_SIGMA_ROT), "tracker": (0.01, math.radians(5.0))}
+LEVELS = {"paper": (PAPER_SIGMA_TRANS, PAPER_SIGMA_ROT), "tracker": (0.01, math.radians(5.0)),
+          "realcam": (math.sqrt(2 * 0.001**2 + 0.020**2), math.radians(2.5))}
+#: Per level: depth over lateral per-axis std, mirror rate, and whether the learner is told the noise.
+CAMERA = {"paper": (1.0, 0.0, True), "tracker": (1.0, 0.0, True), "realcam": (20.0, 0.1, False)}
 NOISE_LEVELS = tuple(LEVELS)
 N_STEPS, QUICK_STEPS = 300, 120
 N_TARGETS, QUICK_TARGETS = 100, 20
@@ -57,11 +64,13 @@ N_REFINE, QUICK_REFINE = 5, 2
 REFINE_SAMPLES = 5
 CONFIDENCE = 2.0
 _FIGURES = {
-    "ik_uncertainty_coverage": "fraction of the answers the model reaches whose true error is within the reported "
-                               "bound (residual + 2 sigma)",
+    "ik_bound_coverage": "fraction of the answers the model reaches whose true error is within the reported bound "
+                         "(the residual plus the radius at the two-sigma level, 95.4 %)",
     "ik_false_success_rate": "fraction of the reported successes (tolerance 10 mm, 2 sigma) whose true error exceeds "
                              "10 mm",
-    "ik_success_rate_10mm": "fraction of the targets reported as successes",
+    "ik_sure_rate_10mm": "fraction of the targets reported as successes (sure within 10 mm)",
+    "ik_truly_within_10mm": "fraction of the targets whose answer's true error is within 10 mm (what a sure rate "
+                            "can at best be)",
     "ik_false_success_rate_model_only": "the same for the model's word alone (converged within 10 mm, no "
                                         "uncertainty): what success meant before",
     "ik_position_std_mm_median": "median reported std of the end effector's predicted position at the answers (mm)",
@@ -76,13 +85,17 @@ _FIGURES = {
 FIGURES = {f"{key}{'' if level == 'paper' else '_' + level}": f"{text} ({level} noise)"
            for level in LEVELS for key, text in _FIGURES.items()}
 PAPER = {}
-TARGETS = {"ik_false_success_rate": 0.05}
-MIN_TARGETS = {"ik_uncertainty_coverage": 0.9}
+#: The bound is safe at every level and right, not only safe, where the camera is a real one: its coverage at most
+#: 0.98 at the two-sigma level (95.4 %).
+TARGETS = {"ik_false_success_rate": 0.05, "ik_false_success_rate_realcam": 0.05, "ik_bound_coverage_realcam": 0.98}
+MIN_TARGETS = {"ik_bound_coverage": 0.9, "ik_bound_coverage_realcam": 0.9}
 SANITY = {key: (0.0, 1.0) for key in FIGURES if "rate" in key or "coverage" in key}
 NOTES = """The paper's noise is extreme (44 mm / 15 deg per observation); the tracker's is what our ArUco tracker
-measures on the simulator's 1280 x 960 images. The reported std comes from the joint fit's parameter covariance over
-the learner's history window (200 steps), propagated with a conservative isotropic bound, so it does not shrink with
-more data than the window holds."""
+measures on the simulator's 1280 x 960 images; the real camera's is anisotropic and learned, not told. The reported
+bound comes from the joint fit's parameter covariance over the learner's history window (200 steps), propagated to the
+end effector with its cross terms, and its radius is the two-sigma level of that covariance's shape; it does not
+shrink with more data than the window holds. ``ik_sure_rate_10mm_realcam`` is read against
+``ik_truly_within_10mm_realcam`` (target: at least 0.8 of it)."""
 
 
 def run(seed, perception="paper", quick=False):
@@ -90,12 +103,14 @@ def run(seed, perception="paper", quick=False):
     if perception not in LEVELS:
         raise ValueError(f"unknown noise level {perception!r}; known: {list(LEVELS)}")
     sigma_trans, sigma_rot = LEVELS[perception]
+    depth_ratio, flip_rate, told = CAMERA[perception]
     tree = powercube_6dof()
     n = QUICK_STEPS if quick else N_STEPS
-    session = make_session(tree, n, seed, sigma_trans=sigma_trans, sigma_rot=sigma_rot)
-    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions, BodySchemeConfig(sigma_trans=sigma_trans,
-                                                                                  sigma_rot=sigma_rot),
-                                action_lower=tree.action_lower, action_upper=tree.action_upper)
+    session = make_session(tree, n, seed, sigma_trans=sigma_trans, sigma_rot=sigma_rot, depth_ratio=depth_ratio,
+                           flip_rate=flip_rate)
+    config = BodySchemeConfig(sigma_trans=sigma_trans, sigma_rot=sigma_rot) if told else BodySchemeConfig()
+    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions, config, action_lower=tree.action_lower,
+                                action_upper=tree.action_upper)
     for t in range(n):
         learner.update(session.actions[t], session.observations[t])
     suffix = "" if perception == "paper" else f"_{perception}"
@@ -120,8 +135,7 @@ def run(seed, perception="paper", quick=False):
         rows.append((result.converged, result.success, error, result.error_bound, result.position_std))
         answers.append((a, result))
     unsure = [(a, r) for a, r in answers if r.converged and not r.success][:QUICK_REFINE if quick else N_REFINE]
-    out.update(_after_exploring(learner, tree, unsure, truth, (lower, upper), (sigma_trans, sigma_rot), seed,
-                                suffix))
+    out.update(_after_exploring(learner, tree, unsure, truth, (lower, upper), perception, seed, suffix))
     converged, success, error, bound, std = (np.array(column) for column in zip(*rows, strict=True))
     converged, success = converged.astype(bool), success.astype(bool)
 
@@ -129,9 +143,10 @@ def run(seed, perception="paper", quick=False):
         return float(np.mean(condition[mask])) if mask.any() else math.nan
 
     out.update({
-        f"ik_uncertainty_coverage{suffix}": rate(converged, error <= bound),
+        f"ik_bound_coverage{suffix}": rate(converged, error <= bound),
         f"ik_false_success_rate{suffix}": rate(success, error > TOLERANCE) if success.any() else 0.0,
-        f"ik_success_rate_10mm{suffix}": float(np.mean(success)),
+        f"ik_sure_rate_10mm{suffix}": float(np.mean(success)),
+        f"ik_truly_within_10mm{suffix}": float(np.mean(error <= TOLERANCE)),
         f"ik_false_success_rate_model_only{suffix}": rate(converged, error > TOLERANCE),
         f"ik_position_std_mm_median{suffix}": 1e3 * float(np.median(std[converged])) if converged.any() else math.nan,
         f"ik_true_err_mm_median{suffix}": 1e3 * float(np.median(error[converged])) if converged.any() else math.nan,
@@ -139,14 +154,16 @@ def run(seed, perception="paper", quick=False):
     return out
 
 
-def _after_exploring(learner, tree, unsure, truth, bounds, noise, seed, suffix):
+def _after_exploring(learner, tree, unsure, truth, bounds, perception, seed, suffix):
     """The *after exploring* figures (see the module docstring) for the ``(target's command, answer)`` pairs."""
     if not unsure:  # every answer sure: NaN, so that the run still carries the keys
         return {f"ik_{kind}_after_{how}{suffix}": math.nan for how in ("near", "random")
                 for kind in ("success_rate", "false_success_rate", "std_ratio")}
     body, effector, (lower, upper) = Body(tree), tree.marker_ids[-1], bounds
     rng_observe, rng_random, rng_ik = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)[2:])
-    observer = ObservationModel(*noise, 1.0, rng_observe)
+    noise = LEVELS[perception]
+    depth_ratio, flip_rate, _ = CAMERA[perception]
+    observer = ObservationModel(*noise, 1.0, rng_observe, depth_ratio=depth_ratio, flip_rate=flip_rate)
 
     def observe(a):
         return observer.observe_array(body.true_marker_array(np.asarray(a)[None]), tree.marker_ids)[0]
@@ -181,7 +198,7 @@ def summarize(runs):
     """Mean and std over the runs of each noise level (a run holds the keys of its level only)."""
     summary = {}
     for level in LEVELS:
-        key = "ik_uncertainty_coverage" + ("" if level == "paper" else f"_{level}")
+        key = "ik_bound_coverage" + ("" if level == "paper" else f"_{level}")
         summary.update(aggregate([r for r in runs if key in r]))
     return summary
 

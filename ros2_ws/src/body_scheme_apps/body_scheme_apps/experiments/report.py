@@ -13,11 +13,11 @@ __all__ = ["write_results_json", "write_results_md", "met"]
 
 def met(key, value, targets, min_targets=None):
     """``True``/``False`` whether ``value`` meets the target of ``key`` (``targets``: lower is better, ``min_targets``:
-    higher is better), ``None`` without one."""
+    higher is better; a key in both: a range), ``None`` without one."""
     min_targets = min_targets or {}
     if value is None or not math.isfinite(value) or (key not in targets and key not in min_targets):
         return None
-    return value <= targets[key] if key in targets else value >= min_targets[key]
+    return value <= targets.get(key, math.inf) and value >= min_targets.get(key, -math.inf)
 
 
 def write_results_json(path, noise, rendered, meta):
@@ -69,8 +69,8 @@ def write_results_md(path, experiments, noise, rendered, plots, meta, command):
             verdict = met(key, value, module.TARGETS, minimum)
             paper = module.PAPER.get(key)
             target = module.TARGETS.get(key)
-            bound = ("" if target is None else "<= " + _fmt(target)) if key not in minimum else \
-                ">= " + _fmt(minimum[key])
+            bound = " and ".join(([">= " + _fmt(minimum[key])] if key in minimum else [])
+                                 + ([] if target is None else ["<= " + _fmt(target)]))
             lines.append(f"| `{key}` | {_fmt(paper)} | {bound} | "
                          f"{_fmt(value, noise.get(key + '_std'))} | {_fmt(rendered.get(key))} | "
                          f"{'' if verdict is None else ('yes' if verdict else '**no**')} |")

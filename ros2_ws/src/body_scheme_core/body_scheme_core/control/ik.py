@@ -5,8 +5,9 @@ drives a damped least-squares (Levenberg-Marquardt) search for actions that brin
 solver is honest: it reports ``success=False`` with a reason rather than returning a wrong answer labelled as success. A
 solution the *model* reaches is not enough: the body scheme is learned, so the part's predicted position has an
 uncertainty (:func:`~body_scheme_core.prediction.uncertainty.position_std`: the joint fit's parameter covariance and the
-GPs' latent variances, propagated along the chain), and ``success`` also needs the residual plus ``confidence`` standard
-deviations within the tolerance.
+GPs' latent variances, propagated along the chain), and ``success`` also needs the residual plus the radius that holds
+the part's true position with the probability of ``confidence`` standard deviations (95.4 % at 2;
+:func:`~body_scheme_core.prediction.uncertainty.error_radius`) within the tolerance.
 
 The residual is a separate small class so that a pose target (position and orientation) can be added later by
 writing another residual with the same ``evaluate``/``jacobian`` pair.
@@ -19,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..prediction import position_std
+from ..prediction import error_radius, position_covariance, position_std
 from ..transforms import check_transform, invert_transform
 
 __all__ = ["IKResult", "solve_ik", "trained_bounds"]
@@ -68,7 +69,9 @@ class IKResult:
     converged : bool
         Whether the residual at ``actions`` is at most ``tol`` (the model reaches the target, however unsure).
     error_bound : float
-        ``residual + confidence * position_std`` (m): how far from the target the part may truly go.
+        The residual plus :func:`~body_scheme_core.prediction.uncertainty.error_radius` of the predicted position's
+        covariance at ``confidence`` (m): how far from the target the part may truly go, with the probability of
+        ``confidence`` standard deviations of a normal variable (95.4 % at 2).
     """
 
     actions: np.ndarray
@@ -278,8 +281,9 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
         edge and iteration; about 1.5x faster on GP schemes). ``"analytic"``: each model's ``jacobian``. Both give
         the same iterates up to ~1e-7.
     confidence : float
-        Standard deviations of the predicted position added to the residual for ``success`` (``error_bound``); 0:
-        the model's word alone.
+        The level of ``error_bound``, in standard deviations: its radius holds the part's true position with the
+        probability that a normal variable lies within ``confidence`` sigma (95.4 % at 2); 0: the model's word
+        alone.
     prefer_certain : bool
         Use every restart and return, among the solutions that reach the target in the model, the one whose
         predicted position is least uncertain (e.g. postures near the training data); default: the first.
@@ -392,11 +396,12 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
 def _result(scheme, part, actions, e, target, tol, confidence, iterations, restarts, reason):
     """The IKResult of a solution with residual vector ``e``: converged and sure, or why not."""
     r = float(np.linalg.norm(e))
-    std = position_std(scheme, actions, part)
-    bound = r + confidence * std
+    cov = position_covariance(scheme, actions, part)
+    std = float(np.sqrt(max(np.trace(cov), 0.0)))
+    bound = r + error_radius(cov, confidence)
     success = r <= tol and bound <= tol
     if r <= tol and not success:
         reason = (f"not sure enough: the model reaches the target (residual {r:.3g} m) but the predicted error "
-                  f"bound (+{confidence:g} sigma) is {bound:.3g} m > tolerance {tol:.3g} m")
+                  f"bound ({confidence:g} sigma level) is {bound:.3g} m > tolerance {tol:.3g} m")
     return IKResult(actions, success, iterations, r, reason, restarts=restarts, position=target - e,
                     position_std=std, converged=r <= tol, error_bound=bound)

@@ -20,10 +20,11 @@ from .learned_body import (
     marker_link,
 )
 from .scheme import BodyScheme
-from .uncertainty import parameter_jacobian, perturbed_models, position_covariance, position_std
+from .uncertainty import error_radius, parameter_jacobian, perturbed_models, position_covariance, position_std
 
 __all__ = [
     "BodyScheme",
+    "error_radius",
     "parameter_jacobian",
     "perturbed_models",
     "position_covariance",

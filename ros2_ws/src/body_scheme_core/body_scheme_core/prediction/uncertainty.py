@@ -13,18 +13,25 @@ effector's true error was a third of that bound while each model's own covarianc
 the chain with respect to each parameter increment; rigid models outside it add their own covariance, and models without
 parameters (GP, engineered) their predictive std, isotropically with the lever arm of a rotation error. The root's
 pose in the world is not included (the position is in the root part's frame).
+
+:func:`error_radius` turns such a covariance into a radius that holds the true position with a stated probability:
+the distribution of a Gaussian error's length depends on the covariance's shape, so ``k sqrt(trace)`` (the
+isotropic bound this module gave before) holds 95 % at ``k = 2`` only when one axis dominates and 99.3 % when all
+three are equal, several times more than the level it names.
 """
 
 from __future__ import annotations
 
+import math
 import weakref
 
 import numpy as np
+from scipy import stats
 
 from ..errors import InvalidInputError
 from ..transforms import invert_transform
 
-__all__ = ["parameter_jacobian", "perturbed_models", "position_covariance", "position_std"]
+__all__ = ["error_radius", "parameter_jacobian", "perturbed_models", "position_covariance", "position_std"]
 
 #: Step of the forward differences in a parameter increment (its units: m, rad).
 _STEP = 1e-6
@@ -101,6 +108,24 @@ def position_covariance(scheme, a, part):
 def position_std(scheme, a, part):
     """RMS over the three axes of the std of ``part``'s predicted position: ``sqrt(trace(cov))`` (m)."""
     return float(np.sqrt(max(np.trace(position_covariance(scheme, a, part)), 0.0)))
+
+
+def error_radius(cov, confidence):
+    """The radius (m) within which a zero-mean Gaussian error of covariance ``cov`` (3, 3) lies with the probability
+    that a normal variable lies within ``confidence`` standard deviations of its mean (95.4 % at 2; 0: radius 0).
+
+    The squared length of the error is a weighted sum of chi-square variables (the weights: ``cov``'s eigenvalues);
+    its quantile is Patnaik's scaled chi-square with the same mean and variance, exact for one dominant axis and for
+    three equal ones, and within 0.2 % in coverage in between (Monte Carlo, 400,000 draws).
+    """
+    if not (math.isfinite(confidence) and confidence >= 0.0):
+        raise InvalidInputError(f"confidence must be a finite number >= 0, got {confidence!r}")
+    eigenvalues = np.clip(np.linalg.eigvalsh(np.asarray(cov, dtype=float)), 0.0, None)
+    total, square = float(eigenvalues.sum()), float(eigenvalues @ eigenvalues)
+    if confidence == 0.0 or total == 0.0:
+        return 0.0
+    scale, dof = square / total, total**2 / square
+    return math.sqrt(scale * stats.chi2.ppf(math.erf(confidence / math.sqrt(2.0)), dof))
 
 
 def parameter_jacobian(scheme, A):

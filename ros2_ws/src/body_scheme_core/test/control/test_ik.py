@@ -9,6 +9,7 @@ from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.models.base import LocalModel
 from body_scheme_core.models.gp import GPModel
 from body_scheme_core.prediction.scheme import BodyScheme
+from body_scheme_core.prediction.uncertainty import error_radius, position_covariance
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec
 from body_scheme_core.world import planar_2dof
 
@@ -257,7 +258,8 @@ def test_ik_on_learned_arm_reaches_reachable_targets():
 
 def test_success_needs_the_predicted_error_bound_within_the_tolerance():
     """On the GP arm the model reaches a target to 1 mm, but its predicted position is uncertain by centimetres: not
-    a success, and the reason says so; the bound is the residual plus two standard deviations; with confidence 0 the
+    a success, and the reason says so; the bound is the residual plus the radius holding the predicted position's
+    error at the two-sigma level (95.4 %); with confidence 0 the
     model's word suffices. On exact (engineered) models the uncertainty is zero and nothing changes."""
     rng = np.random.default_rng(0)
     tree, scheme = learned_planar_arm(rng)
@@ -265,7 +267,9 @@ def test_success_needs_the_predicted_error_bound_within_the_tolerance():
     result = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, tol=1e-3)
     assert result.converged and not result.success and result.reason.startswith("not sure enough")
     assert result.position_std > 1e-3
-    assert result.error_bound == pytest.approx(result.residual + 2.0 * result.position_std)
+    cov = position_covariance(scheme, result.actions, 3)
+    assert result.error_bound == pytest.approx(result.residual + error_radius(cov, 2.0))
+    assert result.position_std == pytest.approx(np.sqrt(np.trace(cov)))
     loose = solve_ik(scheme, 3, target, np.zeros(2), tree.action_lower, tree.action_upper, tol=1e-3,
                      confidence=0.0)
     assert loose.success and loose.error_bound == pytest.approx(loose.residual)
@@ -274,7 +278,7 @@ def test_success_needs_the_predicted_error_bound_within_the_tolerance():
 
 
 def test_the_error_bound_covers_where_the_true_arm_goes():
-    """Over 40 random targets the true arm's part lands within the reported bound (residual + 2 sigma) of the
+    """Over 40 random targets the true arm's part lands within the reported bound (two-sigma level) of the
     target for at least 90 % of them: the uncertainty is not overconfident."""
     rng = np.random.default_rng(1)
     tree, scheme = learned_planar_arm(rng)
