@@ -29,6 +29,7 @@ from body_scheme_core.errors import BodySchemeError, InvalidInputError
 
 from . import conversions
 from .intake import BatchIntake
+from .ros_parameters import declare_list_parameter
 
 __all__ = ["ArmDriver", "declare_driver_parameters", "driver_from_parameters"]
 
@@ -45,8 +46,6 @@ JOINT_STATE_SLACK = 0.1
 def declare_driver_parameters(node):
     """Declare the driver's parameters on ``node`` (see config/babble_node.yaml for their meaning); returns their
     values, for :func:`driver_from_parameters`."""
-    from .sim_node import declare_list_parameter
-
     p = node.declare_parameter
     values = {name: p(name, default).value for name, default in (
         ("robot", "powercube_6dof"), ("controller", "joint_trajectory_controller"),
@@ -65,8 +64,7 @@ def declare_driver_parameters(node):
 
 def driver_from_parameters(node, values):
     """An :class:`ArmDriver` for ``node`` from :func:`declare_driver_parameters`' values."""
-    from body_scheme_sim.babbling import CollisionScreen
-    from body_scheme_sim.robots import load_robot
+    from body_scheme_sim.robots import load_robot  # robot files only: no physics engine
 
     workspace = values["workspace"]
     if workspace and len(workspace) != 6:
@@ -75,8 +73,11 @@ def driver_from_parameters(node, values):
     settle = SettleDetector(values["settle_tolerance"], values["settle_still"], values["settle_window"],
                             values["settle_timeout"])
     tree = load_robot(values["robot"], markers=())
-    screen = CollisionScreen(values["robot"], package_path=values["package_path"]) \
-        if values["collision_check"] else None
+    screen = None
+    if values["collision_check"]:  # pybullet's collision geometry: the one place a real arm's driver loads it
+        from body_scheme_sim.babbling import CollisionScreen
+
+        screen = CollisionScreen(values["robot"], package_path=values["package_path"])
     return ArmDriver(node, tree, values["joint_names"] or tree.action_joint_names, values["limit_margin"],
                      np.reshape(workspace, (2, 3)) if workspace else None, screen, values["max_velocity"],
                      values["max_acceleration"], settle, values["controller"], values["joint_states_topic"],

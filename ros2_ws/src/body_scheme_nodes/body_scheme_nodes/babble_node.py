@@ -70,6 +70,7 @@ from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .intake import create_sized_subscription
 from .preflight import CHECKS, PreflightFacts, preflight_failures
+from .ros_parameters import declare_list_parameter
 from .scheme_diagnostics import status_name
 from .spin import run_node
 
@@ -101,8 +102,6 @@ class BabbleNode(Node):
     """See the module docstring."""
 
     def __init__(self, **node_options):
-        from .sim_node import declare_list_parameter  # as the driver's parameters (sim_node loads pybullet)
-
         super().__init__("babble_node", **node_options)
         self.monotonic = time.monotonic  # the watchdogs' clock (s); tests inject their own
         p = self.declare_parameter

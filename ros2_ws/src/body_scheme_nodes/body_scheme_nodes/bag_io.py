@@ -55,7 +55,6 @@ from trajectory_msgs.msg import JointTrajectory
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.world import Session
 from body_scheme_msgs.msg import MarkerPoses
-from body_scheme_sim.camera import Camera
 
 from . import conversions
 
@@ -297,6 +296,8 @@ def read_session(path):
     observation_stamps = np.array([_stamp_ns(msg.header.stamp) for msg in observed], dtype=np.int64)
     images = {int(np.searchsorted(observation_stamps, _stamp_ns(msg.header.stamp))): conversions.image_from_msg(msg)
               for msg in messages.get("/camera/image_raw", [])}
+    from body_scheme_sim.camera import Camera  # a simulator's session: only then the simulator's camera model
+
     camera = info["camera"]
     return Session(
         robot=info["robot"], joint_names=joint_names, marker_ids=marker_ids,

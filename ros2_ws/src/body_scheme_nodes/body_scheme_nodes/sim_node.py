@@ -69,7 +69,7 @@ from collections import Counter
 
 import cv2
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -87,6 +87,7 @@ from body_scheme_sim.camera import Camera
 from body_scheme_sim.world import SimWorld
 
 from . import conversions
+from .ros_parameters import declare_list_parameter
 from .spin import run_node
 
 PERCEPTION_MODES = ("rendered", "noise")
@@ -106,21 +107,6 @@ def camera_from_parameters(node, prefix="camera."):
     xyz = node.declare_parameter(prefix + "xyz", [float(v) for v in xyz]).value
     rpy = node.declare_parameter(prefix + "rpy", [float(v) for v in rpy]).value
     return Camera(**values, world2camera=transform_from_xyz_rpy(list(xyz), list(rpy)))
-
-
-def declare_list_parameter(node, name, item_type):
-    """Declare a list parameter whose default is empty and return its value as a list of ``item_type``.
-
-    ROS cannot type an empty list (rclpy would call ``[]`` a byte array and refuse a later string list), so the
-    parameter is dynamically typed and checked here.
-    """
-    value = node.declare_parameter(name, [], ParameterDescriptor(dynamic_typing=True)).value
-    if value is None:  # "[]" in a parameter file
-        return []
-    if isinstance(value, (str, bytes)) or not all(isinstance(v, item_type) and not isinstance(v, bool)
-                                                  for v in value):
-        raise InvalidInputError(f"parameter {name} must be a list of {item_type.__name__}, got {value!r}")
-    return list(value)
 
 
 class SimNode(Node):
