@@ -1,6 +1,7 @@
 # Body Scheme: set-up, build, test, demo and benchmarks on a machine with or without ROS 2 installed.
 #
 #   make test    set up (if needed), build, run every test and ruff   <- the README's test command, run by CI
+#   make test-loaded  make test with a busy loop on every core (tests must hold on a busy machine)
 #   make test-fast  the inner loop: every test but the DDS system tests and the slow ones (under 90 s)
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make your-robot URDF=robot.urdf   plan markers on any URDF, learn it in the simulator, write learned URDF + report
@@ -28,7 +29,7 @@ PKG_SOURCES := $(shell find ros2_ws/src \( -name package.xml -o -name setup.py -
 RUN := source $(VENV)/bin/activate && export CMAKE_PREFIX_PATH=$(VENV) AMENT_PREFIX_PATH=$(VENV) && \
        source $(WS)/install/local_setup.bash &&
 
-.PHONY: all setup build test test-fast unit lint docs demo your-robot bench stress fuzz bags replay experiments experiments-quick clean distclean
+.PHONY: all setup build test test-loaded test-fast unit lint docs demo your-robot bench stress fuzz bags replay experiments experiments-quick clean distclean
 all: build
 
 setup: $(STAMPS)/cmake-fixed
@@ -65,6 +66,12 @@ test: build
 	$(RUN) python -m pytest -m "not system" -n auto --durations=15
 	$(RUN) python -m pytest -m system --durations=15
 	$(MAKE) --no-print-directory lint
+
+# make test on a busy machine: one busy loop per core runs for the whole of it and is stopped after, pass or fail
+# (tests must wait on conditions and inject clocks, never assert a wall-clock window).
+test-loaded: build
+	cores=$$(nproc); pids=(); for _ in $$(seq $$cores); do $(PYTHON) -c "while True: pass" & pids+=($$!); done; \
+	  trap 'kill $${pids[@]} 2>/dev/null' EXIT; echo "test-loaded: $$cores busy loops"; $(MAKE) --no-print-directory test
 
 # The inner loop: every test but the DDS system tests and the ones marked slow, on every core (target: under 90 s).
 test-fast: build
