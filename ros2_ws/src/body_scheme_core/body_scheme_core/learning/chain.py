@@ -65,7 +65,7 @@ class ChainTargets:
             root2part = scheme.predict(a)
         self.world2part = {p: world2root @ T for p, T in root2part.items()}
         self.std = std
-        self.depth = {p: len(scheme.path(p)) for p in scheme.parts}
+        self.scheme = scheme
         self.observations = observations
         self.untrusted = frozenset(untrusted)
         # The noise of this step, read once: a replay asks for thousands of targets.
@@ -78,9 +78,7 @@ class ChainTargets:
 
     def orient(self, parent, child):
         """``(u, v)``: the pair ordered from the root (``u`` nearer the root in the current tree; ties: as given)."""
-        if self.depth[child] < self.depth[parent]:
-            return child, parent
-        return parent, child
+        return self.scheme.from_root(parent, child)
 
     def available(self, parent, child):
         """Whether the pair has a target now: its far part observed and its near part trusted."""

@@ -544,7 +544,7 @@ class BodySchemeLearner(JointFitSteps):
         parts = set()
         for edge_id in self._adaptation.mismatch:
             entry = self._pool.tracked[edge_id]
-            far = entry.child if len(scheme.path(entry.child)) > len(scheme.path(entry.parent)) else entry.parent
+            _, far = scheme.from_root(entry.parent, entry.child)
             parts.update(p for p in scheme.parts if far in scheme.path(p))
         return parts
 
@@ -557,12 +557,12 @@ class BodySchemeLearner(JointFitSteps):
         if isinstance(new.model, RigidJointModel) and reinstated and new.prior is None:
             new.prior = (new.model.params_.copy(), new.model.param_cov_.copy())
         scheme = self._raw_scheme()
-        far = new.child if len(scheme.path(new.child)) > len(scheme.path(new.parent)) else new.parent
+        _, far = scheme.from_root(new.parent, new.child)
         for i in self._tree:
             entry = pool.tracked[i]
             if entry is new:
                 continue
-            near = entry.parent if len(scheme.path(entry.parent)) < len(scheme.path(entry.child)) else entry.child
+            near, _ = scheme.from_root(entry.parent, entry.child)
             if far in scheme.path(near):
                 # Below the changed edge: its observations before tau followed the old body; keep what they taught
                 # as a prior, and restart its detector. An edge out of the changed edge's far part after a
@@ -586,8 +586,7 @@ class BodySchemeLearner(JointFitSteps):
         if not steps:
             return
         scheme = cal.scheme
-        u, v = ((entry.parent, entry.child) if len(scheme.path(entry.parent)) <= len(scheme.path(entry.child))
-                else (entry.child, entry.parent))
+        u, v = scheme.from_root(entry.parent, entry.child)
         A, Z, S = [], [], []
         for _, a, obs in steps:
             chain = ChainTargets(scheme, cal.world2root, a, obs, self.noise, std=cal.part_std)

@@ -68,7 +68,7 @@ class JointFitSteps:
                 return
             first = bad[0]
             far = cal.scheme.models[first]
-            far_part = far.child if len(cal.scheme.path(far.child)) > len(cal.scheme.path(far.parent)) else far.parent
+            _, far_part = cal.scheme.from_root(far.parent, far.child)
             position = {id(m): k for k, m in enumerate(cal.scheme.models)}
             # Nearest the unexplained part first (most often the culprit), at most _SUSPECTS of them.
             path = cal.scheme.path(far_part)[1:]

@@ -198,6 +198,11 @@ class BodyScheme:
         """
         return self._paths[self._check_part(part)]
 
+    def from_root(self, a, b):
+        """``(near, far)``: parts ``a`` and ``b`` ordered from the root, the one with the shorter path first (ties: as
+        given). The one answer to "which end of an edge is nearer the root"."""
+        return (b, a) if len(self.path(b)) < len(self.path(a)) else (a, b)
+
     def path_actions(self, part):
         """Sorted indices of the actions that influence the pose of ``part`` (the union over its path's models)."""
         return self._path_actions[self._check_part(part)]

@@ -13,15 +13,12 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import ModelFileError
-from body_scheme_core.learning import (
-    Adaptation,
-    Mismatch,
-    bridge_relative_complexity,
-    least_recently_used,
-    tree_halves,
-)
+from body_scheme_core.learning.adaptation import Adaptation
 from body_scheme_core.learning.config import BodySchemeConfig
+from body_scheme_core.learning.detection import Mismatch
 from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.memory import least_recently_used
+from body_scheme_core.learning.repair import bridge_relative_complexity, tree_halves
 from body_scheme_core.learning.tracked import MEMORY, TrackedModel
 from body_scheme_core.models import RevoluteModel
 from body_scheme_core.models.engineered import EngineeredModel, engineered_models

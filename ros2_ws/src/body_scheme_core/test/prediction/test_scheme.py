@@ -157,6 +157,20 @@ def test_root_can_be_any_part():
         assert_allclose(at12[part], invert_transform(at7[12]) @ at7[part], atol=1e-12)
 
 
+def test_from_root_orders_an_edges_ends_whichever_part_is_the_root():
+    """The end nearer the root first, in either argument order and after re-rooting; two parts at the same depth (not
+    an edge) stay as given."""
+    _, models = branching_scheme(np.random.default_rng(0))
+    scheme = BodyScheme((7, 3, 12, 5, 9), 7, models)
+    for parent, child in ((e[0], e[1]) for e in scheme.edges):
+        assert scheme.from_root(parent, child) == scheme.from_root(child, parent) == (parent, child)
+    rerooted = BodyScheme((7, 3, 12, 5, 9), 12, models)
+    for parent, child in ((e[0], e[1]) for e in rerooted.edges):
+        assert rerooted.from_root(child, parent) == (parent, child)
+    a, b = (p for p in scheme.parts if len(scheme.path(p)) == 2)  # 3 and 9, both below the root
+    assert scheme.from_root(a, b) == (a, b) and scheme.from_root(b, a) == (b, a)
+
+
 def test_predict_batch_matches_predict():
     """predict_batch stacks predict in parts order, including the std."""
     rng = np.random.default_rng(0)
