@@ -69,6 +69,7 @@ CORE = SRC / "body_scheme_core" / "body_scheme_core"
 #: paper's concepts stack as docs/architecture.md draws them.
 CORE_LAYERS = {
     "errors": 0, "limits": 0,  # named exceptions, the sizes every input check shares
+    "threads": 1,  # one math-library thread per process
     "transforms": 1, "state_values": 1, "events": 1,  # rigid-transform maths, saved-value readers, the learner's events
     "models": 2, "perception": 2, "pairing": 2,  # local models (Sec. III-A/B); the camera and the commands
     "world": 3,  # kinematic trees, robots, faults and sessions: the bodies we learn

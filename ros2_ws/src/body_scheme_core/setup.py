@@ -14,7 +14,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["numpy>=1.26", "scipy>=1.11", "networkx>=3.0", "PyYAML>=6", "tqdm>=4"],
+    install_requires=["numpy>=1.26", "scipy>=1.11", "networkx>=3.0", "PyYAML>=6", "tqdm>=4", "threadpoolctl>=3"],
     extras_require={"test": ["pytest>=7", "scikit-learn>=1.3"]},
     zip_safe=True,
 )

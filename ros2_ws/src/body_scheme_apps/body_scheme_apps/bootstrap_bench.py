@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
-import os
 import resource
 import time
+
+from body_scheme_core.threads import limit_math_threads
 
 __all__ = ["BODIES", "LAZY", "TARGETS", "bootstrap_body", "run", "compare_trees", "main"]
 
@@ -56,8 +57,7 @@ def _rss_mb():
 def bootstrap_body(name, eager, seed=0, max_steps=600):
     """Bootstrap body ``name`` once in this process; returns its figures (keys without the ``bootstrap_<body>_``
     prefix). Meant to run in a fresh process, so that the peak RSS is this learner's."""
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
+    limit_math_threads(1)
     from body_scheme_core import world
     from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 

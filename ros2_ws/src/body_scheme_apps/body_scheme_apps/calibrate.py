@@ -53,6 +53,7 @@ from body_scheme_core.prediction import (
     learned_tree,
     learned_urdf,
 )
+from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.world import Marker, load_markers_yaml, markers_to_yaml, tree_from_urdf
 
 from .robot_option import add_camera_arguments, resolve_robot
@@ -233,6 +234,7 @@ def _simulated(choice, steps, seed, perception="rendered"):
 
 def main(argv=None):
     """Console entry point; exit code 1 with a one-line error for unreadable input."""
+    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.calibrate", description=__doc__.split("\n\n")[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--state", help="learner state file (scheme_node ~/save or checkpoint)")

@@ -33,6 +33,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.transforms import translational_error, xyz_rpy_from_transform
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -443,6 +444,7 @@ def _camera_parameters(camera):
 
 def main(argv=None):
     """Console entry point."""
+    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     parser = argparse.ArgumentParser(prog="live_demo", description=__doc__.split("\n\n")[0])
     add_robot_arguments(parser)
     parser.add_argument("--steps", type=int, default=300)

@@ -44,6 +44,7 @@ from tf2_msgs.msg import TFMessage
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.transforms import pose_from_transform
 from body_scheme_core.world import arm_4dof, make_session, planar_2dof, powercube_6dof
 from body_scheme_nodes import conversions
@@ -227,6 +228,7 @@ def parser():
 
 
 def main(argv=None):
+    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     args = parser().parse_args(argv)
     try:
         session = make_session(ROBOTS[args.robot](), args.steps, args.seed, sigma_trans=args.sigma_trans,

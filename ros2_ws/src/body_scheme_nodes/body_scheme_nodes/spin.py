@@ -8,12 +8,14 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.impl.implementation_singleton import rclpy_implementation
 
 from body_scheme_core.errors import BodySchemeError
+from body_scheme_core.threads import limit_math_threads
 
 __all__ = ["run_node"]
 
 
 def run_node(node_class, args=None, threads=2):
-    """Create ``node_class()`` and spin it until Ctrl-C or shutdown; returns the process exit code.
+    """Create ``node_class()`` and spin it until Ctrl-C or shutdown, with one math-library thread
+    (:func:`~body_scheme_core.threads.limit_math_threads`); returns the process exit code.
 
     Parameters
     ----------
@@ -33,6 +35,11 @@ def run_node(node_class, args=None, threads=2):
         reason, no traceback.
     """
     node = None
+    try:
+        limit_math_threads()  # one BLAS thread per process unless BODY_SCHEME_MATH_THREADS says otherwise
+    except BodySchemeError as error:
+        rclpy.logging.get_logger(node_class.__name__).fatal(f"cannot start: {error}")
+        return 1
     try:
         rclpy.init(args=args)
     except rclpy_implementation.RCLError as error:  # e.g. a --params-file that is not YAML

@@ -27,3 +27,30 @@ def test_a_broken_parameter_file_gives_exit_code_1_without_a_traceback(tmp_path)
     broken.write_text("/**:\n  ros__parameters: [\n  part_ids: {")
     assert run_node(RefusingNode, args=["--ros-args", "--params-file", str(broken)]) == 1
     assert not rclpy.ok()
+
+
+def test_a_bad_thread_count_gives_exit_code_1_before_rclpy_starts(monkeypatch):
+    """BODY_SCHEME_MATH_THREADS that is not a positive integer: one FATAL line, exit code 1."""
+    import rclpy
+
+    monkeypatch.setenv("BODY_SCHEME_MATH_THREADS", "many")
+    assert run_node(RefusingNode, args=[]) == 1
+    assert not rclpy.ok()
+
+
+def test_a_node_is_built_with_one_math_thread(monkeypatch):
+    """run_node limits the BLAS pools before the node's constructor runs (which may restore and fit a checkpoint)."""
+    import numpy  # noqa: F401  (its BLAS pool, one thread per core until limited)
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    monkeypatch.delenv("BODY_SCHEME_MATH_THREADS", raising=False)
+    threadpool_limits(limits=2)  # as numpy starts on two cores (an earlier test in this process may have limited it)
+    seen = []
+
+    class CountingNode(RefusingNode):
+        def __init__(self):
+            seen.extend(pool["num_threads"] for pool in threadpool_info())
+            super().__init__()
+
+    assert run_node(CountingNode, args=[]) == 1
+    assert seen and set(seen) == {1}

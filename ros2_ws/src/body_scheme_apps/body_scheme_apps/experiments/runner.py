@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from body_scheme_core.threads import limit_math_threads
+
 __all__ = ["EXPERIMENTS", "Task", "experiment_module", "run_tasks", "aggregate", "sanity_problems"]
 
 #: Experiment name -> module (in this package), in the order of the paper.
@@ -49,8 +51,7 @@ class Outcome:
 
 
 def _one_thread():
-    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[name] = "1"
+    limit_math_threads(1)  # the figures are single-core figures, whatever the user's BODY_SCHEME_MATH_THREADS
 
 
 def _execute(task):
