@@ -54,11 +54,11 @@ from body_scheme_core.prediction import (
     learned_urdf,
 )
 from body_scheme_core.threads import limit_math_threads
-from body_scheme_core.world import Marker, load_markers_yaml, markers_to_yaml, tree_from_urdf
+from body_scheme_core.world import Marker, is_true_tree, load_markers_yaml, markers_to_yaml, tree_from_urdf
 
 from .robot_option import add_camera_arguments, resolve_robot
 
-__all__ = ["calibrate", "learned_accuracy", "format_accuracy", "plot_accuracy", "plot_report", "main"]
+__all__ = ["calibrate", "learned_accuracy", "format_accuracy", "plot_accuracy", "plot_report", "verdict", "main"]
 
 #: Folds of the cross-validation.
 FOLDS = 5
@@ -284,7 +284,30 @@ def main(argv=None):
         print(format_report(report))
         print(f"max: axis {report['max_axis_deg']:.3f} deg, origin {report['max_origin_mm']:.2f} mm, marker "
               f"{report['max_marker_mm']:.2f} mm; wrote report.txt, report.json, report.png in {args.out}")
+    if nominal is not None:
+        print(verdict(learner, nominal, report, args.out))
     return 0
+
+
+def verdict(learner, nominal, report, out):
+    """One paragraph a user reads first: whether the learned body scheme is a true one of the robot (its edges
+    model the right joints with no extra actions), the worst joint, and where the files are."""
+    scheme = learner.body_scheme
+    edges = "no body scheme" if scheme is None else f"{len(scheme.models)} edges"
+    if is_true_tree(nominal, scheme):
+        lines = [f"verdict: a true body scheme of the robot ({edges}, phase {learner.phase})"]
+    else:
+        lines = [f"verdict: NOT a true body scheme of the robot ({edges}, phase {learner.phase}): more commands, or "
+                 f"markers the camera sees together more often (docs/your-robot.md)"]
+    rows = [] if report is None else report["joints"]
+    if rows:
+        axis = max(rows, key=lambda r: r["axis_deg"])
+        origin = max(rows, key=lambda r: r["origin_mm"] or 0.0)
+        lines.append(f"worst joint: {axis['nominal_joint']} (axis {axis['axis_deg']:.2f} deg off), "
+                     f"{origin['nominal_joint']} (origin {origin['origin_mm'] or 0.0:.2f} mm off)")
+    lines.append(f"files: {pathlib.Path(out) / 'learned.urdf'} (drop-in URDF), accuracy.txt"
+                 + (", report.txt / report.png" if report is not None else "") + f" in {out}")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

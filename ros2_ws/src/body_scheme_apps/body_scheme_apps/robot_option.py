@@ -76,6 +76,7 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
     from body_scheme_sim.errors import RobotFileError
     from body_scheme_sim.planning import auto_camera, parse_camera, plan_markers, write_markers
     from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
+    from body_scheme_sim.sheet import write_sheet
 
     shipped = robot in ROBOT_BUILDERS
     if camera == "default":
@@ -92,7 +93,9 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
             plan_to = pathlib.Path(plan_to)
             plan_to.parent.mkdir(parents=True, exist_ok=True)
             markers_path = write_markers(planned, plan_to)
-            log(f"planned {len(planned)} markers ({', '.join(p.marker.link for p in planned)}), wrote {markers_path}"
+            sheet = write_sheet([p.marker for p in planned], plan_to.with_suffix(""))
+            log(f"planned {len(planned)} markers ({', '.join(p.marker.link for p in planned)}), wrote {markers_path} "
+                f"and the sheet to print ({', '.join(str(path) for path in sheet)})"
                 + "".join(f"; no marker on {link}: {why}" for link, why in skipped.items()))
     tree = load_robot(robot, markers_path)
     if camera is not None and chosen is None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from urdf_parser_py.urdf import URDF
 
-from body_scheme_apps.calibrate import main
+from body_scheme_apps.calibrate import main, verdict
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import save_state
 from body_scheme_core.world import Marker, load_markers_yaml, make_session, resolve_meshes, tree_from_urdf
@@ -33,7 +33,20 @@ def test_a_saved_state_gives_a_urdf_and_a_report_in_text_json_and_png(tmp_path, 
     report = json.loads((out / "report.json").read_text())
     assert report["max_axis_deg"] < 2.0 and report["max_origin_mm"] < 5.0
     assert "axis deg" in (out / "report.txt").read_text() and (out / "report.png").stat().st_size > 10_000
-    assert "max: axis" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "max: axis" in printed
+    assert "verdict: a true body scheme of the robot (2 edges, phase steady)" in printed, printed[-800:]
+    assert "worst joint: " in printed and f"files: {out / 'learned.urdf'}" in printed
+
+
+def test_the_verdict_says_when_there_is_no_true_body_scheme(tmp_path):
+    """Before any command the learner has no body scheme: the verdict says NOT, and what to do."""
+    robot = load_robot("planar_2dof")
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, action_lower=robot.action_lower,
+                                action_upper=robot.action_upper)
+    text = verdict(learner, robot, None, tmp_path)
+    assert text.startswith("verdict: NOT a true body scheme of the robot (no body scheme, phase bootstrapping)")
+    assert "worst joint" not in text and "report.txt" not in text
 
 
 def test_unreadable_input_is_one_line_and_exit_code_1(tmp_path, capsys):
@@ -56,7 +69,10 @@ def test_a_robots_urdf_alone_is_enough_to_simulate_and_calibrate(tmp_path, capsy
     assert main(["--simulate", urdf, "--perception", "noise", "--steps", "400", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "planned 8 markers" in printed and "camera at" in printed
-    assert {"markers.yaml", "learned.urdf", "report.json", "report.png"} <= {p.name for p in out.iterdir()}
+    names = {p.name for p in out.iterdir()}
+    assert {"markers.yaml", "markers.pdf", "learned.urdf", "report.json", "report.png"} <= names
+    assert any(name.startswith("markers") and name.endswith(".png") for name in names)  # one png per page
+    assert "and the sheet to print" in printed and "verdict: a true body scheme of the robot" in printed
     report = json.loads((out / "report.json").read_text())
     assert len(report["joints"]) == 7 and report["max_axis_deg"] < 3.0
     _check_the_calibrated_urdf(out, pathlib.Path(urdf), pybullet_data.getDataPath())
