@@ -51,7 +51,7 @@ __all__ = ["FIGURES", "PAPER", "TARGETS", "MIN_TARGETS", "SANITY", "RUNS", "PERC
 
 RUNS = 20
 PERCEPTIONS = ("noise",)
-#: Noise level -> (sigma_trans m, sigma_rot rad), 3D RMS: the paper's, our tracker's on rendered images, a real camera's.
+#: Noise level -> (sigma_trans m, sigma_rot rad), 3D RMS: the paper's, our tracker's, a real camera's.
 LEVELS = {"paper": (PAPER_SIGMA_TRANS, PAPER_SIGMA_ROT), "tracker": (0.01, math.radians(5.0)),
           "realcam": (math.sqrt(2 * 0.001**2 + 0.020**2), math.radians(2.5))}
 #: Per level: depth over lateral per-axis std, mirror rate, and whether the learner is told the noise.
