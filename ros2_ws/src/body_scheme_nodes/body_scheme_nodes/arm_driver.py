@@ -123,6 +123,8 @@ class ArmDriver:
         self._index = np.array([self.robot_joints.index(name) for name in self.joint_names])
         self._others = [name for name in self.robot_joints if name not in self.joint_names]
 
+        self.tree = tree
+
         def link_origins(a):  # in the root link's frame, at command a with the other joints where they are
             return np.array([T[:3, 3] for T in tree.link_poses(self.posture(a)).values()])
 
@@ -140,6 +142,8 @@ class ArmDriver:
         self._reading = None  # (receipt time s, positions of joint_names) of the last joint state
         self._held = np.zeros(len(self.robot_joints))  # the robot's last known posture (action order)
         self._lock = threading.Lock()
+        if workspace is not None:
+            self._check_fixed_links_inside(workspace)
         self.pub_trajectory = node.create_publisher(JointTrajectory, f"{controller}/joint_trajectory", 10)
         self.joint_states_topic = node.resolve_topic_name(joint_states_topic)
         # Taken in batches every JOINT_STATE_PERIOD: a joint state DDS overwrote in a flood is counted, not lost
@@ -217,6 +221,33 @@ class ArmDriver:
             full = self._held.copy()
         full[self._index] = a
         return full
+
+    def _check_fixed_links_inside(self, workspace):
+        """A link origin that no joint moves (the base's) outside the workspace box makes every command a refusal:
+        say which, at start-up, instead of refusing every move."""
+        lower, upper = np.asarray(workspace, dtype=float)
+        postures = [self.posture(a) for a in (self.safety.lower, self.safety.upper,
+                                              0.5 * (self.safety.lower + self.safety.upper))]
+        poses = [self.tree.link_poses(a) for a in postures]
+        for link, T in poses[0].items():
+            p = T[:3, 3]
+            fixed = all(np.allclose(other[link][:3, 3], p, atol=1e-9) for other in poses[1:])
+            if fixed and (np.any(p < lower) or np.any(p > upper)):
+                raise InvalidInputError(
+                    f"workspace {lower.tolist() + upper.tolist()} does not hold link {link!r} at "
+                    f"{np.round(p, 3).tolist()} m, whose origin no joint moves: every command would be refused "
+                    f"(the box is [x_min, y_min, z_min, x_max, y_max, z_max] in the root link's frame and holds "
+                    f"every link origin)")
+
+    def workspace_problem(self, a):
+        """Which link origins command ``a`` puts outside the workspace box, as text ("" when none, or no box)."""
+        if self.safety.workspace is None:
+            return ""
+        lower, upper = self.safety.workspace
+        outside = [f"{link} at {np.round(T[:3, 3], 3).tolist()}" for link, T in
+                   self.tree.link_poses(self.posture(np.asarray(a, dtype=float))).items()
+                   if np.any(T[:3, 3] < lower) or np.any(T[:3, 3] > upper)]
+        return "; ".join(outside)
 
     def refusal(self, goal, start=None):
         """Why ``goal`` may not be sent from ``start`` (default: the arm's position), or None. The joint limits are

@@ -285,12 +285,19 @@ class BabbleNode(Node):
         if self.mode == "active" and self._follow_suggestion(now):
             return
         safety = self.driver.safety
+        reasons = Counter()
         for _ in range(MAX_DRAWS):
             goal = self.rng.uniform(safety.lower, safety.upper)
             why = self.driver.send(goal)
             if why is None:
                 return
+            reasons[why] += 1
         self.counts["steps_without_a_safe_command"] += 1
+        where = self.driver.workspace_problem(goal) if reasons["workspace"] else ""
+        self.get_logger().warning(
+            f"no safe command in {MAX_DRAWS} random draws (refused: {dict(reasons)})"
+            + (f"; the last draw put outside the workspace box: {where}" if where else ""),
+            throttle_duration_sec=10.0)
 
     def _follow_suggestion(self, now):
         """Active mode: send scheme_node's suggestion made after the last action. True: sent, or still waiting for

@@ -84,6 +84,20 @@ def test_the_driver_refuses_goals_past_the_margin_in_collision_or_outside_the_bo
         assert {node.driver.refusal(goal, start=zero) for goal in goals} == {None, "collision"}
 
 
+def test_a_box_that_leaves_out_the_base_is_refused_at_start_and_a_refusal_names_the_link():
+    """docs/your-robot.md's first example box started above the base link's origin (z 0), so every command was refused
+    and the log only said the camera was quiet. Now the node will not start and names the link; a draw that leaves
+    the box names the links outside it."""
+    with pytest.raises(InvalidInputError, match="does not hold link 'base' at .* whose origin no joint moves"):
+        with babble_node([Parameter("workspace", value=[-0.8, -0.8, 0.05, 0.8, 0.8, 1.2])]):
+            pass
+    with babble_node([Parameter("workspace", value=[-2.0, -2.0, -0.01, 2.0, 2.0, 0.9])]) as node:
+        upright = node.driver.workspace_problem(np.zeros(6))
+        assert upright and all(part.split(" at ")[0] in node.driver.tree.link_poses(np.zeros(6))
+                               for part in upright.split("; "))
+        assert node.driver.workspace_problem([0, 1.0, 0, 0, 0, 0]) == ""
+
+
 def test_a_subset_of_joints_is_commanded_and_the_others_are_held_as_reported():
     """joint_names: only those joints are limited and sent; the safety checks put the others where the last joint
     state says (zero before), so a goal is refused when the other joints make it leave the box."""
