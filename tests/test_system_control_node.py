@@ -107,11 +107,12 @@ def test_control_node_executes_an_ik_answer_through_the_controller(start_node, r
     msg = IKTarget(part_id=-1)
     msg.header.frame_id = "camera"
     msg.position.x, msg.position.y, msg.position.z = (float(v) for v in target)
-    for _ in range(30):  # until sim_node's first joint state has reached control_node (a loaded machine is slow)
+    for _ in range(30):  # until the snapshot and sim_node's first joint state reached control_node (a loaded machine)
         results.clear()
         targets.publish(msg)
         assert spin_until(lambda: results, timeout=30), process.output()
-        if not results[0].reason.endswith("no joint state yet"):
+        if not results[0].reason.endswith("no joint state yet") and \
+                not results[0].reason.startswith("no body scheme yet"):
             break
         spin_until(lambda: False, timeout=0.5)
     result = results[0]

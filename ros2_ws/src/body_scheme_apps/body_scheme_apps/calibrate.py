@@ -302,9 +302,12 @@ def verdict(learner, nominal, report, out):
     rows = [] if report is None else report["joints"]
     if rows:
         axis = max(rows, key=lambda r: r["axis_deg"])
-        origin = max(rows, key=lambda r: r["origin_mm"] or 0.0)
-        lines.append(f"worst joint: {axis['nominal_joint']} (axis {axis['axis_deg']:.2f} deg off), "
-                     f"{origin['nominal_joint']} (origin {origin['origin_mm'] or 0.0:.2f} mm off)")
+        text = f"worst joint: {axis['nominal_joint']} (axis {axis['axis_deg']:.2f} deg off)"
+        placed = [r for r in rows if r["origin_mm"] is not None]  # a prismatic joint's axis has no origin
+        if placed:
+            origin = max(placed, key=lambda r: r["origin_mm"])
+            text += f", {origin['nominal_joint']} (origin {origin['origin_mm']:.2f} mm off)"
+        lines.append(text)
     lines.append(f"files: {pathlib.Path(out) / 'learned.urdf'} (drop-in URDF), accuracy.txt"
                  + (", report.txt / report.png" if report is not None else "") + f" in {out}")
     return "\n".join(lines)

@@ -226,9 +226,8 @@ class ArmDriver:
         """A link origin that no joint moves (the base's) outside the workspace box makes every command a refusal:
         say which, at start-up, instead of refusing every move."""
         lower, upper = np.asarray(workspace, dtype=float)
-        postures = [self.posture(a) for a in (self.safety.lower, self.safety.upper,
-                                              0.5 * (self.safety.lower + self.safety.upper))]
-        poses = [self.tree.link_poses(a) for a in postures]
+        low, high = self.tree.action_lower, self.tree.action_upper  # every joint of the robot, commanded or not
+        poses = [self.tree.link_poses(low + f * (high - low)) for f in (0.0, 0.3, 0.55, 0.8)]
         for link, T in poses[0].items():
             p = T[:3, 3]
             fixed = all(np.allclose(other[link][:3, 3], p, atol=1e-9) for other in poses[1:])

@@ -293,6 +293,8 @@ class BabbleNode(Node):
                 return
             reasons[why] += 1
         self.counts["steps_without_a_safe_command"] += 1
+        if set(reasons) == {"no joint state yet"}:
+            return  # nothing is refused: the arm has not reported yet (the joint-state watchdog tells)
         where = self.driver.workspace_problem(goal) if reasons["workspace"] else ""
         self.get_logger().warning(
             f"no safe command in {MAX_DRAWS} random draws (refused: {dict(reasons)})"

@@ -96,6 +96,10 @@ def test_a_box_that_leaves_out_the_base_is_refused_at_start_and_a_refusal_names_
         assert upright and all(part.split(" at ")[0] in node.driver.tree.link_poses(np.zeros(6))
                                for part in upright.split("; "))
         assert node.driver.workspace_problem([0, 1.0, 0, 0, 0, 0]) == ""
+    # Links that joints this node does not command move (joint2 tilts link4 out of the way) are not "fixed".
+    with babble_node([Parameter("joint_names", value=["joint4", "joint5", "joint6"]),
+                      Parameter("workspace", value=[-2.0, -2.0, -0.01, 2.0, 2.0, 0.69])]) as node:
+        assert node.driver.joint_names == ("joint4", "joint5", "joint6")
 
 
 def test_a_subset_of_joints_is_commanded_and_the_others_are_held_as_reported():

@@ -43,7 +43,11 @@ def test_a_node_is_built_with_one_math_thread(monkeypatch):
     import numpy  # noqa: F401  (its BLAS pool, one thread per core until limited)
     from threadpoolctl import threadpool_info, threadpool_limits
 
+    from body_scheme_core.threads import MATH_THREAD_VARIABLES
+
     monkeypatch.delenv("BODY_SCHEME_MATH_THREADS", raising=False)
+    for name in MATH_THREAD_VARIABLES:  # run_node sets them: monkeypatch puts them back after the test
+        monkeypatch.setenv(name, "2")
     threadpool_limits(limits=2)  # as numpy starts on two cores (an earlier test in this process may have limited it)
     seen = []
 

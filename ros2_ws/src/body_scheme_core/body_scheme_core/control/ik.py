@@ -63,7 +63,7 @@ class IKResult:
     position : ndarray, shape (3,)
         Predicted position of the part in the root frame at ``actions`` (NaN if not evaluated).
     position_std : float
-        Standard deviation (m, RMS over the three axes: ``sqrt(trace(cov))``) of the part's predicted position at
+        The RMS length (m, ``sqrt(trace(cov))``) of the error of the part's predicted position at
         ``actions``; 0 for exact (engineered) models, NaN if not evaluated. The root's pose in the world is not
         included.
     converged : bool
@@ -285,8 +285,9 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
         probability that a normal variable lies within ``confidence`` sigma (95.4 % at 2); 0: the model's word
         alone.
     prefer_certain : bool
-        Use every restart and return, among the solutions that reach the target in the model, the one whose
-        predicted position is least uncertain (e.g. postures near the training data); default: the first.
+        Use every restart and return, among the solutions that reach the target in the model, the one with the
+        smallest ``error_bound`` (at ``confidence`` 0: the least ``position_std``; e.g. postures near the training
+        data); default: the first.
 
     Returns
     -------
@@ -378,8 +379,9 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
         vector[active] = np.clip(x, lo, hi)
         return vector
 
-    if len(reached) > 1:  # prefer_certain: the least uncertain of the solutions
-        best_x, best_e = min(reached, key=lambda xe: position_std(scheme, full(xe[0]), part))
+    if len(reached) > 1:  # prefer_certain: the solution with the smallest bound (the least uncertain at confidence 0)
+        best_x, best_e = min(reached, key=lambda xe: _bound(scheme, part, full(xe[0]), xe[1], confidence)
+                             if confidence > 0 else position_std(scheme, full(xe[0]), part))
     r = float(np.linalg.norm(best_e))
     plural = "restart" if restarts == 1 else "restarts"
     if r <= tol:
@@ -391,6 +393,11 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
     return _result(scheme, part, full(best_x), best_e, target, tol, confidence, iterations, restarts, reason)
 
 
+
+
+def _bound(scheme, part, actions, e, confidence):
+    """``error_bound`` of the solution ``actions`` with residual vector ``e``."""
+    return float(np.linalg.norm(e)) + error_radius(position_covariance(scheme, actions, part), confidence)
 
 
 def _result(scheme, part, actions, e, target, tol, confidence, iterations, restarts, reason):

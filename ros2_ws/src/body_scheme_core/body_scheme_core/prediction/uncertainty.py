@@ -106,7 +106,7 @@ def position_covariance(scheme, a, part):
 
 
 def position_std(scheme, a, part):
-    """RMS over the three axes of the std of ``part``'s predicted position: ``sqrt(trace(cov))`` (m)."""
+    """The RMS length of the error of ``part``'s predicted position: ``sqrt(trace(cov))`` (m)."""
     return float(np.sqrt(max(np.trace(position_covariance(scheme, a, part)), 0.0)))
 
 
@@ -116,16 +116,22 @@ def error_radius(cov, confidence):
 
     The squared length of the error is a weighted sum of chi-square variables (the weights: ``cov``'s eigenvalues);
     its quantile is Patnaik's scaled chi-square with the same mean and variance, exact for one dominant axis and for
-    three equal ones, and within 0.2 % in coverage in between (Monte Carlo, 400,000 draws).
+    three equal ones. In between, at confidence 2, it is within 0.2 % in coverage (Monte Carlo, 400,000 draws); at 1
+    and 3 within about 2 % and 0.15 % (it is an approximation of the tail). A covariance that is not finite gives an
+    infinite radius (nothing is sure of it).
     """
     if not (math.isfinite(confidence) and confidence >= 0.0):
         raise InvalidInputError(f"confidence must be a finite number >= 0, got {confidence!r}")
-    eigenvalues = np.clip(np.linalg.eigvalsh(np.asarray(cov, dtype=float)), 0.0, None)
-    total, square = float(eigenvalues.sum()), float(eigenvalues @ eigenvalues)
-    if confidence == 0.0 or total == 0.0:
+    cov = np.asarray(cov, dtype=float)
+    if not np.all(np.isfinite(cov)):
+        return math.inf
+    eigenvalues = np.clip(np.linalg.eigvalsh(cov), 0.0, None)
+    largest = float(eigenvalues.max(initial=0.0))
+    if confidence == 0.0 or largest == 0.0:
         return 0.0
-    scale, dof = square / total, total**2 / square
-    return math.sqrt(scale * stats.chi2.ppf(math.erf(confidence / math.sqrt(2.0)), dof))
+    w = eigenvalues / largest  # scaled: the squares of tiny variances do not underflow
+    scale, dof = largest * float(w @ w) / float(w.sum()), float(w.sum()) ** 2 / float(w @ w)
+    return math.sqrt(scale * stats.chi2.isf(math.erfc(confidence / math.sqrt(2.0)), dof))
 
 
 def parameter_jacobian(scheme, A):

@@ -151,3 +151,11 @@ def test_the_error_radius_holds_the_stated_probability_whatever_the_covariances_
     assert error_radius(cov, 0.0) == 0.0 and error_radius(np.zeros((3, 3)), 2.0) == 0.0
     with pytest.raises(InvalidInputError):
         error_radius(cov, -1.0)
+
+
+def test_the_error_radius_of_a_broken_or_extreme_covariance_is_still_a_number():
+    """NaN or inf in the covariance: an infinite radius (never sure), not an exception inside a node's IK; variances
+    of 1e-160 m^2 do not underflow; a confidence of 9 sigma is finite."""
+    assert error_radius(np.full((3, 3), np.nan), 2.0) == np.inf and error_radius(np.diag([np.inf, 1, 1]), 2.0) == np.inf
+    assert error_radius(np.diag([1e-160, 1e-170, 0.0]), 2.0) == pytest.approx(2e-80)
+    assert np.isfinite(error_radius(np.eye(3), 9.0)) and error_radius(np.eye(3), 9.0) > error_radius(np.eye(3), 2.0)
