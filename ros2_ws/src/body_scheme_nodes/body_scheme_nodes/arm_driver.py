@@ -225,28 +225,24 @@ class ArmDriver:
     def _check_fixed_links_inside(self, workspace):
         """A link origin that no joint moves (the base's) outside the workspace box makes every command a refusal:
         say which, at start-up, instead of refusing every move."""
-        lower, upper = np.asarray(workspace, dtype=float)
         low, high = self.tree.action_lower, self.tree.action_upper  # every joint of the robot, commanded or not
         poses = [self.tree.link_poses(low + f * (high - low)) for f in (0.0, 0.3, 0.55, 0.8)]
         for link, T in poses[0].items():
             p = T[:3, 3]
             fixed = all(np.allclose(other[link][:3, 3], p, atol=1e-9) for other in poses[1:])
-            if fixed and (np.any(p < lower) or np.any(p > upper)):
+            if fixed and self.safety.outside(p)[0]:
                 raise InvalidInputError(
-                    f"workspace {lower.tolist() + upper.tolist()} does not hold link {link!r} at "
+                    f"workspace {np.ravel(workspace).tolist()} does not hold link {link!r} at "
                     f"{np.round(p, 3).tolist()} m, whose origin no joint moves: every command would be refused "
                     f"(the box is [x_min, y_min, z_min, x_max, y_max, z_max] in the root link's frame and holds "
                     f"every link origin)")
 
     def workspace_problem(self, a):
         """Which link origins command ``a`` puts outside the workspace box, as text ("" when none, or no box)."""
-        if self.safety.workspace is None:
-            return ""
-        lower, upper = self.safety.workspace
-        outside = [f"{link} at {np.round(T[:3, 3], 3).tolist()}" for link, T in
-                   self.tree.link_poses(self.posture(np.asarray(a, dtype=float))).items()
-                   if np.any(T[:3, 3] < lower) or np.any(T[:3, 3] > upper)]
-        return "; ".join(outside)
+        poses = self.tree.link_poses(self.posture(np.asarray(a, dtype=float)))
+        outside = self.safety.outside([T[:3, 3] for T in poses.values()])
+        return "; ".join(f"{link} at {np.round(T[:3, 3], 3).tolist()}"
+                         for (link, T), out in zip(poses.items(), outside, strict=True) if out)
 
     def refusal(self, goal, start=None):
         """Why ``goal`` may not be sent from ``start`` (default: the arm's position), or None. The joint limits are

@@ -3,6 +3,7 @@
 nor the simulator's world, in a fresh interpreter with the real rclpy."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -33,6 +34,6 @@ print(json.dumps(loaded))
 
 def test_a_real_robots_nodes_load_no_simulator():
     done = subprocess.run([sys.executable, "-c", SCRIPT, "187"], capture_output=True, text=True, timeout=120,
-                          env={**__import__("os").environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})
+                          env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})
     assert done.returncode == 0, done.stderr[-3000:]
     assert json.loads(done.stdout.strip().splitlines()[-1]) == []

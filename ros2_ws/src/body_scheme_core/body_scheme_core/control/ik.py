@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..prediction import error_radius, position_covariance, position_std
+from ..prediction import error_radius, position_covariance
 from ..transforms import check_transform, invert_transform
 
 __all__ = ["IKResult", "solve_ik", "trained_bounds"]
@@ -380,8 +380,8 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
         return vector
 
     if len(reached) > 1:  # prefer_certain: the solution with the smallest bound (the least uncertain at confidence 0)
-        best_x, best_e = min(reached, key=lambda xe: _bound(scheme, part, full(xe[0]), xe[1], confidence)
-                             if confidence > 0 else position_std(scheme, full(xe[0]), part))
+        best_x, best_e = min(reached, key=lambda xe: _uncertainty(scheme, part, full(xe[0]), xe[1],
+                                                                  confidence)[1 if confidence > 0 else 0])
     r = float(np.linalg.norm(best_e))
     plural = "restart" if restarts == 1 else "restarts"
     if r <= tol:
@@ -395,17 +395,16 @@ def solve_ik(scheme, part, target_position, a0, lower, upper, tol=1e-3, max_iter
 
 
 
-def _bound(scheme, part, actions, e, confidence):
-    """``error_bound`` of the solution ``actions`` with residual vector ``e``."""
-    return float(np.linalg.norm(e)) + error_radius(position_covariance(scheme, actions, part), confidence)
+def _uncertainty(scheme, part, actions, e, confidence):
+    """``(position_std, error_bound)`` of the solution ``actions`` with residual vector ``e``."""
+    cov = position_covariance(scheme, actions, part)
+    return float(np.sqrt(max(np.trace(cov), 0.0))), float(np.linalg.norm(e)) + error_radius(cov, confidence)
 
 
 def _result(scheme, part, actions, e, target, tol, confidence, iterations, restarts, reason):
     """The IKResult of a solution with residual vector ``e``: converged and sure, or why not."""
     r = float(np.linalg.norm(e))
-    cov = position_covariance(scheme, actions, part)
-    std = float(np.sqrt(max(np.trace(cov), 0.0)))
-    bound = r + error_radius(cov, confidence)
+    std, bound = _uncertainty(scheme, part, actions, e, confidence)
     success = r <= tol and bound <= tol
     if r <= tol and not success:
         reason = (f"not sure enough: the model reaches the target (residual {r:.3g} m) but the predicted error "

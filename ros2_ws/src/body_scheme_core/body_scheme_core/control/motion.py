@@ -125,12 +125,18 @@ class SafetyLimits:
                 raise InvalidInputError("a workspace box needs the points to keep inside it")
             self.workspace = box
 
+    def outside(self, points):
+        """Per point of ``points`` (k, 3), whether it lies outside the workspace box (all False without a box)."""
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        if self.workspace is None:
+            return np.zeros(len(points), dtype=bool)
+        return np.any((points < self.workspace[0]) | (points > self.workspace[1]), axis=1)
+
     def outside_box(self, a):
         """Whether command ``a`` puts a point outside the workspace box (False without a box)."""
         if self.workspace is None:
             return False
-        points = np.asarray(self.points(np.asarray(a, dtype=float)), dtype=float).reshape(-1, 3)
-        return bool(np.any(points < self.workspace[0]) or np.any(points > self.workspace[1]))
+        return bool(np.any(self.outside(self.points(np.asarray(a, dtype=float)))))
 
     def violation(self, a):
         """Why command ``a`` may not be sent, or None: ``"joint limit"`` or ``"workspace"``."""

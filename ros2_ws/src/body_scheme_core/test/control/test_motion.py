@@ -64,8 +64,9 @@ def test_safety_limits_keep_a_margin_and_the_workspace_box():
     assert limits.violation([0.95, 0.0]) == "joint limit"
     assert limits.violation([-0.5, 0.0]) == "workspace"  # the second point's z < 0
     assert limits.violation([0.0, np.inf]) == "malformed"
+    assert limits.outside([[0.0, 0.0, 0.5], [0.0, 0.0, -0.1], [2.0, 0.0, 0.5]]).tolist() == [False, True, True]
     narrow = SafetyLimits([0.0], [0.1], margin=1.0)  # the margin is at most half the range
-    assert narrow.violation([0.05]) is None
+    assert narrow.violation([0.05]) is None and narrow.outside([[9.0, 9.0, 9.0]]).tolist() == [False]  # no box
     with pytest.raises(InvalidInputError, match="points"):
         SafetyLimits([0.0], [1.0], workspace=[[0, 0, 0], [1, 1, 1]])
 
