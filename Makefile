@@ -59,6 +59,7 @@ $(STAMPS)/build: $(STAMPS)/cmake-fixed $(PKG_SOURCES) $(PYPI_INTERFACE_SOURCES)
 	  extra=$$(python -c "import tf2_msgs" 2>/dev/null || echo "$(PYPI_INTERFACES)") && \
 	  cd $(WS) && colcon --log-level error build --symlink-install --event-handlers console_cohesion- summary+ \
 	  --base-paths src $$extra --cmake-args -DBUILD_TESTING=OFF
+	ln -sf $(WS)/install/body_scheme_nodes/lib/body_scheme_nodes/body-scheme $(VENV)/bin/body-scheme  # on the venv's PATH
 	touch $@
 
 # Every test (pytest over each package's test/ and the cross-package tests/) plus lint: the tests without DDS on

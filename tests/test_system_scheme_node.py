@@ -10,9 +10,10 @@ import time
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseArray
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
+from scheme_feed import LATCHED, Babbler, Collector, learned, scheme_parameters
 from sensor_msgs.msg import CameraInfo, JointState
 from std_msgs.msg import String, UInt64
 from tf2_msgs.msg import TFMessage
@@ -20,81 +21,12 @@ from urdf_parser_py.urdf import URDF
 from visualization_msgs.msg import Marker, MarkerArray
 
 from body_scheme_core.world import make_session, planar_2dof
-from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot
+from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import GetRobotDescription
 from body_scheme_nodes import conversions
 from body_scheme_nodes.view import EDGE_COLOURS
 
 pytestmark = pytest.mark.system
-
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def scheme_parameters(tree):
-    return {"part_ids": [int(i) for i in tree.marker_ids], "joint_names": list(tree.action_joint_names),
-            "action_lower": [float(v) for v in tree.action_lower],
-            "action_upper": [float(v) for v in tree.action_upper],
-            "pairing_grace": 0.05, "learner.train_window": 20}
-
-
-class Collector:
-    """Keeps the latest message of each subscribed topic and all diagnostics statuses by name."""
-
-    def __init__(self, node):
-        self.structure = None
-        self.snapshot = None
-        self.diagnostics = {}
-        node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, LATCHED)
-        node.create_subscription(ModelSnapshot, "body_scheme/snapshot", self._snapshot, LATCHED)
-        node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
-
-    def _structure(self, msg):
-        self.structure = msg
-
-    def _snapshot(self, msg):
-        self.snapshot = msg
-
-    def _diagnostics(self, msg):
-        for status in msg.status:
-            self.diagnostics[status.name] = status
-
-    @property
-    def step(self):
-        """scheme_node's learner step from its last /diagnostics, or None."""
-        status = self.diagnostics.get("/scheme_node: body scheme")
-        if status is None:
-            return None
-        return int(next(kv.value for kv in status.values if kv.key == "step"))
-
-
-class Babbler:
-    """Publishes a synthetic babbling session: each command, then the marker poses observed after it."""
-
-    def __init__(self, node, session, period=0.02, depth=100):
-        self.node, self.session, self.period = node, session, period
-        self.commands = node.create_publisher(JointState, "joint_commands", depth)
-        self.observations = node.create_publisher(MarkerPoses, "observations", depth)
-        self.k = 0
-        self._next = time.monotonic()
-
-    def resume(self):
-        """Go on from now, after a pause (no burst of the samples that were due meanwhile)."""
-        self._next = time.monotonic()
-
-    def __call__(self):
-        """Publish the next sample if its time has come (called between spins)."""
-        if self.k >= self.session.n_steps or time.monotonic() < self._next:
-            return
-        now = self.node.get_clock().now().nanoseconds * 1e-9
-        command = JointState(name=list(self.session.tree.action_joint_names),
-                             position=[float(v) for v in self.session.actions[self.k]])
-        command.header.stamp = conversions.stamp_from_seconds(now)
-        self.commands.publish(command)
-        observed = self.session.observations[self.k]
-        self.observations.publish(conversions.marker_poses_msg(now + 0.005, "camera", observed))
-        self.k += 1
-        self._next += self.period
-
 
 def test_scheme_node_learns_structure_over_dds(start_node, ros_node, spin_until):
     """scheme_node, fed a babbling session over DDS, publishes the true body scheme and an OK diagnostic."""
@@ -143,12 +75,6 @@ def test_scheme_node_learns_structure_over_dds(start_node, ros_node, spin_until)
     assert collector.snapshot is last, (last.step, collector.snapshot.step)
 
 
-def _learned(collector, true_edges):
-    s = collector.structure
-    return s is not None and {frozenset((e.parent_id, e.child_id)) for e in s.edges} == true_edges \
-        and all(e.valid for e in s.edges)
-
-
 def test_malformed_input_is_counted_and_the_node_keeps_learning(start_node, ros_node, spin_until):
     """NaN poses, zero quaternions, unknown ids, length mismatches and backward stamps are counted, not fatal."""
     tree = planar_2dof()
@@ -189,7 +115,7 @@ def test_malformed_input_is_counted_and_the_node_keeps_learning(start_node, ros_
     assert spin_until(counted, timeout=15), (collector.diagnostics.get("/scheme_node: body scheme"), process.output())
     # ... and the node still learns from the good data that follows.
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), process.output()
     assert process.process.poll() is None
 
 
@@ -204,7 +130,7 @@ def test_kill_and_restart_restores_the_checkpoint(start_node, ros_node, spin_unt
     assert spin_until(lambda: collector.structure is not None, timeout=30), first.output()  # discovery done
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
     babbler = Babbler(ros_node, session)
-    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), first.output()
+    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), first.output()
 
     def saved_step():
         try:
@@ -301,7 +227,7 @@ def test_hostile_values_and_stamps_are_counted_and_learning_goes_on(start_node, 
     assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
     babbler = Babbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), process.output()
     names = list(tree.action_joint_names)
 
     def publish_pair(position, poses, stamp=None):
@@ -338,7 +264,7 @@ def test_hostile_values_and_stamps_are_counted_and_learning_goes_on(start_node, 
     assert spin_until(lambda: int(_values(collector)["step"]) >= step + 10, timeout=30, during=babbler), (
         "learning stopped after the hostile messages", _values(collector), process.output())
     assert process.running()
-    assert _learned(collector, true_edges)
+    assert learned(collector, true_edges)
 
 
 def test_two_namespaced_nodes_run_from_the_shipped_yaml_with_distinct_diagnostics(start_node, ros_node, spin_until):
@@ -447,7 +373,6 @@ def test_save_and_load_services_touch_only_files_inside_the_state_directory(star
 def test_a_request_never_kills_or_starves_the_node(start_node, ros_node, spin_until, tmp_path):
     """~/load of a file with a 5000-digit integer killed the node before issue 20: now a failed reply. 50 concurrent
     ~/get_urdf callers (39 waited forever on a queue of 10): every one gets an answer, the URDF or "busy"."""
-    from rclpy.qos import QoSProfile
 
     from body_scheme_msgs.srv import GetRobotDescription, StatePath
 
@@ -642,7 +567,7 @@ def test_markers_poses_tf_and_urdf_show_the_learned_body(start_node, ros_node, s
     assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
     babbler = RecordingBabbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: _learned(collector, true_edges) and collector.structure.phase == "steady",
+    assert spin_until(lambda: learned(collector, true_edges) and collector.structure.phase == "steady",
                       timeout=60, during=babbler), process.output()
     got["poses"].clear()
     got["tf"].clear()
@@ -708,7 +633,7 @@ def test_exploration_suggests_only_postures_the_camera_would_see(start_node, ros
     assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
     babbler = Babbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: _learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), process.output()
     assert suggestions, "no suggestion without a camera constraint"
     uncalibrated = conversions.camera_info_msg(0.0, "camera", 640, 480, np.eye(3))
     uncalibrated.k = [0.0] * 9

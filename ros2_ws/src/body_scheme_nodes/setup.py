@@ -26,6 +26,7 @@ setup(
             "bag_replay = body_scheme_nodes.bag_replay:main",
             "sim_node = body_scheme_nodes.sim_node:main",
             "babble_node = body_scheme_nodes.babble_node:main",
+            "body-scheme = body_scheme_nodes.cli:main",
         ],
     },
 )

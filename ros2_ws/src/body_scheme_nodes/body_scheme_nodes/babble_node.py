@@ -70,7 +70,7 @@ from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .intake import create_sized_subscription
 from .preflight import CHECKS, PreflightFacts, preflight_failures
-from .ros_parameters import declare_list_parameter
+from .ros_parameters import declare_list_parameter, refuse_parameter_changes
 from .scheme_diagnostics import status_name
 from .spin import run_node
 
@@ -175,6 +175,7 @@ class BabbleNode(Node):
             self.create_service(Trigger, f"~/{name}", handler, callback_group=work)
         self.create_timer(update_period, self._on_timer, callback_group=work)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
+        refuse_parameter_changes(self)
         self.get_logger().info(f"babble_node ready: joints {list(self.driver.joint_names)}, {self.state}")
 
     # -- inputs -----------------------------------------------------------------------------------------------------

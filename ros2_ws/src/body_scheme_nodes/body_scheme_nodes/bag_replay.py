@@ -49,7 +49,6 @@ from __future__ import annotations
 import math
 import time
 
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
@@ -58,6 +57,7 @@ from std_msgs.msg import Bool, UInt64
 from body_scheme_core.errors import InvalidInputError
 
 from .bag_io import MESSAGE_CLASSES, BagError, bag_topics, read_messages
+from .ros_parameters import refuse_parameter_changes
 from .sources import SourceMap, translate
 from .spin import run_node
 
@@ -136,7 +136,7 @@ class BagReplay(Node):
             for topic in self.topics if topic in available}
         self.pub_done = self.create_publisher(Bool, "bag_replay/done", LATCHED)
         self._progress_subscription = self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, 10)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        refuse_parameter_changes(self)
 
         self.published = dict.fromkeys(self.publishers_by_topic, 0)
         self.progress = 0                   # latest body_scheme/progress value
@@ -159,10 +159,6 @@ class BagReplay(Node):
         if int(msg.data) != self.progress:
             self._progress_changed = time.monotonic()
         self.progress = int(msg.data)
-
-    def _on_set_parameters(self, parameters):
-        names = ", ".join(p.name for p in parameters)
-        return SetParametersResult(successful=False, reason=f"{names}: read at start-up only; restart bag_replay")
 
     def _on_timer(self):
         if self._finished:

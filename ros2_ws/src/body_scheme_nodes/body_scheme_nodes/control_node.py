@@ -85,6 +85,7 @@ from body_scheme_msgs.msg import ExploreNear, IKResult, IKTarget, MarkerPoses, M
 from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .intake import BatchIntake, create_sized_subscription
+from .ros_parameters import refuse_parameter_changes
 from .spin import run_node
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -175,6 +176,7 @@ class ControlNode(Node):
         self.create_timer(0.01, self._solve_pending, callback_group=work)
         self.create_timer(trajectory_period, self._command_next, callback_group=work)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
+        refuse_parameter_changes(self)
         self.get_logger().info(f"control_node ready: default part {self.default_part}, tolerance {self.tolerance} m")
 
     # -- callbacks only store --------------------------------------------------------------------------------------

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 
 from body_scheme_core.errors import InvalidInputError
 
-__all__ = ["declare_list_parameter"]
+__all__ = ["declare_list_parameter", "refuse_parameter_changes"]
 
 
 def declare_list_parameter(node, name, item_type):
@@ -22,3 +22,15 @@ def declare_list_parameter(node, name, item_type):
                                                   for v in value):
         raise InvalidInputError(f"parameter {name} must be a list of {item_type.__name__}, got {value!r}")
     return list(value)
+
+
+def refuse_parameter_changes(node):
+    """Refuse every later parameter change, with the reason: our nodes read their parameters once at start-up, so
+    a change accepted at run time would silently not apply (``body-scheme params NODE NAME VALUE`` prints it)."""
+
+    def refuse(parameters):
+        names = ", ".join(p.name for p in parameters)
+        return SetParametersResult(successful=False,
+                                   reason=f"{names}: read at start-up only; restart {node.get_name()} to change it")
+
+    node.add_on_set_parameters_callback(refuse)

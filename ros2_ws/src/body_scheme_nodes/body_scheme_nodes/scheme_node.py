@@ -97,7 +97,6 @@ from collections import Counter, deque
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -117,6 +116,7 @@ from .checkpoint import Checkpoint, lock_holder
 from .explorer import SchemeExplorer
 from .intake import BatchIntake, RequestIntake, ServiceWorker
 from .message_feed import feed_message, learn_sample
+from .ros_parameters import refuse_parameter_changes
 from .settings import SchemeSettings, parameter_defaults, specification_tree
 from .spin import run_node
 
@@ -201,7 +201,7 @@ class SchemeNode(Node):
             self.create_timer(self.settings.checkpoint_period, self._checkpoint)
         self._last_structure_key = None
         self._snapshot_fit = None  # the learner's fitted_at when the last snapshot was published
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        refuse_parameter_changes(self)
         self._publish_structure(force=True)
         # Learning runs in a thread of its own, not in an executor callback: the executor's thread only takes
         # messages in, answers services and keeps diagnostics and checkpoints going, whatever a learning step costs.
@@ -499,12 +499,6 @@ class SchemeNode(Node):
             return None
         since = self.last_input_time - (self.last_learn_time if self.last_learn_time is not None else self.started)
         return since if since > self.settings.stall_timeout else None
-
-    def _on_set_parameters(self, parameters):
-        # Everything is read once at start-up into the learner's config; changing it later would silently not apply.
-        names = ", ".join(p.name for p in parameters)
-        return SetParametersResult(successful=False,
-                                   reason=f"{names}: read at start-up only; restart scheme_node to change it")
 
     # -- services ------------------------------------------------------------------------------------------------
     def _on_save(self, request, response):

@@ -69,7 +69,6 @@ from collections import Counter
 
 import cv2
 import numpy as np
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -87,7 +86,7 @@ from body_scheme_sim.camera import Camera
 from body_scheme_sim.world import SimWorld
 
 from . import conversions
-from .ros_parameters import declare_list_parameter
+from .ros_parameters import declare_list_parameter, refuse_parameter_changes
 from .spin import run_node
 
 PERCEPTION_MODES = ("rendered", "noise")
@@ -189,7 +188,7 @@ class SimNode(Node):
             self.pub_observations = self.create_publisher(MarkerPoses, "observations", 100)
         self.pub_truth = self.create_publisher(MarkerPoses, "ground_truth/marker_poses", 100)
         self.create_service(InjectFault, "~/inject_fault", self._on_inject_fault, callback_group=work)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        refuse_parameter_changes(self)
         self.get_logger().info(
             f"sim_node ready: {robot}, joints {list(self.world.action_joint_names)}, markers "
             f"{list(self.world.marker_ids)}, {self.mode} perception, "
@@ -389,11 +388,6 @@ class SimNode(Node):
             response.message = f"{fault.kind} applied; active faults: {[f.kind for f in self.world.faults]}"
             self.get_logger().info(f"fault injected: {fault.entry}")
         return response
-
-    def _on_set_parameters(self, parameters):
-        names = ", ".join(p.name for p in parameters)
-        return SetParametersResult(successful=False,
-                                   reason=f"{names}: read at start-up only; restart sim_node to change it")
 
     def destroy_node(self):
         self.world.close()

@@ -46,7 +46,6 @@ from collections import Counter
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -60,6 +59,7 @@ from body_scheme_core.world import load_markers_yaml
 from body_scheme_msgs.msg import MarkerPoses
 
 from . import conversions
+from .ros_parameters import refuse_parameter_changes
 from .spin import run_node
 
 #: Image subscription QoS. Sensor data (best effort) is the ROS convention for cameras; a large image over best
@@ -134,7 +134,7 @@ class TrackerNode(Node):
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(process_period, self._process, callback_group=work)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=work)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        refuse_parameter_changes(self)
         others = "rejected" if self.options["default_size"] is None else f"{self.options['default_size']} m"
         self.get_logger().info(f"tracking {self.options['dictionary']} markers; sizes {sizes}, other ids {others}")
 
@@ -204,11 +204,6 @@ class TrackerNode(Node):
         name = self.get_fully_qualified_name()  # node and namespace: two robots in one domain do not collide
         array.status.append(conversions.diagnostic_status(f"{name}: tracker", level, message, values, name))
         self.pub_diagnostics.publish(array)
-
-    def _on_set_parameters(self, parameters):
-        names = ", ".join(p.name for p in parameters)
-        return SetParametersResult(successful=False,
-                                   reason=f"{names}: read at start-up only; restart tracker_node to change it")
 
 
 def main(args=None):

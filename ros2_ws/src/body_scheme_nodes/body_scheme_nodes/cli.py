@@ -1,0 +1,295 @@
+"""body-scheme: what a user would do with ros2 topic, ros2 service and ros2 param, with rclpy only.
+
+The set-up from PyPI has no ros2cli (docs/ros-from-pypi.md); this command is installed with the workspace
+(``ros2 run body_scheme_nodes body-scheme ...``, ``body-scheme ...`` in the activated venv, or
+``python -m body_scheme_nodes.cli ...``)::
+
+    body-scheme status                     # /diagnostics, readable: one line per status, the values indented
+    body-scheme events                     # follow scheme_node's decisions (Ctrl-C ends; --count N)
+    body-scheme save [NAME]                # scheme_node's ~/save, ~/load (a name inside its state_directory;
+    body-scheme load [NAME]                #   none: its checkpoint_path) and ~/reset
+    body-scheme reset
+    body-scheme get-urdf [--out FILE]      # the learned body scheme as URDF
+    body-scheme pause | resume | stop      # babble_node's services
+    body-scheme params NODE [NAME [VALUE]] # list, get or set (VALUE is YAML, as for ros2 param set)
+
+Exit codes: 0 done; 1 the node answered and refused (its reason on stderr); 2 the node could not be reached in
+``--timeout`` seconds (or the command line was wrong). Message formatting is in pure functions, tested without DDS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import pathlib
+import sys
+
+import yaml
+
+__all__ = ["main", "format_status", "format_event", "parse_value"]
+
+LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+DONE, REFUSED, UNREACHABLE = 0, 1, 2
+
+
+# -- formatting (no DDS) -------------------------------------------------------------------------------------------
+def format_status(status, values=True):
+    """Lines for one ``diagnostic_msgs/DiagnosticStatus``: ``LEVEL name: message`` and, with ``values``, one
+    indented ``key: value`` line per value."""
+    level = LEVELS.get(status.level if isinstance(status.level, int) else ord(status.level), str(status.level))
+    lines = [f"{level:5s} {status.name}: {status.message}"]
+    if values:
+        lines += [f"      {kv.key}: {kv.value}" for kv in status.values]
+    return lines
+
+
+def format_event(event):
+    """One line for a ``body_scheme_msgs/SchemeEvent``: step, kind, the edge and its model, errors, the reason."""
+    parts = [f"step {event.step}", event.kind]
+    if event.parent_id >= 0 and event.child_id >= 0:
+        parts.append(f"{event.parent_id}->{event.child_id}" + (f" ({event.model})" if event.model else ""))
+    if math.isfinite(event.trans_error):
+        parts.append(f"error {1e3 * event.trans_error:.1f} mm")
+    if math.isfinite(event.rot_error):
+        parts.append(f"{math.degrees(event.rot_error):.1f} deg")
+    return " ".join(parts) + (f": {event.reason}" if event.reason else "")
+
+
+def parse_value(text):
+    """A parameter value from the command line, as ``ros2 param set`` reads it (YAML: ``0.5``, ``true``,
+    ``[1, 2]``, ``abc``)."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def format_parameter_value(value):
+    """A parameter value for printing (``rclpy.parameter.parameter_value_to_python``'s result)."""
+    if isinstance(value, (list, tuple)) or type(value).__name__ == "ndarray":
+        return "[" + ", ".join(str(v) for v in list(value)) + "]"
+    return str(value)
+
+
+def _namespace(node_name):
+    return node_name.rsplit("/", 1)[0]
+
+
+# -- over DDS ------------------------------------------------------------------------------------------------------
+class Session:
+    """An rclpy context and node for one command; ``wait(future)`` spins until the future is done or the timeout."""
+
+    def __init__(self, timeout):
+        import rclpy  # imported here so that ``--help`` and the formatting need no ROS
+
+        self.rclpy, self.timeout = rclpy, timeout
+        rclpy.init()
+        self.node = rclpy.create_node("body_scheme_cli", use_global_arguments=False, start_parameter_services=False,
+                                      enable_rosout=False)
+
+    def close(self):
+        self.node.destroy_node()
+        self.rclpy.try_shutdown()
+
+    def wait(self, future):
+        self.rclpy.spin_until_future_complete(self.node, future, timeout_sec=self.timeout)
+        return future.result() if future.done() else None
+
+    def call(self, srv_type, name, request=None):
+        """The response of service ``name``, or None if it could not be reached in time."""
+        client = self.node.create_client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=self.timeout):
+            return None
+        return self.wait(client.call_async(request if request is not None else srv_type.Request()))
+
+    def spin_until(self, predicate, timeout):
+        from time import monotonic
+
+        deadline = monotonic() + timeout if timeout is not None else math.inf
+        while not predicate() and monotonic() < deadline:
+            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+        return predicate()
+
+
+def _answer(response, name, out):
+    """Print a service's answer; the exit code."""
+    if response is None:
+        print(f"no answer from {name}: is the node running, in this ROS_DOMAIN_ID?", file=sys.stderr)
+        return UNREACHABLE
+    if response.success:
+        print(response.message, file=out)
+        return DONE
+    print(response.message, file=sys.stderr)
+    return REFUSED
+
+
+def cmd_status(session, args):
+    """Wait for /diagnostics; print the latest status of each name (of ``--node`` only, when given)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    statuses, first = {}, []
+
+    def on_message(msg):
+        for status in msg.status:
+            if args.node is None or status.name.startswith(f"{args.node}:"):
+                statuses[status.name] = status
+        if statuses and not first:
+            first.append(True)
+
+    session.node.create_subscription(DiagnosticArray, "/diagnostics", on_message, 10)
+    if not session.spin_until(lambda: bool(first), args.timeout):
+        whose = f" from {args.node}" if args.node else ""
+        print(f"no diagnostics{whose} within {args.timeout:g} s: is the node running, in this ROS_DOMAIN_ID?",
+              file=sys.stderr)
+        return UNREACHABLE
+    # Our nodes publish once a second: one more period collects the other nodes' (and the other statuses') arrays.
+    session.spin_until(lambda: False, args.settle)
+    for name in sorted(statuses):
+        print("\n".join(format_status(statuses[name], values=not args.brief)))
+    return DONE
+
+
+def cmd_events(session, args):
+    """Print scheme_node's events as they come, until ``--count`` events or Ctrl-C."""
+    from body_scheme_msgs.msg import SchemeEvent
+
+    seen = []
+
+    def on_event(msg):
+        seen.append(msg)
+        print(format_event(msg), flush=True)
+
+    topic = f"{_namespace(args.node)}/body_scheme/events"
+    session.node.create_subscription(SchemeEvent, topic, on_event, 100)
+    print(f"following {topic} (Ctrl-C ends)", file=sys.stderr, flush=True)
+    session.spin_until(lambda: args.count is not None and len(seen) >= args.count, None)
+    return DONE
+
+
+def cmd_state(session, args):
+    """save / load (StatePath) and reset (Trigger) of scheme_node."""
+    from std_srvs.srv import Trigger
+
+    from body_scheme_msgs.srv import StatePath
+
+    name = f"{args.node}/{args.command}"
+    if args.command == "reset":
+        return _answer(session.call(Trigger, name), name, sys.stdout)
+    return _answer(session.call(StatePath, name, StatePath.Request(path=args.name or "")), name, sys.stdout)
+
+
+def cmd_get_urdf(session, args):
+    """The learned URDF to stdout or ``--out``."""
+    from body_scheme_msgs.srv import GetRobotDescription
+
+    name = f"{args.node}/get_urdf"
+    response = session.call(GetRobotDescription, name)
+    if response is None or not response.success:
+        return _answer(response, name, sys.stdout)
+    if args.out is None:
+        print(response.urdf)
+    else:
+        pathlib.Path(args.out).write_text(response.urdf, encoding="utf-8")
+    print(response.message + (f"; written to {args.out}" if args.out else ""), file=sys.stderr)
+    return DONE
+
+
+def cmd_babble(session, args):
+    """pause / resume / stop of babble_node (Trigger)."""
+    from std_srvs.srv import Trigger
+
+    name = f"{args.node}/{args.command}"
+    return _answer(session.call(Trigger, name), name, sys.stdout)
+
+
+def cmd_params(session, args):
+    """List a node's parameters with their values, get one, or set one."""
+    from rclpy.parameter import Parameter, parameter_value_to_python
+    from rclpy.parameter_client import AsyncParameterClient
+
+    client = AsyncParameterClient(session.node, args.target)
+    if not client.wait_for_services(timeout_sec=args.timeout):
+        print(f"no parameter services of {args.target}: is the node running, in this ROS_DOMAIN_ID?",
+              file=sys.stderr)
+        return UNREACHABLE
+    if args.value is not None:
+        response = session.wait(client.set_parameters([Parameter(args.name, value=parse_value(args.value))]))
+        if response is None:
+            return _answer(None, f"{args.target}/set_parameters", sys.stdout)
+        result = response.results[0]
+        if result.successful:
+            print(f"set {args.name}")
+            return DONE
+        print(f"{args.name} not set: {result.reason}", file=sys.stderr)
+        return REFUSED
+    if args.name is not None:
+        names = [args.name]
+    else:
+        listed = session.wait(client.list_parameters())
+        if listed is None:
+            return _answer(None, f"{args.target}/list_parameters", sys.stdout)
+        names = sorted(listed.result.names)
+    response = session.wait(client.get_parameters(names))
+    if response is None:
+        return _answer(None, f"{args.target}/get_parameters", sys.stdout)
+    if args.name is not None and (not response.values or response.values[0].type == 0):  # PARAMETER_NOT_SET
+        print(f"{args.target} has no parameter {args.name}", file=sys.stderr)
+        return REFUSED
+    for name, value in zip(names, response.values, strict=True):
+        print(f"{name}: {format_parameter_value(parameter_value_to_python(value))}")
+    return DONE
+
+
+def parser():
+    p = argparse.ArgumentParser(prog="body-scheme", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for a node (default 10)")
+
+    def add(name, function, help_text, node="/scheme_node"):
+        command = sub.add_parser(name, help=help_text, description=help_text, parents=[common])
+        command.set_defaults(function=function)
+        if node is not None:
+            command.add_argument("--node", default=node, help=f"the node's full name (default {node})")
+        return command
+
+    status = add("status", cmd_status, "print /diagnostics readably (all nodes unless --node)", node=None)
+    status.add_argument("--node", default=None, help="only this node's statuses, e.g. /scheme_node")
+    status.add_argument("--brief", action="store_true", help="one line per status, no values")
+    status.add_argument("--settle", type=float, default=1.5, help="seconds to collect after the first array")
+    add("events", cmd_events, "follow scheme_node's events").add_argument(
+        "--count", type=int, default=None, help="exit after this many events")
+    for name, help_text in (("save", "save the learner's state (scheme_node ~/save)"),
+                            ("load", "load a saved state (scheme_node ~/load)")):
+        add(name, cmd_state, help_text).add_argument(
+            "name", nargs="?", default="", help="a file name inside state_directory; none: checkpoint_path")
+    add("reset", cmd_state, "learn from scratch (scheme_node ~/reset)")
+    add("get-urdf", cmd_get_urdf, "the learned body scheme as URDF").add_argument(
+        "--out", default=None, help="write it to this file (default: stdout)")
+    for name in ("pause", "resume", "stop"):
+        add(name, cmd_babble, f"{name} the babbling (babble_node ~/{name})", node="/babble_node")
+    params = add("params", cmd_params, "list, get or set a node's parameters", node=None)
+    params.add_argument("target", metavar="NODE", help="the node's full name, e.g. /scheme_node")
+    params.add_argument("name", nargs="?", default=None, help="a parameter (none: list all with their values)")
+    params.add_argument("value", nargs="?", default=None, help="set it to this value (YAML)")
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
+    if args.timeout <= 0:
+        print("--timeout must be positive", file=sys.stderr)
+        return 2
+    from rclpy.executors import ExternalShutdownException
+
+    session = Session(args.timeout)
+    try:
+        return args.function(session, args)
+    except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C ends ``events``
+        return DONE
+    finally:
+        session.close()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,115 @@
+"""System tests of the ``body-scheme`` command: the installed executable, as a user runs it, against real node
+processes over DDS. One test per node whose services it calls; each subcommand is run at least once."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+
+import numpy as np
+import pytest
+from scheme_feed import Babbler, Collector, learned, scheme_parameters
+from urdf_parser_py.urdf import URDF
+
+from body_scheme_core.world import make_session, planar_2dof
+from body_scheme_nodes.graph import executable
+
+pytestmark = pytest.mark.system
+
+CLI = str(executable("body_scheme_nodes", "body-scheme"))
+
+
+@pytest.fixture
+def cli(ros_env):
+    """``cli(*args)``: run ``body-scheme args`` in this test's domain; a CompletedProcess (text)."""
+
+    def run(*args, timeout=120):
+        return subprocess.run([CLI, *args], env=ros_env, capture_output=True, text=True, timeout=timeout,
+                              check=False)
+
+    return run
+
+
+def test_status_events_state_urdf_and_params_of_scheme_node(start_node, ros_node, spin_until, cli, ros_env,
+                                                            tmp_path):
+    tree = planar_2dof()
+    session = make_session(tree, n_steps=300, seed=0, sigma_trans=0.02, sigma_rot=np.radians(5.0), visibility=0.95)
+    state_dir = tmp_path / "state"
+    process = start_node("body_scheme_nodes", "scheme_node", dict(scheme_parameters(tree), state_dir=str(state_dir)))
+    collector = Collector(ros_node)
+    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+
+    answer = cli("get-urdf")
+    assert answer.returncode == 1 and "no body scheme yet" in answer.stderr, answer
+    answer = cli("status", "--node", "/scheme_node", "--brief")
+    assert answer.returncode == 0, answer
+    assert answer.stdout.startswith("WARN  /scheme_node: body scheme: no body scheme yet"), answer.stdout
+
+    events_log = tmp_path / "events.txt"
+    with events_log.open("w") as out:
+        events = subprocess.Popen([CLI, "events"], env=ros_env, stdout=out, stderr=subprocess.PIPE, text=True)
+    assert spin_until(lambda: ros_node.count_subscribers("body_scheme/events") >= 1, timeout=60)  # discovered
+    babbler = Babbler(ros_node, session)
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    assert spin_until(lambda: learned(collector, true_edges), timeout=90, during=babbler), process.output()
+    assert spin_until(lambda: "structure_found" in events_log.read_text(), timeout=30), events_log.read_text()
+    events.send_signal(signal.SIGINT)  # Ctrl-C ends it quietly
+    assert events.wait(timeout=30) == 0, events.stderr.read()
+    first = events_log.read_text().splitlines()[0]
+    assert first.startswith("step ") and "structure_found" in events_log.read_text(), first
+
+    answer = cli("status", "--node", "/scheme_node")
+    assert answer.returncode == 0, answer
+    lines = answer.stdout.splitlines()
+    assert any(line.startswith(("OK    /scheme_node: body scheme:", "WARN  /scheme_node: body scheme:"))
+               for line in lines), lines
+    assert sum(": local model " in line for line in lines) == len(true_edges), lines
+    assert "      phase: " in answer.stdout and "      step: " in answer.stdout
+
+    answer = cli("get-urdf", "--out", str(tmp_path / "learned.urdf"))
+    assert answer.returncode == 0 and "learned body scheme at step" in answer.stderr, answer
+    robot = URDF.from_xml_string((tmp_path / "learned.urdf").read_text())
+    assert sum(joint.type != "fixed" for joint in robot.joints) == len(tree.action_joint_names)
+
+    answer = cli("save", "mine.json")
+    assert answer.returncode == 0 and answer.stdout.startswith("saved step"), answer
+    assert (state_dir / "mine.json").is_file()
+    assert cli("reset").returncode == 0
+    answer = cli("get-urdf")
+    assert answer.returncode == 1 and "no body scheme yet" in answer.stderr, answer
+    answer = cli("load", "mine.json")
+    assert answer.returncode == 0 and answer.stdout.startswith("loaded step"), answer
+    assert cli("get-urdf").returncode == 0
+    answer = cli("load", "../outside.json")
+    assert answer.returncode == 1 and answer.stderr.startswith("load failed"), answer
+
+    answer = cli("params", "/scheme_node")
+    assert answer.returncode == 0 and "part_ids: [1, 2, 3]" in answer.stdout.splitlines(), answer
+    answer = cli("params", "/scheme_node", "joint_names")
+    assert answer.returncode == 0 and answer.stdout.strip() == "joint_names: [joint1, joint2]", answer
+    answer = cli("params", "/scheme_node", "update_period", "0.5")
+    assert answer.returncode == 1 and "read at start-up only" in answer.stderr, answer
+    answer = cli("params", "/scheme_node", "no_such_parameter")
+    assert answer.returncode == 1 and "has no parameter no_such_parameter" in answer.stderr, answer
+
+
+def test_pause_resume_stop_and_params_of_babble_node_and_a_node_that_is_not_there(start_node, cli):
+    babble = start_node("body_scheme_nodes", "babble_node", {"robot": "arm_4dof", "max_velocity": 0.5})
+    answer = cli("pause")
+    assert answer.returncode == 0 and answer.stdout.strip() == "paused after the current move", (
+        answer, babble.output())
+    answer = cli("resume")
+    assert answer.returncode == 0 and answer.stdout.strip() == "resumed (was paused)", answer
+    answer = cli("stop")
+    assert answer.returncode == 0 and answer.stdout.startswith("stopped"), answer
+    answer = cli("pause")
+    assert answer.returncode == 1 and "resume first" in answer.stderr, answer
+    answer = cli("params", "/babble_node", "max_velocity", "0.25")
+    assert answer.returncode == 1 and "restart babble_node" in answer.stderr, answer  # never silently ignored
+    assert cli("params", "/babble_node", "max_velocity").stdout.strip() == "max_velocity: 0.5"
+    answer = cli("status", "--brief")  # every node's statuses: here babble_node's
+    assert answer.returncode == 0 and "/babble_node: babbling" in answer.stdout, answer
+
+    for args in (("pause", "--node", "/nobody"), ("params", "/nobody"), ("status", "--node", "/nobody")):
+        answer = cli(*args, "--timeout", "2")
+        assert answer.returncode == 2 and "is the node running" in answer.stderr, (args, answer)
