@@ -53,9 +53,9 @@ from body_scheme_core.prediction import (
     learned_tree,
     learned_urdf,
 )
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.world import Marker, is_true_tree, load_markers_yaml, markers_to_yaml, tree_from_urdf
 
+from .entry import command
 from .robot_option import add_camera_arguments, resolve_robot
 
 __all__ = ["calibrate", "learned_accuracy", "format_accuracy", "plot_accuracy", "plot_report", "verdict", "main"]
@@ -232,9 +232,9 @@ def _simulated(choice, steps, seed, perception="rendered"):
     return learner, nominal
 
 
+@command
 def main(argv=None):
     """Console entry point; exit code 1 with a one-line error for unreadable input."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.calibrate", description=__doc__.split("\n\n")[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--state", help="learner state file (scheme_node ~/save or checkpoint)")

@@ -18,9 +18,9 @@ import numpy as np
 
 from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.world import REPAIR, Fault, make_session, powercube_6dof
 
+from .entry import command
 from .robot_option import add_robot_arguments, resolve_robot
 
 __all__ = ["main", "run_demo"]
@@ -149,9 +149,9 @@ def _print_summary(result):
               f"{'valid' if s['valid'] else 'INVALID'}{'  MISMATCH' if s['in_mismatch'] else ''}")
 
 
+@command
 def main(argv=None):
     """Console entry point."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     parser = argparse.ArgumentParser(prog="body-scheme-demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic session (default: 0)")
     parser.add_argument("--steps", type=int, default=450, help="session length; faults at 1/3, 5/9, 7/9 of 450")

@@ -47,13 +47,14 @@ from std_msgs.msg import Header
 
 from body_scheme_apps.bench_output import report
 from body_scheme_apps.live_demo import domain_id
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import BodySchemeStructure, ExploreNear, IKResult, IKTarget, MarkerPoses
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
 from body_scheme_nodes.message_feed import MESSAGE_KINDS
 from body_scheme_nodes.settings import SchemeSettings
+
+from .entry import command
 
 __all__ = ["PERIOD", "CASES", "Plan", "make_plan", "run_fuzz", "main"]
 
@@ -548,9 +549,9 @@ def _table(result):
     return "\n".join(lines)
 
 
+@command
 def main(argv=None):
     """Console entry point: run, print, write the JSON file; exit code 1 if the run failed."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.fuzz", description=__doc__.split("\n\n")[0])
     parser.add_argument("--messages", type=int, default=10000, help="messages in all (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=600, help="valid samples (default: %(default)s)")

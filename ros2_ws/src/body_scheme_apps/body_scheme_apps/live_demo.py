@@ -33,7 +33,6 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.transforms import translational_error, xyz_rpy_from_transform
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
@@ -43,6 +42,7 @@ from body_scheme_nodes.recorder import GraphRecorder
 from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
 
+from .entry import command
 from .robot_option import add_robot_arguments, resolve_robot
 
 __all__ = ["DemoResult", "RECORDED_TOPICS", "run_live_demo", "main"]
@@ -442,9 +442,9 @@ def _camera_parameters(camera):
                        "rpy": [float(v) for v in rpy]}}
 
 
+@command
 def main(argv=None):
     """Console entry point."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     parser = argparse.ArgumentParser(prog="live_demo", description=__doc__.split("\n\n")[0])
     add_robot_arguments(parser)
     parser.add_argument("--steps", type=int, default=300)

@@ -40,11 +40,12 @@ from sensor_msgs.msg import JointState
 
 from body_scheme_apps.bench_output import report
 from body_scheme_apps.live_demo import domain_id
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
+
+from .entry import command
 
 __all__ = ["TARGETS", "run_load", "main"]
 
@@ -162,9 +163,9 @@ def _table(result):
     return "\n".join(lines)
 
 
+@command
 def main(argv=None):
     """Console entry point: run, print the table, write the JSON file."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.load_bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rate", type=float, default=1000.0, help="pairs per second (default: %(default)s)")
     parser.add_argument("--seconds", type=float, default=60.0, help="duration (default: %(default)s)")

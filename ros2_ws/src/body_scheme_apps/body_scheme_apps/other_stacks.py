@@ -44,11 +44,12 @@ from tf2_msgs.msg import TFMessage
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.transforms import pose_from_transform
 from body_scheme_core.world import arm_4dof, make_session, planar_2dof, powercube_6dof
 from body_scheme_nodes import conversions
 from body_scheme_nodes.bag_io import cdr_bytes, name_the_distro, typestore
+
+from .entry import command
 
 __all__ = ["LAYOUTS", "write_layout", "main"]
 
@@ -227,8 +228,8 @@ def parser():
     return p
 
 
+@command
 def main(argv=None):
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     args = parser().parse_args(argv)
     try:
         session = make_session(ROBOTS[args.robot](), args.steps, args.seed, sigma_trans=args.sigma_trans,

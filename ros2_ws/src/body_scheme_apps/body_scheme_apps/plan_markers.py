@@ -19,15 +19,16 @@ import sys
 import yaml
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.transforms import xyz_rpy_from_transform
+
+from .entry import command
 
 __all__ = ["main"]
 
 
+@command
 def main(argv=None):
     """Console entry point; exit code 1 with a one-line error."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     from body_scheme_sim.planning import parse_camera, plan_markers, write_markers
     from body_scheme_sim.sheet import write_sheet
 

@@ -20,7 +20,6 @@ import sys
 from tqdm import tqdm
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_nodes.bag_io import write_session
 from body_scheme_sim.sessions import (
@@ -31,6 +30,7 @@ from body_scheme_sim.sessions import (
     record_session,
 )
 
+from .entry import command
 from .robot_option import add_robot_arguments, resolve_robot
 
 __all__ = ["main", "parser"]
@@ -65,9 +65,9 @@ def parser():
     return p
 
 
+@command
 def main(argv=None):
     """Record a session and write its bag; returns the exit code (0 ok, 1 error)."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     args = parser().parse_args(argv)
     faults = list(args.fault)
     markers_of_interest = args.markers_of_interest

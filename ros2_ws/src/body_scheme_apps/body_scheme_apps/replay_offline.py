@@ -43,11 +43,12 @@ import numpy as np
 from tqdm import tqdm
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.threads import limit_math_threads
 from body_scheme_nodes.bag_io import bag_topics
 from body_scheme_nodes.offline_replay import COMMANDS, default_params_file, replay_bag
 from body_scheme_nodes.settings import SchemeSettings
 from body_scheme_nodes.sources import SourceMap
+
+from .entry import command
 
 __all__ = ["build_report", "default_part", "fault_blocks", "format_timeline", "format_summary", "plot_errors",
            "main"]
@@ -296,9 +297,9 @@ def parser():
     return p
 
 
+@command
 def main(argv=None):
     """Replay a bag offline and write the report; returns the exit code (0 ok, 1 error)."""
-    limit_math_threads()  # one BLAS thread per process (BODY_SCHEME_MATH_THREADS)
     args = parser().parse_args(argv)
     bag = pathlib.Path(args.bag)
     out = pathlib.Path(args.out) if args.out else pathlib.Path("out") / "replay" / bag.name
