@@ -99,6 +99,18 @@ def test_shipped_bag_finds_the_true_structure_detects_the_block_and_recovers(shi
 
 
 @pytest.mark.slow
+def test_the_readme_quotes_the_replays_figures(shipped_report):
+    """The README's per-block end-effector errors of ``make replay`` are the ones the replay gives (it is
+    deterministic: one math thread, a shipped bag)."""
+    code, out, _ = shipped_report
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    figures = " / ".join(f"{1e3 * b['mean_end_effector_error']:.0f}" for b in report["blocks"])
+    readme = " ".join((REPO / "README.md").read_text(encoding="utf-8").split())
+    assert f"predicts the end effector to {figures} mm in the four protocol blocks" in readme, figures
+
+
+@pytest.mark.slow
 def test_report_files_are_well_formed(shipped_report):
     """report.json is strict JSON with one record per step, events.txt lists faults and events, errors.png a PNG."""
     code, out, printed = shipped_report
