@@ -78,6 +78,9 @@ def driver_from_parameters(node, values):
         from body_scheme_sim.babbling import CollisionScreen
 
         screen = CollisionScreen(values["robot"], package_path=values["package_path"])
+        pairs = ", ".join(f"{a}-{b}" for a, b in screen.ignored_pairs)
+        node.get_logger().info(f"collision screen: every link pair is checked but {pairs or 'none'} (touching at the "
+                               f"zero posture or in almost every posture; adjacent links are never checked)")
     return ArmDriver(node, tree, values["joint_names"] or tree.action_joint_names, values["limit_margin"],
                      np.reshape(workspace, (2, 3)) if workspace else None, screen, values["max_velocity"],
                      values["max_acceleration"], settle, values["controller"], values["joint_states_topic"],

@@ -84,6 +84,12 @@ class CollisionScreen:
                 "give their packages' parent directories in package_path, or switch the screen off "
                 "(collision_check: false)")
 
+    @property
+    def ignored_pairs(self):
+        """Link pairs not checked: they touch at the reference posture or in almost every posture
+        (:attr:`~body_scheme_sim.world.SimWorld.ignored_collision_pairs`)."""
+        return self.world.ignored_collision_pairs
+
     def collides(self, postures):
         """Whether the robot hits itself or the ground in any of ``postures`` (shape (k, m) or (m,): joint positions,
         e.g. :func:`~body_scheme_core.control.motion.path_samples` of a move)."""

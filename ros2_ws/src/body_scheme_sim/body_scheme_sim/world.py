@@ -44,7 +44,8 @@ from .camera import Camera
 from .markers import PLATE_THICKNESS, marker_corners, marker_texture, plate_side, write_plate_obj
 from .robots import ROBOT_BUILDERS, load_robot, robot_files
 
-__all__ = ["SimWorld", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE"]
+__all__ = ["SimWorld", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE", "ALWAYS_SAMPLES",
+           "ALWAYS_FRACTION"]
 
 #: A marker counts as visible only if its normal is within this angle of the direction to the camera, rad.
 MAX_VIEW_ANGLE = math.radians(70.0)
@@ -53,6 +54,10 @@ MAX_VIEW_ANGLE = math.radians(70.0)
 MIN_MARKER_PIXELS = 12.0
 #: Penetrations shallower than this (m) are not collisions (contact-margin noise).
 COLLISION_TOLERANCE = 1e-3
+#: Random postures sampled at start-up to find link pairs that touch in (almost) every posture, and the fraction of
+#: them in which a pair must touch to be left unchecked (MoveIt's "always in collision").
+ALWAYS_SAMPLES = 200
+ALWAYS_FRACTION = 0.95
 #: Visible marker corners must lie this many pixels inside the image border.
 IMAGE_MARGIN = 2.0
 # Collision filter group of the marker plates: rays hit them, the robot and the ground never collide with them.
@@ -148,7 +153,7 @@ class SimWorld:
             self._marker_bodies = self._create_markers(tree, marker_texture)
             self._command = np.clip(np.zeros(tree.n_actions), tree.action_lower, tree.action_upper)
             self._set_configuration(self._body.execute(self._command))
-            self._ignored_pairs = self._pairs_in_contact()  # in the reference configuration
+            self._ignored_pairs = self._pairs_in_contact() | self._pairs_always_in_contact()
         except BaseException:
             self.close()
             raise
@@ -223,9 +228,10 @@ class SimWorld:
     def _pairs_in_contact(self):
         """Link pairs (``(a, b)`` by pybullet link index, or ``(a, "ground")``) penetrating each other now.
 
-        Evaluated once in the reference configuration (all actions 0, clipped to the limits) to find the pairs
-        that touch by design (a base standing on the ground, overlapping neighbours); :meth:`in_collision` ignores
-        those, like the "default" disabled pairs of a MoveIt configuration. Adjacent links are never checked.
+        Evaluated at start-up in the reference configuration (all actions 0, clipped to the limits) and in random
+        postures, to find the pairs that touch by design (a base standing on the ground, overlapping neighbours,
+        covers that overlap in every posture); :meth:`in_collision` ignores those, like the "default" and "always"
+        disabled pairs of a MoveIt configuration (:attr:`ignored_collision_pairs`). Adjacent links are never checked.
         """
         pb = self._pb
         pairs = set()
@@ -240,6 +246,27 @@ class SimWorld:
                                                     linkIndexB=link_b)):
                     pairs.add((link_a, link_b))
         return pairs
+
+    def _pairs_always_in_contact(self, samples=ALWAYS_SAMPLES, fraction=ALWAYS_FRACTION):
+        """Link pairs in contact in at least ``fraction`` of ``samples`` random postures within the limits (a fixed
+        seed): meshes that overlap wherever the joints are, such as a shoulder's cover and the elbow two joints on.
+        MoveIt's set-up assistant disables such "always in collision" pairs the same way; checking them would refuse
+        every command. The world's own random generator is not used, and the reference posture is restored."""
+        tree, rng, counts = self._nominal.tree, np.random.default_rng(0), {}
+        for _ in range(samples):
+            self._set_configuration(self._body.execute(rng.uniform(tree.action_lower, tree.action_upper)))
+            for pair in self._pairs_in_contact():
+                counts[pair] = counts.get(pair, 0) + 1
+        self._set_configuration(self._body.execute(self._command))
+        return {pair for pair, count in counts.items() if count >= fraction * samples}
+
+    @property
+    def ignored_collision_pairs(self):
+        """``[(link, link or "ground")]`` by name: the pairs :meth:`in_collision` does not check, because they touch
+        in the reference posture or in (almost) every posture (:data:`ALWAYS_FRACTION` of :data:`ALWAYS_SAMPLES`
+        random ones). Adjacent links are never checked and not listed."""
+        names = {index: name for name, index in self._link_index.items()}
+        return sorted((names[a], b if b == "ground" else names[b]) for a, b in self._ignored_pairs)
 
     # ------------------------------------------------------------------ the robot
     @property
@@ -455,8 +482,8 @@ class SimWorld:
     def in_collision(self):
         """Whether the robot now collides with itself (non-adjacent links) or with the ground.
 
-        Pairs already touching in the reference configuration (all actions 0) are ignored, e.g. the base on the
-        ground.
+        Pairs already touching in the reference configuration (all actions 0), e.g. the base on the ground, or in
+        almost every posture are ignored (:attr:`ignored_collision_pairs`).
         """
         return bool(self._pairs_in_contact() - self._ignored_pairs)
 

@@ -344,3 +344,39 @@ def test_a_urdf_whose_meshes_are_missing_still_loads_for_its_kinematics(tmp_path
         truth = world.world_marker_poses()
         np.testing.assert_allclose(truth[2][:3, 3], [0.0, 0.0, 0.5], atol=1e-12)
         np.testing.assert_allclose(truth[2][:3, :3], world.robot.link_poses([0.7])["b"][:3, :3], atol=1e-12)
+
+
+COVER_URDF = """<robot name="covered">
+  <link name="base"><collision><origin xyz="0 0 0.3"/><geometry><box size="0.2 0.2 0.6"/></geometry></collision>
+    <inertial><mass value="1"/><inertia ixx="1" iyy="1" izz="1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="turntable"><inertial><mass value="1"/><inertia ixx="1" iyy="1" izz="1" ixy="0" ixz="0" iyz="0"/>
+    </inertial></link>
+  <link name="slider"><collision><origin xyz="0 0 -0.34"/><geometry><sphere radius="0.05"/></geometry></collision>
+    <inertial><mass value="1"/><inertia ixx="1" iyy="1" izz="1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="probe"><collision><origin xyz="0.4 0 0"/><geometry><sphere radius="0.05"/></geometry></collision>
+    <inertial><mass value="1"/><inertia ixx="1" iyy="1" izz="1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="turn" type="revolute"><parent link="base"/><child link="turntable"/><origin xyz="0 0 1.0"/>
+    <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="slide" type="prismatic"><parent link="turntable"/><child link="slider"/><axis xyz="0 0 -1"/>
+    <limit lower="0" upper="0.5" effort="1" velocity="1"/></joint>
+  <joint name="swing" type="revolute"><parent link="turntable"/><child link="probe"/><origin xyz="0 0 -0.3"/>
+    <axis xyz="0 1 0"/><limit lower="-1.5" upper="1.5" effort="1" velocity="1"/></joint>
+</robot>
+"""
+
+
+def test_links_that_touch_in_almost_every_posture_are_not_checked_and_the_others_are(tmp_path):
+    """MoveIt's "always in collision": the slider's sphere sinks into the base's cover as soon as it leaves 0 (98 % of
+    its range), so checking that pair would refuse almost every command; the probe still hits the base when it
+    swings down to it, and that is a collision."""
+    path = tmp_path / "covered.urdf"
+    path.write_text(COVER_URDF)
+    with SimWorld(path, markers=(), marker_texture=False) as world:
+        assert ("base", "slider") in world.ignored_collision_pairs
+        assert not any("probe" in pair for pair in world.ignored_collision_pairs)
+        world.execute([0.0, 0.1, 0.0])  # the slider in the cover, the probe level
+        assert not world.in_collision()
+        world.execute([0.0, 0.1, 1.4])  # the probe swung down into the cover, high above the ground
+        assert world.in_collision()
+        world.execute([0.0, 0.0, 0.0])
+        assert not world.in_collision()
