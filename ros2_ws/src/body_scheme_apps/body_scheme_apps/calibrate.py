@@ -227,7 +227,9 @@ def _simulated(choice, steps, seed, perception="rendered"):
     config = BodySchemeConfig(sigma_trans=RENDERED_SIGMA_TRANS, sigma_rot=RENDERED_SIGMA_ROT)
     learner = BodySchemeLearner(nominal.marker_ids, nominal.n_actions, config, action_lower=nominal.action_lower,
                                 action_upper=nominal.action_upper)
-    for actions, observations in zip(session.actions, session.observations, strict=True):
+    pairs = zip(session.actions, session.observations, strict=True)
+    for actions, observations in tqdm(pairs, total=len(session.actions), desc="learning", unit="step",
+                                      disable=not sys.stderr.isatty()):
         learner.update(actions, observations)
     return learner, nominal
 

@@ -5,7 +5,8 @@
 
 Writes to ``DIR``: ``markers.yaml`` (the placement file every command and node reads), ``markers.pdf`` (A4 pages at
 true scale: print at "actual size", not "fit to page"; check a square with a ruler) and ``markers.png``, and
-``camera.yaml`` (the camera pose the plan assumes, as sim_node parameters). The plan is
+``camera.yaml`` (the camera pose the plan assumes, as sim_node parameters), and ``scheme_node.yaml`` (scheme_node's
+parameter file for this robot: its part ids, joints, limits and a tracker's noise priors). The plan is
 :func:`body_scheme_sim.planning.plan_markers`: one marker per moving body, on its surface, facing the camera over the
 joint range, seen together with the marker above it as often as possible.
 """
@@ -22,6 +23,7 @@ from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.transforms import xyz_rpy_from_transform
 
 from .entry import command
+from .robot_option import write_scheme_parameters
 
 __all__ = ["main"]
 
@@ -57,6 +59,7 @@ def main(argv=None):
                 f"{link}: {why}" for link, why in skipped.items()))
         markers = write_markers(planned, out / "markers.yaml")
         sheet = write_sheet([p.marker for p in planned], out / "markers", dpi=args.dpi)
+        params = write_scheme_parameters(args.robot, markers, out / "scheme_node.yaml")
         xyz, rpy = xyz_rpy_from_transform(camera.world2camera)
         (out / "camera.yaml").write_text(yaml.safe_dump({"camera": {
             "width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
@@ -70,7 +73,8 @@ def main(argv=None):
               f"{100 * p.visible:3.0f} % of postures")
     for link, why in skipped.items():
         print(f"      {link:24s} no marker: {why}")
-    print(f"wrote {markers}, {', '.join(str(p) for p in sheet)} and {out / 'camera.yaml'}")
+    print(f"wrote {markers}, {', '.join(str(p) for p in sheet)}, {out / 'camera.yaml'} and {params} (scheme_node's "
+          f"parameters for this robot: --params-file)")
     return 0
 
 

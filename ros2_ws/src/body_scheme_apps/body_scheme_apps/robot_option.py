@@ -13,7 +13,7 @@ from __future__ import annotations
 import pathlib
 from dataclasses import dataclass
 
-__all__ = ["RobotChoice", "add_robot_arguments", "add_camera_arguments", "resolve_robot"]
+__all__ = ["RobotChoice", "add_robot_arguments", "add_camera_arguments", "resolve_robot", "write_scheme_parameters"]
 
 
 @dataclass
@@ -94,8 +94,9 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
             plan_to.parent.mkdir(parents=True, exist_ok=True)
             markers_path = write_markers(planned, plan_to)
             sheet = write_sheet([p.marker for p in planned], plan_to.with_suffix(""))
-            log(f"planned {len(planned)} markers ({', '.join(p.marker.link for p in planned)}), wrote {markers_path} "
-                f"and the sheet to print ({', '.join(str(path) for path in sheet)})"
+            params = write_scheme_parameters(robot, markers_path, plan_to.parent / "scheme_node.yaml")
+            log(f"planned {len(planned)} markers ({', '.join(p.marker.link for p in planned)}), wrote {markers_path}, "
+                f"scheme_node's parameters {params} and the sheet to print ({', '.join(str(path) for path in sheet)})"
                 + "".join(f"; no marker on {link}: {why}" for link, why in skipped.items()))
     tree = load_robot(robot, markers_path)
     if camera is not None and chosen is None:
@@ -103,3 +104,16 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
     if camera == "auto":
         log(f"camera at {[round(float(v), 3) for v in chosen.position]} looking at the robot (--camera auto)")
     return RobotChoice(str(robot), markers_path, chosen, list(package_path), tree)
+
+
+def write_scheme_parameters(robot, markers_path, path):
+    """Write scheme_node's parameter file for ``robot`` with the markers of ``markers_path`` to ``path``
+    (:func:`body_scheme_nodes.settings.robot_parameter_file`); returns ``path``."""
+    from body_scheme_nodes.offline_replay import default_params_file
+    from body_scheme_nodes.settings import robot_parameter_file
+    from body_scheme_sim.robots import load_robot
+
+    tree = load_robot(robot, markers_path)
+    path = pathlib.Path(path)
+    path.write_text(robot_parameter_file(default_params_file().read_text(), tree, robot), encoding="utf-8")
+    return path

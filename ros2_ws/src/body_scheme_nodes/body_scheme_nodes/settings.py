@@ -26,7 +26,7 @@ from body_scheme_core.world import KinematicTree, load_markers_yaml
 from .message_feed import MessageLimits
 
 __all__ = ["LEARNER_PREFIX", "NONE_SENTINELS", "AUTO_SENTINELS", "URDF_TOLERANCE", "SchemeSettings",
-           "engineered_body_scheme", "specification_tree", "parameter_defaults"]
+           "engineered_body_scheme", "specification_tree", "parameter_defaults", "robot_parameter_file"]
 
 #: How far a robot may be from its URDF by default (m, rad): a chain between two markers with unmarked links between
 #: them is calibrated from there (assembly of a few mm, zero offsets of a degree).
@@ -303,3 +303,33 @@ def engineered_body_scheme(urdf_path, markers_path, joint_names, part_ids, toler
     from there (:func:`~body_scheme_core.models.engineered.engineered_models`)."""
     tree = specification_tree(urdf_path, markers_path, joint_names, part_ids)
     return engineered_models(tree, tolerance if tolerance is not None and any(tolerance) else None)
+
+
+def robot_parameter_file(template, tree, robot, sigma_trans=0.01, sigma_rot=0.087):
+    """scheme_node's parameter file for ``tree`` (a :class:`KinematicTree` with its markers), learning from scratch:
+    ``template`` (the shipped ``config/scheme_node.yaml``, every comment kept) with the robot's part ids, joint names
+    and limits and the tracker's noise priors (default 10 mm / 5 deg: a 1280 x 960 camera, 8 cm markers at 2 m).
+    ``robot`` names the robot in the header."""
+
+    def flow(values):
+        return yaml.safe_dump(list(values), default_flow_style=True, width=10_000).strip()
+
+    values = {"    part_ids": flow(int(i) for i in tree.marker_ids),
+              "    joint_names": flow(str(name) for name in tree.action_joint_names),
+              "    action_lower": flow(float(v) for v in tree.action_lower),
+              "    action_upper": flow(float(v) for v in tree.action_upper),
+              "      sigma_trans": repr(float(sigma_trans)), "      sigma_rot": repr(float(sigma_rot))}
+    lines, found = [], set()
+    for line in template.splitlines():
+        if line.startswith("# The robot part is for"):
+            line = f"# Written for {robot} by body_scheme_apps (plan_markers, calibrate --simulate): check the limits."
+        key = next((k for k in values if line.startswith(k + ":") and k not in found), None)
+        if key is not None:
+            comment = line.find(" #", len(key) + 1)
+            line = f"{key}: {values[key]}" + ("   " + line[comment + 1:] if comment >= 0 else "")
+            found.add(key)
+        lines.append(line)
+    missing = sorted(k.strip() for k in set(values) - found)
+    if missing:
+        raise InvalidInputError(f"the parameter template has no line for {missing}")
+    return "\n".join(lines) + "\n"
