@@ -21,10 +21,11 @@ posture. ``preflight_skip`` lists checks skipped on purpose.
 
 It stops by itself (a trajectory to where the arm is, clamped within the limits: the controller holds it there) when
 scheme_node's /diagnostics status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning
-stalled), when the camera goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s), or when the joint
-states do (none usable for ``joint_state_timeout`` s: a joint state beyond the limits is refused, and the stop names
-it). ``watch_diagnostics`` names that scheme_node (relative to babble_node's namespace, like a topic): its status
-``<node>: body scheme`` is matched exactly, so another robot's scheme_node in the same domain never masks an ERROR.
+stalled), when the camera goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s with the arm at rest),
+or when the joint states do (none usable for ``joint_state_timeout`` s: a joint state beyond the limits is refused,
+and the stop names it). ``watch_diagnostics`` names that scheme_node (relative to babble_node's namespace, like a
+topic): its status ``<node>: body scheme`` is matched exactly, so another robot's scheme_node in the same domain never
+masks an ERROR.
 After a pause of babble_node itself (a busy machine) the loop waits one tick (no watchdog verdict, no command), so the
 messages that arrived during the pause are read first.
 
@@ -139,6 +140,7 @@ class BabbleNode(Node):
         self.stop_reason = ""
         self.next_at = 0.0  # monotonic time the next step may start (after the dwell)
         self.started = None  # monotonic time the first joint state was seen
+        self.rest_since = None  # monotonic time the last move settled: the camera's silence counts from then
         self.last_camera = None  # monotonic time of the last camera message
         self.last_frame_stamp = -np.inf  # header stamp (s) of the last camera message
         self.settled_stamp = -np.inf  # stamp (s) of the last action signal
@@ -267,6 +269,7 @@ class BabbleNode(Node):
         if self.driver.goal is not None:
             goal = self.driver.settled()
             if goal is not None:
+                self.rest_since = now
                 self.settled_stamp = self.get_clock().now().nanoseconds * 1e-9
                 self.pub_action.publish(conversions.joint_state_msg(self.settled_stamp, self.driver.joint_names, goal))
                 self.counts["actions"] += 1
@@ -347,9 +350,14 @@ class BabbleNode(Node):
         return True
 
     def _quiet(self, now):
-        """Why babbling must stop because the camera or the joint states went quiet, or ""."""
-        if self.camera_timeout > 0:
+        """Why babbling must stop because the camera or the joint states went quiet, or "".
+
+        The camera is judged at rest only, from the later of its last message and the end of the last move: a
+        simulated camera takes no picture while the arm moves, and a move at a low ``max_velocity`` outlasts
+        ``camera_timeout`` (the collision screen and the joint-state watchdog guard the move itself)."""
+        if self.camera_timeout > 0 and self.driver.goal is None:
             quiet_since = self.last_camera if self.last_camera is not None else self.started
+            quiet_since = max(quiet_since, self.rest_since or quiet_since)
             if now - quiet_since > self.camera_timeout:
                 return f"the camera is quiet: nothing on the camera topic for {now - quiet_since:.1f} s"
         age = self.driver.joint_state_age()

@@ -172,6 +172,7 @@ def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_f
         node._on_camera(MarkerPoses())  # the frame that waited in the queue
         node._on_timer()
         assert node.state == "idle"
+        node.driver.goal = None  # at rest again (the camera is judged at rest)
         node.last_camera = time.monotonic() - 2.0  # no pause, a silent camera
         node._on_timer()
         assert node.state == "stopped" and "camera is quiet" in node.stop_reason
@@ -286,3 +287,31 @@ def test_an_unknown_check_to_skip_is_refused():
     with pytest.raises(InvalidInputError, match="preflight_skip names unknown checks"):
         with babble_node([Parameter("preflight_skip", value=["cameras"])]):
             pass
+
+
+def test_the_camera_is_judged_at_rest_only_from_the_end_of_the_move():
+    """A slow move (max_velocity 0.5) outlasts camera_timeout with no picture (sim_node renders none while the arm
+    moves): babbling goes on; once the arm has settled, camera_timeout without a message stops it."""
+    clock = [50.0]
+    with babble_node([Parameter("camera_timeout", value=3.0), Parameter("joint_state_timeout", value=0.0),
+                      Parameter("settle_window", value=0.1), NO_INPUTS_BUT_JOINT_STATES]) as node:
+        node.monotonic = node.driver.clock = lambda: clock[0]
+        names = list(node.driver.joint_names)
+        node.driver._on_joint_states(JointState(name=names, position=[0.0] * 6))
+        node._on_camera(MarkerPoses())
+        node._on_timer()
+        assert node.state == "idle" and node.driver.goal is not None  # the first move went out
+        goal = list(node.driver.goal)
+        clock[0] += 10.0  # the arm still on its way, no picture for 10 s
+        assert node._quiet(clock[0]) == ""
+        node._on_timer()
+        assert node.state == "idle"
+        for _ in range(3):  # it arrives and holds still
+            clock[0] += 0.1
+            node.driver._on_joint_states(JointState(name=names, position=goal))
+            node._on_timer()
+        assert node.driver.goal is None and node.rest_since is not None
+        clock[0] = node.rest_since + 2.9
+        assert node._quiet(clock[0]) == ""
+        clock[0] = node.rest_since + 3.1
+        assert "camera is quiet: nothing on the camera topic for 3.1 s" in node._quiet(clock[0])
