@@ -81,7 +81,7 @@ class Babbler:
         self._next += self.period
 
 
-def learned(collector, true_edges):
+def learned_the_tree(collector, true_edges):
     s = collector.structure
     return s is not None and {frozenset((e.parent_id, e.child_id)) for e in s.edges} == true_edges \
         and all(e.valid for e in s.edges)

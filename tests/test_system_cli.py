@@ -8,7 +8,7 @@ import subprocess
 
 import numpy as np
 import pytest
-from scheme_feed import Babbler, Collector, learned, scheme_parameters
+from scheme_feed import Babbler, Collector, learned_the_tree, scheme_parameters
 from urdf_parser_py.urdf import URDF
 
 from body_scheme_core.world import make_session, planar_2dof
@@ -51,7 +51,7 @@ def test_status_events_state_urdf_and_params_of_scheme_node(start_node, ros_node
     assert spin_until(lambda: ros_node.count_subscribers("body_scheme/events") >= 1, timeout=60)  # discovered
     babbler = Babbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: learned(collector, true_edges), timeout=90, during=babbler), process.output()
+    assert spin_until(lambda: learned_the_tree(collector, true_edges), timeout=90, during=babbler), process.output()
     assert spin_until(lambda: "structure_found" in events_log.read_text(), timeout=30), events_log.read_text()
     events.send_signal(signal.SIGINT)  # Ctrl-C ends it quietly
     assert events.wait(timeout=30) == 0, events.stderr.read()

@@ -13,7 +13,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseArray
 from rclpy.qos import QoSProfile
-from scheme_feed import LATCHED, Babbler, Collector, learned, scheme_parameters
+from scheme_feed import LATCHED, Babbler, Collector, learned_the_tree, scheme_parameters
 from sensor_msgs.msg import CameraInfo, JointState
 from std_msgs.msg import String, UInt64
 from tf2_msgs.msg import TFMessage
@@ -115,7 +115,7 @@ def test_malformed_input_is_counted_and_the_node_keeps_learning(start_node, ros_
     assert spin_until(counted, timeout=15), (collector.diagnostics.get("/scheme_node: body scheme"), process.output())
     # ... and the node still learns from the good data that follows.
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert spin_until(lambda: learned_the_tree(collector, true_edges), timeout=60, during=babbler), process.output()
     assert process.process.poll() is None
 
 
@@ -130,7 +130,7 @@ def test_kill_and_restart_restores_the_checkpoint(start_node, ros_node, spin_unt
     assert spin_until(lambda: collector.structure is not None, timeout=30), first.output()  # discovery done
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
     babbler = Babbler(ros_node, session)
-    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), first.output()
+    assert spin_until(lambda: learned_the_tree(collector, true_edges), timeout=60, during=babbler), first.output()
 
     def saved_step():
         try:
@@ -227,7 +227,7 @@ def test_hostile_values_and_stamps_are_counted_and_learning_goes_on(start_node, 
     assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
     babbler = Babbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert spin_until(lambda: learned_the_tree(collector, true_edges), timeout=60, during=babbler), process.output()
     names = list(tree.action_joint_names)
 
     def publish_pair(position, poses, stamp=None):
@@ -264,7 +264,7 @@ def test_hostile_values_and_stamps_are_counted_and_learning_goes_on(start_node, 
     assert spin_until(lambda: int(_values(collector)["step"]) >= step + 10, timeout=30, during=babbler), (
         "learning stopped after the hostile messages", _values(collector), process.output())
     assert process.running()
-    assert learned(collector, true_edges)
+    assert learned_the_tree(collector, true_edges)
 
 
 def test_two_namespaced_nodes_run_from_the_shipped_yaml_with_distinct_diagnostics(start_node, ros_node, spin_until):
@@ -567,7 +567,7 @@ def test_markers_poses_tf_and_urdf_show_the_learned_body(start_node, ros_node, s
     assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
     babbler = RecordingBabbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: learned(collector, true_edges) and collector.structure.phase == "steady",
+    assert spin_until(lambda: learned_the_tree(collector, true_edges) and collector.structure.phase == "steady",
                       timeout=60, during=babbler), process.output()
     got["poses"].clear()
     got["tf"].clear()
@@ -633,7 +633,7 @@ def test_exploration_suggests_only_postures_the_camera_would_see(start_node, ros
     assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
     babbler = Babbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
-    assert spin_until(lambda: learned(collector, true_edges), timeout=60, during=babbler), process.output()
+    assert spin_until(lambda: learned_the_tree(collector, true_edges), timeout=60, during=babbler), process.output()
     assert suggestions, "no suggestion without a camera constraint"
     uncalibrated = conversions.camera_info_msg(0.0, "camera", 640, 480, np.eye(3))
     uncalibrated.k = [0.0] * 9
