@@ -21,10 +21,12 @@ CLI = str(executable("body_scheme_nodes", "body-scheme"))
 
 @pytest.fixture
 def cli(ros_env):
-    """``cli(*args)``: run ``body-scheme args`` in this test's domain; a CompletedProcess (text)."""
+    """``cli(*args)``: run ``body-scheme args`` in this test's domain; a CompletedProcess (text). Its ``--timeout``
+    is 120 s unless given: the command itself waits for the node's services, however busy the machine."""
 
-    def run(*args, timeout=120):
-        return subprocess.run([CLI, *args], env=ros_env, capture_output=True, text=True, timeout=timeout,
+    def run(*args):
+        timeout = () if "--timeout" in args else ("--timeout", "120")
+        return subprocess.run([CLI, *args, *timeout], env=ros_env, capture_output=True, text=True, timeout=300,
                               check=False)
 
     return run
@@ -47,7 +49,8 @@ def test_status_events_state_urdf_and_params_of_scheme_node(start_node, ros_node
 
     events_log = tmp_path / "events.txt"
     with events_log.open("w") as out:
-        events = subprocess.Popen([CLI, "events"], env=ros_env, stdout=out, stderr=subprocess.PIPE, text=True)
+        events = subprocess.Popen([CLI, "events", "--node", "scheme_node", "--timeout", "120"], env=ros_env,
+                                  stdout=out, stderr=subprocess.PIPE, text=True)  # the name without its slash
     assert spin_until(lambda: ros_node.count_subscribers("body_scheme/events") >= 1, timeout=60)  # discovered
     babbler = Babbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
@@ -58,7 +61,7 @@ def test_status_events_state_urdf_and_params_of_scheme_node(start_node, ros_node
     first = events_log.read_text().splitlines()[0]
     assert first.startswith("step ") and "structure_found" in events_log.read_text(), first
 
-    answer = cli("status", "--node", "/scheme_node")
+    answer = cli("status", "--node", "scheme_node")
     assert answer.returncode == 0, answer
     lines = answer.stdout.splitlines()
     assert any(line.startswith(("OK    /scheme_node: body scheme:", "WARN  /scheme_node: body scheme:"))
@@ -93,7 +96,8 @@ def test_status_events_state_urdf_and_params_of_scheme_node(start_node, ros_node
     assert answer.returncode == 1 and "has no parameter no_such_parameter" in answer.stderr, answer
 
 
-def test_pause_resume_stop_and_params_of_babble_node_and_a_node_that_is_not_there(start_node, cli):
+def test_pause_resume_stop_and_params_of_babble_node_and_a_node_that_is_not_there(start_node, cli, ros_env,
+                                                                                   ros_node, spin_until):
     babble = start_node("body_scheme_nodes", "babble_node", {"robot": "arm_4dof", "max_velocity": 0.5})
     answer = cli("pause")
     assert answer.returncode == 0 and answer.stdout.strip() == "paused after the current move", (
@@ -110,6 +114,12 @@ def test_pause_resume_stop_and_params_of_babble_node_and_a_node_that_is_not_ther
     answer = cli("status", "--brief")  # every node's statuses: here babble_node's
     assert answer.returncode == 0 and "/babble_node: babbling" in answer.stdout, answer
 
-    for args in (("pause", "--node", "/nobody"), ("params", "/nobody"), ("status", "--node", "/nobody")):
+    for args in (("pause", "--node", "/nobody"), ("params", "nobody"), ("status", "--node", "/nobody"),
+                 ("events", "--node", "/nobody")):
         answer = cli(*args, "--timeout", "2")
-        assert answer.returncode == 2 and "is the node running" in answer.stderr, (args, answer)
+        assert answer.returncode == 2 and "running, in this ROS_DOMAIN_ID" in answer.stderr, (args, answer)
+    waiting = subprocess.Popen([CLI, "save", "--node", "/nobody", "--timeout", "300"], env=ros_env,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert spin_until(lambda: "body_scheme_cli" in ros_node.get_node_names(), timeout=60)
+    waiting.send_signal(signal.SIGINT)  # Ctrl-C while it waits: cut short, not done
+    assert waiting.wait(timeout=30) == 130, waiting.communicate()

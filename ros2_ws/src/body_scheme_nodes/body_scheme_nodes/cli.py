@@ -13,13 +13,15 @@ The set-up from PyPI has no ros2cli (docs/ros-from-pypi.md); this command is ins
     body-scheme pause | resume | stop      # babble_node's services
     body-scheme params NODE [NAME [VALUE]] # list, get or set (VALUE is YAML, as for ros2 param set)
 
-Exit codes: 0 done; 1 the node answered and refused (its reason on stderr); 2 the node could not be reached in
-``--timeout`` seconds (or the command line was wrong). Message formatting is in pure functions, tested without DDS.
+Exit codes: 0 done; 1 the node answered and refused (its reason on stderr); 2 the node could not be reached, or did
+not answer, in ``--timeout`` seconds (or the command line was wrong); 130 cut short by Ctrl-C (``events`` ends so: 0).
+Node names may be given with or without the leading slash. Message formatting is in pure functions, tested without DDS.
 """
 
 from __future__ import annotations
 
 import argparse
+import array
 import math
 import pathlib
 import sys
@@ -29,7 +31,8 @@ import yaml
 __all__ = ["main", "format_status", "format_event", "parse_value"]
 
 LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
-DONE, REFUSED, UNREACHABLE = 0, 1, 2
+DONE, REFUSED, UNREACHABLE, INTERRUPTED = 0, 1, 2, 130  # 130: cut short by Ctrl-C, as a shell reports it
+BAD_COMMAND_LINE = UNREACHABLE
 
 
 # -- formatting (no DDS) -------------------------------------------------------------------------------------------
@@ -57,22 +60,40 @@ def format_event(event):
 
 def parse_value(text):
     """A parameter value from the command line, as ``ros2 param set`` reads it (YAML: ``0.5``, ``true``,
-    ``[1, 2]``, ``abc``)."""
+    ``[1, 2]``, ``abc``); argparse's error for what no ROS parameter type holds (a mapping, a mixed list)."""
+    from rclpy.parameter import Parameter
+
     try:
-        return yaml.safe_load(text)
+        value = yaml.safe_load(text)
     except yaml.YAMLError:
-        return text
+        value = text
+    try:
+        Parameter("value", value=value)
+    except TypeError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a parameter value (a bool, number, string or a list of "
+                                         "one of them)") from None
+    return value
 
 
 def format_parameter_value(value):
     """A parameter value for printing (``rclpy.parameter.parameter_value_to_python``'s result)."""
-    if isinstance(value, (list, tuple)) or type(value).__name__ == "ndarray":
-        return "[" + ", ".join(str(v) for v in list(value)) + "]"
+    if isinstance(value, (list, tuple, array.array)):
+        return "[" + ", ".join(str(v) for v in value) + "]"
     return str(value)
 
 
-def _namespace(node_name):
-    return node_name.rsplit("/", 1)[0]
+def full_name(name):
+    """A node's full name as the graph spells it: ``scheme_node`` is ``/scheme_node``."""
+    return name if name.startswith("/") else "/" + name
+
+
+def events_topic(node_name):
+    """scheme_node's events topic: ``body_scheme/events`` in the node's namespace."""
+    return full_name(node_name).rpartition("/")[0] + "/body_scheme/events"
+
+
+class Unreachable(Exception):
+    """The node could not be reached, or did not answer, within ``--timeout`` (exit code 2)."""
 
 
 # -- over DDS ------------------------------------------------------------------------------------------------------
@@ -81,9 +102,11 @@ class Session:
 
     def __init__(self, timeout):
         import rclpy  # imported here so that ``--help`` and the formatting need no ROS
+        from rclpy.signals import SignalHandlerOptions
 
         self.rclpy, self.timeout = rclpy, timeout
-        rclpy.init()
+        # Ctrl-C is Python's KeyboardInterrupt (main's exit code), not rclpy's shutdown of the context under a wait.
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node("body_scheme_cli", use_global_arguments=False, start_parameter_services=False,
                                       enable_rosout=False)
 
@@ -91,16 +114,19 @@ class Session:
         self.node.destroy_node()
         self.rclpy.try_shutdown()
 
-    def wait(self, future):
-        self.rclpy.spin_until_future_complete(self.node, future, timeout_sec=self.timeout)
-        return future.result() if future.done() else None
+    def wait(self, future, name):
+        """The future's result; Unreachable if ``name`` did not answer within the timeout."""
+        if not self.spin_until(future.done, self.timeout):
+            raise Unreachable(f"{name} found, but it did not answer within {self.timeout:g} s (is the node busy?)")
+        return future.result()
 
     def call(self, srv_type, name, request=None):
-        """The response of service ``name``, or None if it could not be reached in time."""
+        """The response of service ``name``; Unreachable if it is not there or does not answer in time."""
         client = self.node.create_client(srv_type, name)
         if not client.wait_for_service(timeout_sec=self.timeout):
-            return None
-        return self.wait(client.call_async(request if request is not None else srv_type.Request()))
+            raise Unreachable(f"no {name} service within {self.timeout:g} s: is the node running, in this "
+                              "ROS_DOMAIN_ID?")
+        return self.wait(client.call_async(request if request is not None else srv_type.Request()), name)
 
     def spin_until(self, predicate, timeout):
         from time import monotonic
@@ -111,11 +137,8 @@ class Session:
         return predicate()
 
 
-def _answer(response, name, out):
+def _answer(response, out):
     """Print a service's answer; the exit code."""
-    if response is None:
-        print(f"no answer from {name}: is the node running, in this ROS_DOMAIN_ID?", file=sys.stderr)
-        return UNREACHABLE
     if response.success:
         print(response.message, file=out)
         return DONE
@@ -131,17 +154,16 @@ def cmd_status(session, args):
 
     def on_message(msg):
         for status in msg.status:
-            if args.node is None or status.name.startswith(f"{args.node}:"):
+            if args.node is None or status.name.startswith(f"{full_name(args.node)}:"):
                 statuses[status.name] = status
         if statuses and not first:
             first.append(True)
 
     session.node.create_subscription(DiagnosticArray, "/diagnostics", on_message, 10)
     if not session.spin_until(lambda: bool(first), args.timeout):
-        whose = f" from {args.node}" if args.node else ""
-        print(f"no diagnostics{whose} within {args.timeout:g} s: is the node running, in this ROS_DOMAIN_ID?",
-              file=sys.stderr)
-        return UNREACHABLE
+        whose = f" from {full_name(args.node)}" if args.node else ""
+        raise Unreachable(f"no diagnostics{whose} within {args.timeout:g} s: is the node running, in this "
+                          "ROS_DOMAIN_ID?")
     # Our nodes publish once a second: one more period collects the other nodes' (and the other statuses') arrays.
     session.spin_until(lambda: False, args.settle)
     for name in sorted(statuses):
@@ -159,8 +181,11 @@ def cmd_events(session, args):
         seen.append(msg)
         print(format_event(msg), flush=True)
 
-    topic = f"{_namespace(args.node)}/body_scheme/events"
+    topic = events_topic(args.node)
     session.node.create_subscription(SchemeEvent, topic, on_event, 100)
+    if not session.spin_until(lambda: session.node.count_publishers(topic) > 0, args.timeout):
+        raise Unreachable(f"no publisher of {topic} within {args.timeout:g} s: is scheme_node running, in this "
+                          "ROS_DOMAIN_ID?")
     print(f"following {topic} (Ctrl-C ends)", file=sys.stderr, flush=True)
     session.spin_until(lambda: args.count is not None and len(seen) >= args.count, None)
     return DONE
@@ -172,20 +197,19 @@ def cmd_state(session, args):
 
     from body_scheme_msgs.srv import StatePath
 
-    name = f"{args.node}/{args.command}"
+    name = f"{full_name(args.node)}/{args.command}"
     if args.command == "reset":
-        return _answer(session.call(Trigger, name), name, sys.stdout)
-    return _answer(session.call(StatePath, name, StatePath.Request(path=args.name or "")), name, sys.stdout)
+        return _answer(session.call(Trigger, name), sys.stdout)
+    return _answer(session.call(StatePath, name, StatePath.Request(path=args.name or "")), sys.stdout)
 
 
 def cmd_get_urdf(session, args):
     """The learned URDF to stdout or ``--out``."""
     from body_scheme_msgs.srv import GetRobotDescription
 
-    name = f"{args.node}/get_urdf"
-    response = session.call(GetRobotDescription, name)
-    if response is None or not response.success:
-        return _answer(response, name, sys.stdout)
+    response = session.call(GetRobotDescription, f"{full_name(args.node)}/get_urdf")
+    if not response.success:
+        return _answer(response, sys.stdout)
     if args.out is None:
         print(response.urdf)
     else:
@@ -198,8 +222,7 @@ def cmd_babble(session, args):
     """pause / resume / stop of babble_node (Trigger)."""
     from std_srvs.srv import Trigger
 
-    name = f"{args.node}/{args.command}"
-    return _answer(session.call(Trigger, name), name, sys.stdout)
+    return _answer(session.call(Trigger, f"{full_name(args.node)}/{args.command}"), sys.stdout)
 
 
 def cmd_params(session, args):
@@ -207,16 +230,14 @@ def cmd_params(session, args):
     from rclpy.parameter import Parameter, parameter_value_to_python
     from rclpy.parameter_client import AsyncParameterClient
 
-    client = AsyncParameterClient(session.node, args.target)
+    target = full_name(args.target)
+    client = AsyncParameterClient(session.node, target)
     if not client.wait_for_services(timeout_sec=args.timeout):
-        print(f"no parameter services of {args.target}: is the node running, in this ROS_DOMAIN_ID?",
-              file=sys.stderr)
-        return UNREACHABLE
+        raise Unreachable(f"no parameter services of {target} within {args.timeout:g} s: is the node running, in "
+                          "this ROS_DOMAIN_ID?")
     if args.value is not None:
-        response = session.wait(client.set_parameters([Parameter(args.name, value=parse_value(args.value))]))
-        if response is None:
-            return _answer(None, f"{args.target}/set_parameters", sys.stdout)
-        result = response.results[0]
+        parameter = Parameter(args.name, value=args.value)
+        result = session.wait(client.set_parameters([parameter]), f"{target}/set_parameters").results[0]
         if result.successful:
             print(f"set {args.name}")
             return DONE
@@ -225,15 +246,10 @@ def cmd_params(session, args):
     if args.name is not None:
         names = [args.name]
     else:
-        listed = session.wait(client.list_parameters())
-        if listed is None:
-            return _answer(None, f"{args.target}/list_parameters", sys.stdout)
-        names = sorted(listed.result.names)
-    response = session.wait(client.get_parameters(names))
-    if response is None:
-        return _answer(None, f"{args.target}/get_parameters", sys.stdout)
+        names = sorted(session.wait(client.list_parameters(), f"{target}/list_parameters").result.names)
+    response = session.wait(client.get_parameters(names), f"{target}/get_parameters")
     if args.name is not None and (not response.values or response.values[0].type == 0):  # PARAMETER_NOT_SET
-        print(f"{args.target} has no parameter {args.name}", file=sys.stderr)
+        print(f"{target} has no parameter {args.name}", file=sys.stderr)
         return REFUSED
     for name, value in zip(names, response.values, strict=True):
         print(f"{name}: {format_parameter_value(parameter_value_to_python(value))}")
@@ -271,7 +287,7 @@ def parser():
     params = add("params", cmd_params, "list, get or set a node's parameters", node=None)
     params.add_argument("target", metavar="NODE", help="the node's full name, e.g. /scheme_node")
     params.add_argument("name", nargs="?", default=None, help="a parameter (none: list all with their values)")
-    params.add_argument("value", nargs="?", default=None, help="set it to this value (YAML)")
+    params.add_argument("value", nargs="?", default=None, type=parse_value, help="set it to this value (YAML)")
     return p
 
 
@@ -279,14 +295,17 @@ def main(argv=None):
     args = parser().parse_args(argv)
     if args.timeout <= 0:
         print("--timeout must be positive", file=sys.stderr)
-        return 2
+        return BAD_COMMAND_LINE
     from rclpy.executors import ExternalShutdownException
 
     session = Session(args.timeout)
     try:
         return args.function(session, args)
-    except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C ends ``events``
-        return DONE
+    except Unreachable as error:
+        print(error, file=sys.stderr)
+        return UNREACHABLE
+    except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C is how ``events`` ends; others were cut short
+        return DONE if args.command == "events" else INTERRUPTED
     finally:
         session.close()
 

@@ -1,6 +1,7 @@
 """The ``body-scheme`` command's formatting and argument handling, and the nodes' refusal of run-time parameter
 changes, without DDS traffic (the commands over DDS: tests/test_system_cli.py)."""
 
+import array
 import math
 
 import pytest
@@ -37,6 +38,17 @@ def test_a_value_is_read_as_ros2_param_set_reads_it(text, value):
     assert cli.parse_value(text) == value
 
 
+def test_a_node_name_may_lack_its_leading_slash():
+    assert cli.full_name("scheme_node") == cli.full_name("/scheme_node") == "/scheme_node"
+    assert cli.events_topic("scheme_node") == cli.events_topic("/scheme_node") == "/body_scheme/events"
+    assert cli.events_topic("robot2/scheme_node") == "/robot2/body_scheme/events"
+
+
+def test_a_list_parameter_prints_as_a_list_whatever_its_container():
+    assert cli.format_parameter_value([1, 2]) == cli.format_parameter_value(array.array("q", [1, 2])) == "[1, 2]"
+    assert cli.format_parameter_value(0.5) == "0.5"
+
+
 def test_a_wrong_command_line_exits_2_before_any_ros(capsys):
     for argv in ([], ["nonsense"], ["params"], ["save", "a", "b"]):
         with pytest.raises(SystemExit) as exited:
@@ -44,6 +56,10 @@ def test_a_wrong_command_line_exits_2_before_any_ros(capsys):
         assert exited.value.code == 2, argv
     assert cli.main(["status", "--timeout", "0"]) == 2
     assert "--timeout must be positive" in capsys.readouterr().err
+    for value in ("{a: 1}", "[1, abc]"):  # no ROS parameter type holds them: said before any node is asked
+        with pytest.raises(SystemExit) as exited:
+            cli.main(["params", "/nobody", "rate", value])
+        assert exited.value.code == 2 and "is not a parameter value" in capsys.readouterr().err
 
 
 def test_a_node_refuses_a_parameter_change_with_the_reason(context):
@@ -54,5 +70,7 @@ def test_a_node_refuses_a_parameter_change_with_the_reason(context):
         result = node.set_parameters([Parameter("rate", value=2.0)])[0]
         assert not result.successful and result.reason == "rate: read at start-up only; restart some_node to change it"
         assert node.get_parameter("rate").value == 1.0
+        assert node.set_parameters([Parameter("use_sim_time", value=True)])[0].successful  # rclpy applies it
+        assert node.get_clock().ros_time_is_active
     finally:
         node.destroy_node()
