@@ -21,7 +21,8 @@ posture. ``preflight_skip`` lists checks skipped on purpose.
 
 It stops by itself (a trajectory to where the arm is, clamped within the limits: the controller holds it there) when
 scheme_node's /diagnostics status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning
-stalled), when the camera goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s with the arm at rest),
+stalled), when the camera goes quiet (no message on ``camera_topic`` for ``camera_timeout`` s with the arm at rest,
+summed over the rests between moves),
 or when the joint states do (none usable for ``joint_state_timeout`` s: a joint state beyond the limits is refused,
 and the stop names it). ``watch_diagnostics`` names that scheme_node (relative to babble_node's namespace, like a
 topic): its status ``<node>: body scheme`` is matched exactly, so another robot's scheme_node in the same domain never
@@ -140,7 +141,8 @@ class BabbleNode(Node):
         self.stop_reason = ""
         self.next_at = 0.0  # monotonic time the next step may start (after the dwell)
         self.started = None  # monotonic time the first joint state was seen
-        self.rest_since = None  # monotonic time the last move settled: the camera's silence counts from then
+        self.moved_since_camera = 0.0  # s the arm moved since the last camera message: not silence at rest
+        self.judged_at = None  # monotonic time of the watchdogs' last verdict
         self.last_camera = None  # monotonic time of the last camera message
         self.last_frame_stamp = -np.inf  # header stamp (s) of the last camera message
         self.settled_stamp = -np.inf  # stamp (s) of the last action signal
@@ -187,6 +189,7 @@ class BabbleNode(Node):
 
     def _on_camera(self, msg):
         self.last_camera = self.monotonic()
+        self.moved_since_camera = 0.0
         self.last_frame_stamp = max(self.last_frame_stamp, conversions.seconds_from_stamp(msg.header.stamp))
         if self.state == "waiting" and self.driver.positions is not None:
             self.seen_markers.update(int(i) for i in msg.marker_ids)
@@ -233,6 +236,7 @@ class BabbleNode(Node):
         self.error_since = None  # the watched status must stay ERROR for error_hold again
         now = self.monotonic()
         self.last_camera = now if self.last_camera is not None else None  # a fresh watchdog period
+        self.moved_since_camera, self.judged_at = 0.0, None
         self.started = now if self.started is not None else None
         response.success, response.message = True, f"resumed (was {previous})"
         return response
@@ -269,7 +273,6 @@ class BabbleNode(Node):
         if self.driver.goal is not None:
             goal = self.driver.settled()
             if goal is not None:
-                self.rest_since = now
                 self.settled_stamp = self.get_clock().now().nanoseconds * 1e-9
                 self.pub_action.publish(conversions.joint_state_msg(self.settled_stamp, self.driver.joint_names, goal))
                 self.counts["actions"] += 1
@@ -352,14 +355,18 @@ class BabbleNode(Node):
     def _quiet(self, now):
         """Why babbling must stop because the camera or the joint states went quiet, or "".
 
-        The camera is judged at rest only, from the later of its last message and the end of the last move: a
-        simulated camera takes no picture while the arm moves, and a move at a low ``max_velocity`` outlasts
-        ``camera_timeout`` (the collision screen and the joint-state watchdog guard the move itself)."""
-        if self.camera_timeout > 0 and self.driver.goal is None:
+        The camera's silence counts at rest only, summed over the rests since its last message: a simulated camera
+        takes no picture while the arm moves, and a move at a low ``max_velocity`` outlasts ``camera_timeout`` (the
+        collision screen and the joint-state watchdog guard the move itself); a dead camera still stops babbling
+        with rests shorter than ``camera_timeout`` (``wait_for_frame`` off, a short ``dwell``)."""
+        if self.judged_at is not None and self.driver.goal is not None:
+            self.moved_since_camera += now - self.judged_at
+        self.judged_at = now
+        if self.camera_timeout > 0:
             quiet_since = self.last_camera if self.last_camera is not None else self.started
-            quiet_since = max(quiet_since, self.rest_since or quiet_since)
-            if now - quiet_since > self.camera_timeout:
-                return f"the camera is quiet: nothing on the camera topic for {now - quiet_since:.1f} s"
+            silence = now - quiet_since - self.moved_since_camera
+            if silence > self.camera_timeout:
+                return f"the camera is quiet: nothing on the camera topic for {silence:.1f} s at rest"
         age = self.driver.joint_state_age()
         if self.joint_state_timeout > 0 and age is not None and age > self.joint_state_timeout:
             refused = self.driver.joint_state_problem

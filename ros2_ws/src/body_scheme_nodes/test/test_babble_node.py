@@ -289,7 +289,16 @@ def test_an_unknown_check_to_skip_is_refused():
             pass
 
 
-def test_the_camera_is_judged_at_rest_only_from_the_end_of_the_move():
+def _settle(node, clock, names):
+    """Report the arm at its goal until the move has settled (0.1 s ticks)."""
+    goal = list(node.driver.goal)
+    while node.driver.goal is not None and node.state == "idle":
+        clock[0] += 0.1
+        node.driver._on_joint_states(JointState(name=names, position=goal))
+        node._on_timer()
+
+
+def test_the_camera_is_judged_at_rest_only():
     """A slow move (max_velocity 0.5) outlasts camera_timeout with no picture (sim_node renders none while the arm
     moves): babbling goes on; once the arm has settled, camera_timeout without a message stops it."""
     clock = [50.0]
@@ -301,17 +310,34 @@ def test_the_camera_is_judged_at_rest_only_from_the_end_of_the_move():
         node._on_camera(MarkerPoses())
         node._on_timer()
         assert node.state == "idle" and node.driver.goal is not None  # the first move went out
-        goal = list(node.driver.goal)
         clock[0] += 10.0  # the arm still on its way, no picture for 10 s
-        assert node._quiet(clock[0]) == ""
         node._on_timer()
         assert node.state == "idle"
-        for _ in range(3):  # it arrives and holds still
-            clock[0] += 0.1
-            node.driver._on_joint_states(JointState(name=names, position=goal))
+        _settle(node, clock, names)
+        assert node.driver.goal is None and node.state == "idle"
+        rested = clock[0]
+        assert node._quiet(rested + 2.5) == ""
+        assert "camera is quiet: nothing on the camera topic for 3." in node._quiet(rested + 3.1)
+
+
+def test_a_dead_camera_stops_babbling_even_with_rests_shorter_than_the_timeout():
+    """Without wait_for_frame the arm rests only ``dwell`` (0.3 s) between moves: the silence at rest is summed over
+    the rests, so a camera that died stops babbling after about camera_timeout / dwell moves, not never."""
+    clock = [50.0]
+    with babble_node([Parameter("camera_timeout", value=3.0), Parameter("joint_state_timeout", value=0.0),
+                      Parameter("settle_window", value=0.1), Parameter("wait_for_frame", value=False),
+                      Parameter("dwell", value=0.3), NO_INPUTS_BUT_JOINT_STATES]) as node:
+        node.monotonic = node.driver.clock = lambda: clock[0]
+        names = list(node.driver.joint_names)
+        node.driver._on_joint_states(JointState(name=names, position=[0.0] * 6))
+        node._on_camera(MarkerPoses())  # its last message
+        for _ in range(200):
             node._on_timer()
-        assert node.driver.goal is None and node.rest_since is not None
-        clock[0] = node.rest_since + 2.9
-        assert node._quiet(clock[0]) == ""
-        clock[0] = node.rest_since + 3.1
-        assert "camera is quiet: nothing on the camera topic for 3.1 s" in node._quiet(clock[0])
+            if node.driver.goal is not None:
+                clock[0] += 5.0  # a long move
+                _settle(node, clock, names)
+            clock[0] += 0.1
+            if node.state == "stopped":
+                break
+        assert node.state == "stopped" and "camera is quiet" in node.stop_reason, node.stop_reason
+        assert 4 <= node.counts["actions"] <= 30, node.counts
