@@ -23,7 +23,7 @@ from body_scheme_core.errors import BodySchemeError
 from body_scheme_core.transforms import xyz_rpy_from_transform
 
 from .entry import command
-from .robot_option import write_scheme_parameters
+from .robot_option import scheme_parameters_path, write_scheme_parameters
 
 __all__ = ["main"]
 
@@ -59,7 +59,7 @@ def main(argv=None):
                 f"{link}: {why}" for link, why in skipped.items()))
         markers = write_markers(planned, out / "markers.yaml")
         sheet = write_sheet([p.marker for p in planned], out / "markers", dpi=args.dpi)
-        params = write_scheme_parameters(args.robot, markers, out / "scheme_node.yaml")
+        params = write_scheme_parameters(args.robot, markers, scheme_parameters_path(markers))
         xyz, rpy = xyz_rpy_from_transform(camera.world2camera)
         (out / "camera.yaml").write_text(yaml.safe_dump({"camera": {
             "width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,

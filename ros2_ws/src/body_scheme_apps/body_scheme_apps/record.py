@@ -6,6 +6,7 @@ Examples::
     record_session --robot planar_2dof --steps 200 --fault 100:block_joint:1:0.3 --out /tmp/planar
     record_session --steps 30 --perception rendered --images 10 --out /tmp/rendered
     record_session --robot path/to/robot.urdf --steps 300 --out /tmp/mine   # markers planned: /tmp/mine.markers.yaml
+                                                   # (and scheme_node's parameters: /tmp/mine.scheme_node.yaml)
 
 The bag layout is documented in :mod:`body_scheme_nodes.bag_io`.
 """

@@ -13,7 +13,8 @@ from __future__ import annotations
 import pathlib
 from dataclasses import dataclass
 
-__all__ = ["RobotChoice", "add_robot_arguments", "add_camera_arguments", "resolve_robot", "write_scheme_parameters"]
+__all__ = ["RobotChoice", "add_robot_arguments", "add_camera_arguments", "resolve_robot", "scheme_parameters_path",
+           "write_scheme_parameters"]
 
 
 @dataclass
@@ -94,7 +95,7 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
             plan_to.parent.mkdir(parents=True, exist_ok=True)
             markers_path = write_markers(planned, plan_to)
             sheet = write_sheet([p.marker for p in planned], plan_to.with_suffix(""))
-            params = write_scheme_parameters(robot, markers_path, plan_to.parent / "scheme_node.yaml")
+            params = write_scheme_parameters(robot, markers_path, scheme_parameters_path(markers_path))
             log(f"planned {len(planned)} markers ({', '.join(p.marker.link for p in planned)}), wrote {markers_path}, "
                 f"scheme_node's parameters {params} and the sheet to print ({', '.join(str(path) for path in sheet)})"
                 + "".join(f"; no marker on {link}: {why}" for link, why in skipped.items()))
@@ -104,6 +105,16 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
     if camera == "auto":
         log(f"camera at {[round(float(v), 3) for v in chosen.position]} looking at the robot (--camera auto)")
     return RobotChoice(str(robot), markers_path, chosen, list(package_path), tree)
+
+
+def scheme_parameters_path(markers_path):
+    """Where scheme_node's parameter file for the markers of ``markers_path`` goes, beside it and named after it:
+    ``dir/markers.yaml`` -> ``dir/scheme_node.yaml``, ``bags/run.markers.yaml`` -> ``bags/run.scheme_node.yaml``
+    (so two recordings in one directory never overwrite each other's)."""
+    markers_path = pathlib.Path(markers_path)
+    name = markers_path.name
+    stem = name[:-len("markers.yaml")] if name.endswith("markers.yaml") else markers_path.stem + "."
+    return markers_path.with_name(stem + "scheme_node.yaml")
 
 
 def write_scheme_parameters(robot, markers_path, path):

@@ -8,6 +8,7 @@ import pytest
 import yaml
 
 from body_scheme_apps.plan_markers import main
+from body_scheme_apps.robot_option import scheme_parameters_path
 from body_scheme_nodes.settings import SchemeSettings
 from body_scheme_sim.robots import load_robot
 
@@ -32,3 +33,10 @@ def test_the_plan_comes_with_scheme_nodes_parameters_for_the_robot(tmp_path, cap
     assert list(settings.part_ids) == [int(i) for i in tree.marker_ids]
     assert list(settings.action_lower) == pytest.approx(tree.action_lower)
     assert list(settings.action_upper) == pytest.approx(tree.action_upper)
+
+
+def test_the_parameter_file_is_named_after_its_marker_file_so_none_overwrites_another():
+    assert scheme_parameters_path("out/your-robot/markers.yaml") == pathlib.Path("out/your-robot/scheme_node.yaml")
+    assert scheme_parameters_path("bags/run1.markers.yaml") == pathlib.Path("bags/run1.scheme_node.yaml")
+    assert scheme_parameters_path("bags/run2.markers.yaml") == pathlib.Path("bags/run2.scheme_node.yaml")
+    assert scheme_parameters_path("plates.yaml") == pathlib.Path("plates.scheme_node.yaml")
