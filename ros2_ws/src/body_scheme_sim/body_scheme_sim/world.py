@@ -14,6 +14,7 @@ Frames: the robot's root link sits at the world origin (``world2root`` is the id
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import pathlib
@@ -58,6 +59,7 @@ COLLISION_TOLERANCE = 1e-3
 #: them in which a pair must touch to be left unchecked (MoveIt's "always in collision").
 ALWAYS_SAMPLES = 200
 ALWAYS_FRACTION = 0.95
+_ALWAYS_IN_CONTACT = {}  # (URDF digest, limits, samples, fraction) -> pairs: the sampling is 0.5 s per start
 #: Visible marker corners must lie this many pixels inside the image border.
 IMAGE_MARGIN = 2.0
 # Collision filter group of the marker plates: rays hit them, the robot and the ground never collide with them.
@@ -173,6 +175,8 @@ class SimWorld:
                 text, self.missing_meshes = _patched_urdf(urdf, self._urdf_path.resolve().parent, tree,
                                                           self._package_path)
             path.write_text(text, encoding="utf-8")
+        if self._n_loads == 1:
+            self._nominal_urdf = pathlib.Path(path).read_bytes()  # the key of the "always in contact" cache
         try:
             return self._pb.loadURDF(str(path), basePosition=(0.0, 0.0, 0.0), useFixedBase=True)
         except pybullet.error as error:
@@ -251,7 +255,16 @@ class SimWorld:
         """Link pairs in contact in at least ``fraction`` of ``samples`` random postures within the limits (a fixed
         seed): meshes that overlap wherever the joints are, such as a shoulder's cover and the elbow two joints on.
         MoveIt's set-up assistant disables such "always in collision" pairs the same way; checking them would refuse
-        every command. The world's own random generator is not used, and the reference posture is restored."""
+        every command. The world's own random generator is not used, and the reference posture is restored. The
+        result is kept per process for the same URDF and limits (a world starts in 0.5 s less the second time)."""
+        tree = self._nominal.tree
+        key = (hashlib.sha256(self._nominal_urdf).hexdigest(), tuple(tree.action_lower), tuple(tree.action_upper),
+               samples, fraction)
+        if key not in _ALWAYS_IN_CONTACT:
+            _ALWAYS_IN_CONTACT[key] = frozenset(self._sample_pairs_in_contact(samples, fraction))
+        return _ALWAYS_IN_CONTACT[key]
+
+    def _sample_pairs_in_contact(self, samples, fraction):
         tree, rng, counts = self._nominal.tree, np.random.default_rng(0), {}
         for _ in range(samples):
             self._set_configuration(self._body.execute(rng.uniform(tree.action_lower, tree.action_upper)))

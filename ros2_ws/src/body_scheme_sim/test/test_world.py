@@ -380,3 +380,20 @@ def test_links_that_touch_in_almost_every_posture_are_not_checked_and_the_others
         assert world.in_collision()
         world.execute([0.0, 0.0, 0.0])
         assert not world.in_collision()
+
+
+def test_a_second_world_of_the_same_robot_reuses_the_sampled_pairs(tmp_path, monkeypatch):
+    path = tmp_path / "covered.urdf"
+    path.write_text(COVER_URDF)
+    with SimWorld(path, markers=(), marker_texture=False) as world:
+        first = world.ignored_collision_pairs
+
+    def no_sampling(*_args):
+        raise AssertionError("sampled again")
+
+    monkeypatch.setattr(SimWorld, "_sample_pairs_in_contact", no_sampling)
+    with SimWorld(path, markers=(), marker_texture=False) as world:
+        assert world.ignored_collision_pairs == first
+    path.write_text(COVER_URDF.replace('upper="0.5"', 'upper="0.4"'))  # another robot: sampled
+    with pytest.raises(AssertionError, match="sampled again"):
+        SimWorld(path, markers=(), marker_texture=False)
