@@ -1,8 +1,9 @@
 """Every command in a ``bash`` block of README.md and docs/*.md names what exists and passes options it accepts, as
 written: ``make`` targets (and the variables their recipes use), our modules' and executables' command lines (parsed
 by their own parsers), node parameters (``-p name:=value``, ``--params-file``), launch files and their arguments, and
-the ``body-scheme`` command. What the commands print and do is tested where they are (the system tests, test_cli,
-test_plan_markers, test_replay_offline, ...); this test fails when a doc and the code drift apart."""
+the ``body-scheme`` command; and docs/nodes.md names every parameter of every node, lists none a node lacks, and
+gives the nodes' defaults. What the commands print and do is tested where they are (the system tests, test_cli,
+test_plan_markers, test_replay_offline, ...); these tests fail when a doc and the code drift apart."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import yaml
 from rclpy.parameter import Parameter
 
 from body_scheme_nodes import cli
+from body_scheme_nodes.settings import parameter_defaults
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SRC = REPO / "ros2_ws" / "src"
@@ -110,15 +112,18 @@ def _console_scripts(package):
 
 
 def _parameters(executable):
-    """``{name: default or None}``: a node's parameters, from its shipped YAML (a test keeps each equal to what the
-    node declares), or as its source declares them (None: a default that is not a literal)."""
-    config = SRC / "body_scheme_nodes" / "config" / f"{executable}.yaml"
-    if config.is_file():
-        return _yaml_parameters(config)
+    """``{name: default or None}``: a node's parameters as it declares them (None: a default that is not a literal),
+    and those of its shipped YAML (a test keeps it equal to the declared defaults; scheme_node's holds the example
+    arm's ids and joints: its declared defaults are ``parameter_defaults``)."""
     module = _console_scripts("body_scheme_nodes")[executable]
     source = (SRC / "body_scheme_nodes" / (module.replace(".", "/") + ".py")).read_text(encoding="utf-8")
-    return {name: _literal(default) for name, default in re.findall(r'declare_parameter\(\s*"([\w.]+)",\s*([^)]*)\)',
-                                                                    source)}
+    declared = {name: _literal(default)
+                for name, default in re.findall(r'declare_parameter\(\s*"([\w.]+)",\s*([^)]*)\)', source)}
+    config = SRC / "body_scheme_nodes" / "config" / f"{executable}.yaml"
+    shipped = _yaml_parameters(config) if config.is_file() else {}
+    if executable == "scheme_node":
+        shipped.update(parameter_defaults())
+    return {**declared, **shipped}
 
 
 def _literal(text):
@@ -225,3 +230,51 @@ def test_ros2_launch_names_our_launch_files_and_their_arguments(doc, words):
     declared = set(re.findall(r'DeclareLaunchArgument\(\s*"(\w+)"', launch.read_text(encoding="utf-8")))
     for argument in words[4:]:
         assert argument.split(":=")[0] in declared, f"{doc}: {name} declares no argument {argument}"
+
+
+def _node_sections():
+    """``{node: its section of docs/nodes.md}``."""
+    text = (REPO / "docs" / "nodes.md").read_text(encoding="utf-8")
+    scripts = _console_scripts("body_scheme_nodes")
+    sections = {}
+    for section in re.split(r"^## ", text, flags=re.M)[1:]:
+        name = section.split(maxsplit=1)[0]
+        if name in scripts:
+            sections[name] = section
+    return sections
+
+
+def _table_rows(section):
+    """``[(names, default cell)]`` of the section's parameter table."""
+    table = section[section.index("### Parameters"):]
+    return [(re.findall(r"`([\w.]+)`", cells[1]), cells[3].strip())
+            for cells in (line.split("|") for line in table.splitlines() if line.startswith("| `"))]
+
+
+def test_docs_name_every_parameter_of_every_node_and_no_other():
+    sections = _node_sections()
+    assert {"scheme_node", "control_node", "babble_node", "tracker_node", "sim_node", "bag_replay"} <= set(sections)
+    for node, section in sections.items():
+        parameters = _parameters(node)
+        assert parameters, node
+        for name in parameters:
+            if name.startswith("learner.") and "`learner.<field>`" in section:
+                continue
+            assert f"`{name}`" in section, f"docs/nodes.md's {node} section does not name its parameter {name}"
+        for names, _ in _table_rows(section):
+            for name in names:
+                assert name in parameters, f"docs/nodes.md's {node} table lists {name}, which {node} lacks"
+
+
+def test_the_docs_defaults_are_the_nodes_defaults():
+    compared = 0
+    for node, section in _node_sections().items():
+        parameters = _parameters(node)
+        for names, cell in _table_rows(section):
+            if len(names) != 1 or parameters.get(names[0]) is None or " " in cell.strip("`"):
+                continue  # several names, a default the source computes, or a default in words
+            documented = yaml.safe_load(cell.strip("`").replace('""', "''"))
+            assert documented == parameters[names[0]], f"docs/nodes.md: {node}'s {names[0]} defaults to " \
+                                                        f"{parameters[names[0]]!r}, not {cell}"
+            compared += 1
+    assert compared >= 50
