@@ -56,9 +56,9 @@ class Watcher:
 
 def _call(ros_node, spin_until, service):
     client = ros_node.create_client(Trigger, f"/babble_node/{service}")
-    assert client.wait_for_service(timeout_sec=10)
+    assert client.wait_for_service(timeout_sec=60)
     future = client.call_async(Trigger.Request())
-    assert spin_until(future.done, timeout=10)
+    assert spin_until(future.done, timeout=60)
     return future.result()
 
 
@@ -88,7 +88,7 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
         "watch_diagnostics": "/alarm"})  # the test's stand-in for scheme_node's status
     # Resumed once the test sees babble_node's publishers (else the first goal can go out before discovery).
     assert spin_until(lambda: ros_node.count_publishers("joint_trajectory_controller/joint_trajectory") >= 1
-                      and ros_node.count_publishers("joint_commands") >= 1, timeout=30), babble.output()
+                      and ros_node.count_publishers("joint_commands") >= 1, timeout=60), babble.output()
     spin_until(lambda: False, timeout=1.0)
     assert _call(ros_node, spin_until, "resume").success
     true_edges = {frozenset(e) for e in tree.marker_tree_edges()}
@@ -115,7 +115,7 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     spin_until(lambda: False, timeout=1.5)
     assert len(watcher.trajectories) == n and watcher.babbling.get("state") == "paused"
     assert _call(ros_node, spin_until, "resume").success
-    assert spin_until(lambda: len(watcher.trajectories) > n + 2, timeout=10)
+    assert spin_until(lambda: len(watcher.trajectories) > n + 2, timeout=60)
 
     # Stop: one point where the arm is (a JointTrajectoryController rejects an empty trajectory), then nothing; the
     # arm stays there. A hostile joint state at 50 rad just before is refused: the hold stays within the limits.
@@ -125,7 +125,7 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
         hostile.publish(JointState(name=names, position=[50.0] + [0.0] * (len(names) - 1)))
         spin_until(lambda: False, timeout=0.05)
     assert _call(ros_node, spin_until, "stop").success
-    assert spin_until(lambda: watcher.babbling.get("state") == "stopped", timeout=5)
+    assert spin_until(lambda: watcher.babbling.get("state") == "stopped", timeout=60)
     spin_until(lambda: False, timeout=1.5)
     hold = watcher.trajectories[-1]
     assert len(watcher.trajectories) > n and len(hold.points) == 1
@@ -141,7 +141,7 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     # a second robot's scheme_node, whose status name contains this one's, says OK in between.
     assert _call(ros_node, spin_until, "resume").success
     assert spin_until(lambda: len(watcher.trajectories) > n + 1 and watcher.babbling.get("state") == "idle",
-                      timeout=10)
+                      timeout=60)
     alarm = ros_node.create_publisher(DiagnosticArray, "/diagnostics", 10)
     error = DiagnosticArray(status=[DiagnosticStatus(name="/alarm: body scheme", level=DiagnosticStatus.ERROR,
                                                      message="2 local model(s) invalid (adapting)",
@@ -160,9 +160,9 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     ok = DiagnosticArray(status=[DiagnosticStatus(name="/alarm: body scheme", level=DiagnosticStatus.OK)])
     alarm.publish(ok)
     assert _call(ros_node, spin_until, "resume").success
-    assert spin_until(lambda: watcher.babbling.get("state") == "idle", timeout=5)
+    assert spin_until(lambda: watcher.babbling.get("state") == "idle", timeout=60)
     tracker.stop()
-    assert spin_until(lambda: "camera is quiet" in watcher.babbling.get("message", ""), timeout=20), \
+    assert spin_until(lambda: "camera is quiet" in watcher.babbling.get("message", ""), timeout=60), \
         watcher.babbling
 
 
@@ -194,7 +194,7 @@ def test_active_babbling_follows_the_scheme_nodes_suggestions_and_learns_the_tru
     true_edges = {frozenset(e) for e in tree.marker_tree_edges()}
     assert spin_until(lambda: watcher.edges() == true_edges, timeout=240), (
         watcher.edges(), babble.output()[-2000:], sim.output()[-1500:])
-    assert spin_until(lambda: "suggestions_followed" in watcher.babbling, timeout=5), watcher.babbling
+    assert spin_until(lambda: "suggestions_followed" in watcher.babbling, timeout=60), watcher.babbling
     followed = int(watcher.babbling["suggestions_followed"])
     assert suggestions and followed >= 10, watcher.babbling
     for goal in watcher.goals():

@@ -39,7 +39,7 @@ def test_status_events_state_urdf_and_params_of_scheme_node(start_node, ros_node
     state_dir = tmp_path / "state"
     process = start_node("body_scheme_nodes", "scheme_node", dict(scheme_parameters(tree), state_dir=str(state_dir)))
     collector = Collector(ros_node)
-    assert spin_until(lambda: collector.structure is not None, timeout=30), process.output()
+    assert spin_until(lambda: collector.structure is not None, timeout=60), process.output()
 
     answer = cli("get-urdf")
     assert answer.returncode == 1 and "no body scheme yet" in answer.stderr, answer
@@ -55,7 +55,7 @@ def test_status_events_state_urdf_and_params_of_scheme_node(start_node, ros_node
     babbler = Babbler(ros_node, session)
     true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
     assert spin_until(lambda: learned_the_tree(collector, true_edges), timeout=90, during=babbler), process.output()
-    assert spin_until(lambda: "structure_found" in events_log.read_text(), timeout=30), events_log.read_text()
+    assert spin_until(lambda: "structure_found" in events_log.read_text(), timeout=60), events_log.read_text()
     events.send_signal(signal.SIGINT)  # Ctrl-C ends it quietly
     assert events.wait(timeout=30) == 0, events.stderr.read()
     first = events_log.read_text().splitlines()[0]
