@@ -46,9 +46,9 @@ def ros(context):
         return SchemeExplorer(node, settings, 0.02, lambda: snapshots.append(True))
 
     def received(n, messages=answers):
-        """The answers (or other ``messages``) after spinning until ``n`` came or 5 s passed, then 0.2 s more (so
+        """The answers (or other ``messages``) after spinning until ``n`` came or 60 s passed, then 0.2 s more (so
         that one too many would show)."""
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + 60.0
         while len(messages) < n and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
         settle = time.monotonic() + 0.2
@@ -161,14 +161,14 @@ def test_every_request_sent_is_answered_counted_lost_or_refused_unread_and_no_re
     explorer = make()
     node = explorer.node
     publisher = node.create_publisher(ExploreNear, "body_scheme/explore_near", 1000)
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 60
     while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
         time.sleep(0.01)
     big = request([0.0] * 20_000, names=[f"joint_{k}" for k in range(20_000)], sec=7)
     publisher.publish(big)
     huge = request([0.0] * 200_000, sec=8)  # 1.6 MB: over max_message_bytes
     publisher.publish(huge)
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 60
     while explorer.diagnostics()[0]["oversized_message"] == 0 and time.monotonic() < deadline:
         explorer.take_requests()  # the two are taken before the flood could overwrite them
         time.sleep(0.01)
@@ -177,7 +177,7 @@ def test_every_request_sent_is_answered_counted_lost_or_refused_unread_and_no_re
     assert refusal.outcome.startswith("refused: JointState"), refusal.outcome
     for k in range(300):
         publisher.publish(request([0.1, 0.2], sec=100 + k))
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         explorer.take_requests()
         rejected, values = explorer.diagnostics()

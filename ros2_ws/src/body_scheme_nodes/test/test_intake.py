@@ -4,6 +4,7 @@ import time
 
 import pytest
 import rclpy
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 
@@ -22,19 +23,25 @@ def node(context):
 
 def _publish(node, intake, n):
     publisher = node.create_publisher(JointState, "commands", 100)
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 60
     while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
         time.sleep(0.01)
     for k in range(n):
         publisher.publish(JointState(name=["j"], position=[float(k)]))
+    _delivered(publisher)
     return publisher
+
+
+def _delivered(publisher):
+    """Wait until the (reliable) intake acknowledged every message published: a condition, not a time window."""
+    assert publisher.wait_for_all_acked(Duration(seconds=60))
 
 
 def test_take_returns_every_waiting_message_oldest_first_with_its_reception_time(node):
     intake = BatchIntake(node, JointState, "commands", 100)
     before = time.time()
     _publish(node, intake, 30)
-    messages, deadline = [], time.monotonic() + 10
+    messages, deadline = [], time.monotonic() + 60
     while len(messages) < 30 and time.monotonic() < deadline:
         messages += intake.take()
         time.sleep(0.01)
@@ -49,7 +56,6 @@ def test_the_executor_never_dispatches_a_batch_intake(node):
     """Spinning with messages waiting calls no callback (its callback would raise) and leaves them for take()."""
     intake = BatchIntake(node, JointState, "commands", 100)
     _publish(node, intake, 5)
-    time.sleep(0.3)
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     for _ in range(20):
@@ -62,7 +68,6 @@ def test_messages_beyond_the_depth_are_lost_oldest_first(node):
     """The depth is the bound documented for queue_depth: a longer backlog keeps the newest messages."""
     intake = BatchIntake(node, JointState, "commands", 10)
     _publish(node, intake, 25)
-    time.sleep(0.5)
     assert [msg.position[0] for msg, _ in intake.take()] == [float(k) for k in range(15, 25)]
 
 
@@ -71,14 +76,12 @@ def test_losses_inside_dds_are_counted_from_the_publishers_sequence_numbers(node
     the publisher's sequence numbers counts them: whatever was sent is taken or counted as lost."""
     intake = BatchIntake(node, JointState, "commands", 10)
     _publish(node, intake, 25)
-    time.sleep(0.5)
     assert len(intake.take()) == 10 and intake.lost == 0  # the first take sets the baseline: before it, unknown
     publisher = node.create_publisher(JointState, "commands", 100)  # a second publisher: numbers interleave
     time.sleep(0.3)
     node.destroy_publisher(publisher)
     time.sleep(0.3)
     _publish_more(node, 40)
-    time.sleep(0.5)
     assert len(intake.take()) == 10 and intake.lost == 30 and intake.full_queue_takes == 0
 
 
@@ -86,13 +89,14 @@ def _publish_more(node, n):
     publisher = next(p for p in node.publishers if p.topic_name == "/commands")
     for k in range(n):
         publisher.publish(JointState(name=["j"], position=[float(k)]))
+    _delivered(publisher)
 
 
 def test_a_message_larger_than_max_bytes_is_refused_before_it_is_deserialized(node):
     intake = BatchIntake(node, JointState, "commands", 10, max_bytes=1000)
     publisher = _publish(node, intake, 1)
     publisher.publish(JointState(name=[f"joint_{k}" for k in range(100)], position=[0.0] * 100))
-    time.sleep(0.5)
+    _delivered(publisher)
     assert len(intake.take()) == 1 and intake.take_refused() == [pytest.approx(2_000, rel=0.5)]
     assert intake.take_refused() == []
 
@@ -109,9 +113,9 @@ def test_requests_are_taken_in_batches_and_each_caller_gets_its_answer(node):
     # 50 callers. Every caller's reader sees every response (they share a topic) and keeps its depth of them: callers
     # that wait together need a depth of at least their number, or they lose their own answer among the others'.
     clients = [node.create_client(SetBool, "toggle", qos_profile=QoSProfile(depth=100)) for _ in range(50)]
-    assert all(client.wait_for_service(timeout_sec=10) for client in clients)
+    assert all(client.wait_for_service(timeout_sec=60) for client in clients)
     futures = [client.call_async(SetBool.Request(data=k % 2 == 0)) for k, client in enumerate(clients)]
-    requests, deadline = [], time.monotonic() + 10
+    requests, deadline = [], time.monotonic() + 60
     while len(requests) < 50 and time.monotonic() < deadline:
         requests += intake.take()
         time.sleep(0.01)
@@ -152,7 +156,7 @@ def test_slow_requests_are_served_in_a_thread_of_their_own_and_the_excess_is_ans
                            lambda name, limit: f"busy ({limit})", lambda text: None)
     try:
         clients = [node.create_client(SetBool, "slow", qos_profile=QoSProfile(depth=100)) for _ in range(10)]
-        assert all(client.wait_for_service(timeout_sec=10) for client in clients)
+        assert all(client.wait_for_service(timeout_sec=60) for client in clients)
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
         futures, deadline = [], time.monotonic() + 30

@@ -17,7 +17,7 @@ def test_latched_topics_are_recorded_with_their_qos_so_a_replay_latches_them(tmp
         recorder = GraphRecorder(node, tmp_path / "bag", [("description", String, True), ("chatter", String, False)])
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 60
         while recorder.counts["/description"] == 0 and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
         executor.shutdown()
