@@ -115,7 +115,8 @@ from . import conversions, scheme_diagnostics, state_files, view
 from .checkpoint import Checkpoint, lock_holder
 from .explorer import SchemeExplorer
 from .intake import BatchIntake, RequestIntake, ServiceWorker
-from .message_feed import feed_message, learn_sample
+from .learning_loop import LearningLoop
+from .message_feed import learn_sample
 from .ros_parameters import refuse_parameter_changes
 from .settings import SchemeSettings, parameter_defaults, specification_tree
 from .spin import run_node
@@ -136,7 +137,6 @@ class SchemeNode(Node):
         self.settings = SchemeSettings.from_parameters(values)
         self.joint_names = list(self.settings.joint_names)
         self.frame_id = self.settings.frame_id
-        self.pairer = self.settings.new_pairer()
         # Refuses a directory and a checkpoint another node holds (CheckpointError: one FATAL line, exit 1).
         self.checkpoint = Checkpoint(self.settings.checkpoint_path) if self.settings.checkpoint_path else None
         if self.checkpoint is not None and self.checkpoint.removed_orphans:
@@ -150,20 +150,11 @@ class SchemeNode(Node):
         self.rejected = Counter()
         self.event_counts = Counter()
         self.latency = deque(maxlen=200)
-        self.lag = deque(maxlen=200)  # age of each sample when the learning thread took it (s)
-        self._inbox = deque()  # (kind, message, receipt time) from the intake; taken by the learning thread
-        self._pending = deque()  # (receipt time, paired sample) not learnt yet
-        # Messages and samples dropped under overload, by kind (oldest first): messages by the executor's thread under
-        # _lock, samples by the learning thread under _learner_lock; /diagnostics reads it on the executor's thread
-        # under _learner_lock, so no write overlaps the read.
-        self.shed = Counter()
-        self.received = Counter()  # messages taken in from the subscriptions, by kind
-        self.refused_at_intake = Counter()  # messages over max_message_bytes, by the executor's thread under _lock
-        self.oversized_observations = 0  # of those, observation messages (decided: body_scheme/progress counts them)
+        # Inbox, stamp policy, pairing, waiting samples and shedding (ROS-free). The learning thread works on it
+        # under _learner_lock, which /diagnostics (the executor's thread) takes to read the learner and the counters.
+        self.loop = LearningLoop(self.settings, self._now, self._learn, self._reject)
         self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
-        self.restamped = Counter()
-        self.last_input_time = self.last_learn_time = None  # node clock, s: the watchdog's inputs
-        self._lock = threading.Lock()
+        self.last_learn_time = None  # node clock, s: the watchdog's input, with loop.last_input_time
 
         depth, max_bytes = self.settings.queue_depth, self.settings.max_message_bytes
         self._intake = {"command": BatchIntake(self, JointState, "joint_commands", depth, max_bytes),
@@ -183,7 +174,6 @@ class SchemeNode(Node):
         self._last_view = -float("inf")
         self._last_description = None
         self._recent_events = {}  # child part -> (kind, node time) of the latest replacement or reinstatement
-        self.n_observation_messages = 0
         self._last_progress = None
         depth = self.settings.service_queue_depth
         self._service_worker = ServiceWorker(
@@ -254,24 +244,18 @@ class SchemeNode(Node):
         # Both topics in the order DDS received them (as callbacks would have seen them), with receipt times on the
         # node clock: the wait in the queue counts towards a sample's age.
         self.explorer.take_requests()
-        batch = sorted(((received, kind, msg) for kind, intake in self._intake.items()
+        batch = sorted(((now - max(0.0, wall - received), kind, msg) for kind, intake in self._intake.items()
                         for msg, received in intake.take()), key=lambda item: item[0])
-        with self._lock:
-            # Larger than max_message_bytes: never deserialized. Counts of joints and markers are checked by
-            # feed_message, on the path the offline replay shares, before any conversion.
-            for kind, intake in self._intake.items():
-                for size in intake.take_refused():
-                    self.received[kind] += 1
-                    self.refused_at_intake["oversized_message"] += 1
-                    self.oversized_observations += kind == "observations"
-                    self.get_logger().warn(f"rejected input (oversized_message): {size} byte message on {kind} "
-                                           f"(max_message_bytes {self.settings.max_message_bytes})",
-                                           throttle_duration_sec=5.0)
-            for received, kind, msg in batch:
-                self.received[kind] += 1
-                self._inbox.append((kind, msg, now - max(0.0, wall - received)))
-            while len(self._inbox) > self.settings.max_inbox:
-                self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
+        # Larger than max_message_bytes: never deserialized. Counts of joints and markers are checked by
+        # feed_message, on the path the offline replay shares, before any conversion.
+        refused = []
+        for kind, intake in self._intake.items():
+            for size in intake.take_refused():
+                refused.append(kind)
+                self.get_logger().warn(f"rejected input (oversized_message): {size} byte message on {kind} "
+                                       f"(max_message_bytes {self.settings.max_message_bytes})",
+                                       throttle_duration_sec=5.0)
+        self.loop.put(batch, refused)
         if batch:
             self._wake.set()
 
@@ -285,7 +269,7 @@ class SchemeNode(Node):
         raises it: the node fails loudly, as it would have in a callback, rather than living on without learning."""
         try:
             while not self._stopping.is_set():
-                if not self._pending:
+                if not self.loop.pending:
                     self._wake.wait(self.settings.update_period)
                     self._wake.clear()
                 self._work()
@@ -306,71 +290,14 @@ class SchemeNode(Node):
         super().destroy_node()
 
     def _work(self):
-        """Take the inbox in, then learn the oldest waiting sample that is not older than ``max_sample_age`` (the
-        older ones are shed: under overload the learner keeps to the freshest data)."""
-        with self._lock:
-            inbox, self._inbox = self._inbox, deque()
+        """Take the inbox in and learn one sample (:meth:`LearningLoop.work`); publish the progress."""
+        inbox = self.loop.take_inbox()
         with self._learner_lock:  # the counters the executor's thread reads for /diagnostics change here
-            self._take_in(inbox, self._now())
-            while self._pending:
-                received, sample = self._pending.popleft()
-                age = self._now() - received
-                if age <= self.settings.max_sample_age:
-                    self.lag.append(age)  # how far learning is behind its input (camera rate: it must not grow)
-                    self._learn(*sample)
-                    break
-                self.shed["stale_samples"] += 1
-        self._publish_progress()
-
-    def _take_in(self, inbox, now):
-        """Stamp policy, pairing and the bound on waiting samples for a batch of ``(kind, message, receipt time)``."""
-        if inbox:
-            self.last_input_time = now
-        for kind, msg, received in inbox:
-            if not self._stamp_acceptable(msg, received, now):
-                continue
-            # The same function replay_offline uses: a bag replayed offline and through the graph pairs alike.
-            samples, rejections = feed_message(self.pairer, kind, msg, self.joint_names, self.frame_id,
-                                               self.settings.message_limits)
-            self._pending.extend((received, sample) for sample in samples)  # a sample is as old as its message
-            for code, detail in rejections:
-                self._reject(code, detail)
-        self.n_observation_messages += sum(item[0] == "observations" for item in inbox)
-        self._pending.extend((now, sample) for sample in self.pairer.flush(now))
-        while len(self._pending) > self.settings.max_pending_samples:
-            self._pending.popleft()
-            self.shed["samples"] += 1
-
-    def _publish_progress(self):
-        """Observation messages decided so far: those taken in by the learning thread, shed from the inbox or
-        refused unread for their size, less those the pairer holds and those whose samples wait to be learnt (one
-        sample per observation message). bag_replay's rate 0 keeps its messages in flight within this, so a replay
-        waits for learning, not only for intake."""
-        with self._lock:
-            oversized = self.oversized_observations
-        progress = (self.n_observation_messages + self.shed["observations_messages"] + oversized
-                    - self.pairer.waiting - len(self._pending))
+            self.loop.work(inbox)
+        progress = self.loop.progress()
         if progress != self._last_progress:
             self._last_progress = progress
             self.pub_progress.publish(UInt64(data=progress))
-
-    def _stamp_acceptable(self, msg, received, now):
-        """Apply the stamp policy: zero stamps per ``unstamped_policy``, stamps beyond ``stamp_tolerance`` ahead of
-        the node clock refused (one such stamp would otherwise put every later message out of order)."""
-        stamp = msg.header.stamp
-        if stamp.sec == 0 and stamp.nanosec == 0:
-            if self.settings.unstamped_policy == "reject":
-                self._reject("unstamped", "zero stamp (unstamped_policy: reject)")
-                return False
-            msg.header.stamp = conversions.stamp_from_seconds(received)
-            self.restamped["unstamped"] += 1
-            return True
-        ahead = conversions.seconds_from_stamp(stamp) - now
-        if ahead > self.settings.stamp_tolerance:
-            self._reject("future_stamp", f"stamped {ahead:.3g} s ahead of the node clock (stamp_tolerance "
-                                         f"{self.settings.stamp_tolerance} s)")
-            return False
-        return True
 
     def _learn(self, stamp, actions, observations):
         start = time.perf_counter()
@@ -467,24 +394,23 @@ class SchemeNode(Node):
         array.header.stamp = self.get_clock().now().to_msg()
         edges = learner.edge_status()
         level, message = scheme_diagnostics.scheme_level(learner, edges, self._stalled_for())
-        with self._lock:
-            at_intake = Counter(self.refused_at_intake)
+        loop = self.loop
         explored_rejected, explored = self.explorer.diagnostics()
-        rejected = (Counter(self.rejected) + Counter(self.pairer.rejected) + Counter(learner.rejected) + at_intake
-                    + explored_rejected)
-        values = scheme_diagnostics.learner_values(learner, edges, self.latency, self.lag)
+        rejected = (Counter(self.rejected) + Counter(loop.pairer.rejected) + Counter(learner.rejected)
+                    + loop.intake_counts() + explored_rejected)
+        values = scheme_diagnostics.learner_values(learner, edges, self.latency, loop.lag)
         values["rejected_total"] = sum(rejected.values())
         # Events are cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
         values.update(scheme_diagnostics.counter_values({
             "rejected": rejected, "events": {k: n for k, n in self.event_counts.items() if k != "input_rejected"},
-            "restamped": self.restamped, "shed": self.shed, "received": self.received,
+            "restamped": loop.restamped, "shed": loop.shed, "received": loop.received,
             "corrected": learner.corrected}))
         for kind, intake in self._intake.items():  # inside DDS, before the node saw them (body_scheme_nodes.intake)
             values[f"lost.{kind}_messages"] = intake.lost
             values[f"lost.{kind}_full_queue_takes"] = intake.full_queue_takes
         values.update(scheme_diagnostics.counter_values({"services": self._service_worker.counters()}))
-        values["pending_samples"] = len(self._pending)
-        values["pairing_waiting"] = self.pairer.waiting  # observations waiting for their command
+        values["pending_samples"] = len(loop.pending)
+        values["pairing_waiting"] = loop.pairer.waiting  # observations waiting for their command
         values.update(explored)
         name = self.get_fully_qualified_name()
         hardware_id = self.settings.hardware_id or name
@@ -495,9 +421,9 @@ class SchemeNode(Node):
 
     def _stalled_for(self):
         """Seconds since the last learning step while input keeps arriving, if beyond ``stall_timeout``; else None."""
-        if self.last_input_time is None:
+        if self.loop.last_input_time is None:
             return None
-        since = self.last_input_time - (self.last_learn_time if self.last_learn_time is not None else self.started)
+        since = self.loop.last_input_time - (self.last_learn_time if self.last_learn_time is not None else self.started)
         return since if since > self.settings.stall_timeout else None
 
     # -- services ------------------------------------------------------------------------------------------------

@@ -1,0 +1,126 @@
+"""scheme_node's way from messages to learning steps, without ROS: the inbox, the stamp policy, pairing, the waiting
+samples, and what is shed under overload.
+
+The executor's thread :meth:`~LearningLoop.put` s every message it took from DDS, with its receipt time on the node
+clock (beyond ``max_inbox`` the oldest are shed, counted by kind). The learning thread takes the inbox
+(:meth:`~LearningLoop.take_inbox`) and :meth:`~LearningLoop.work` s on it: the stamp policy (a zero stamp is
+restamped at receipt or refused, a stamp beyond ``stamp_tolerance`` ahead of the clock is refused), pairing through
+:func:`~body_scheme_nodes.message_feed.feed_message` (the function the offline replay calls), the bound on waiting
+samples (``max_pending_samples``, oldest shed), and one learning step on the oldest sample not older than
+``max_sample_age`` (older ones are shed: under overload the learner keeps to the freshest data). scheme_node wraps it
+in ROS: subscriptions, the learning thread, publishers and /diagnostics.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, deque
+
+from . import conversions
+from .message_feed import feed_message
+
+__all__ = ["LearningLoop"]
+
+
+class LearningLoop:
+    """The loop for one learner's settings (:class:`~body_scheme_nodes.settings.SchemeSettings`).
+
+    ``clock()`` is the node's time in seconds; ``learn(stamp, actions, observations)`` learns one sample (scheme_node
+    publishes what came of it); ``reject(code, detail)`` counts and reports a refused input. Counters: ``received``
+    (messages put, by kind), ``refused_at_intake`` (too large to read), ``restamped``, ``shed`` (``<kind>_messages``
+    from the inbox, ``samples`` beyond ``max_pending_samples``, ``stale_samples`` beyond ``max_sample_age``), ``lag``
+    (the age of the last 200 samples when learnt, s)."""
+
+    def __init__(self, settings, clock, learn, reject):
+        self.settings, self.clock, self._learn, self._reject = settings, clock, learn, reject
+        self.pairer = settings.new_pairer()
+        self.pending = deque()  # (receipt time, paired sample) not learnt yet: the learning thread's
+        self._inbox = deque()  # (kind, message, receipt time): put by one thread, taken by the other
+        self._lock = threading.Lock()
+        self.received, self.refused_at_intake, self.restamped, self.shed = Counter(), Counter(), Counter(), Counter()
+        self.lag = deque(maxlen=200)
+        self.n_observation_messages = 0  # taken in by the learning thread
+        self.oversized_observations = 0  # observation messages refused unread
+        self.last_input_time = None  # node time the learning thread last took input in
+
+    # -- the executor's thread ----------------------------------------------------------------------------------
+    def put(self, batch, refused=()):
+        """Take ``batch``, ``[(receipt time, kind, message)]`` in receipt order, into the inbox, and count
+        ``refused``, ``[kind]`` of messages too large to read; beyond ``max_inbox`` the oldest are shed."""
+        with self._lock:
+            for kind in refused:
+                self.received[kind] += 1
+                self.refused_at_intake["oversized_message"] += 1
+                self.oversized_observations += kind == "observations"
+            for received, kind, msg in batch:
+                self.received[kind] += 1
+                self._inbox.append((kind, msg, received))
+            while len(self._inbox) > self.settings.max_inbox:
+                self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
+
+    def intake_counts(self):
+        """A copy of ``refused_at_intake`` (the executor's thread writes it)."""
+        with self._lock:
+            return Counter(self.refused_at_intake)
+
+    # -- the learning thread ------------------------------------------------------------------------------------
+    def take_inbox(self):
+        """Every message put since the last call, oldest first."""
+        with self._lock:
+            inbox, self._inbox = self._inbox, deque()
+        return inbox
+
+    def work(self, inbox):
+        """Stamp policy and pairing for ``inbox``, then learn the oldest waiting sample that is not too old."""
+        self._take_in(inbox, self.clock())
+        while self.pending:
+            received, sample = self.pending.popleft()
+            age = self.clock() - received
+            if age <= self.settings.max_sample_age:
+                self.lag.append(age)  # how far learning is behind its input (camera rate: it must not grow)
+                self._learn(*sample)
+                return
+            self.shed["stale_samples"] += 1
+
+    def progress(self):
+        """Observation messages decided so far: taken in, shed from the inbox or refused unread, less those the
+        pairer holds and those whose samples wait (one sample per observation message). bag_replay's rate 0 keeps
+        its messages in flight within this, so a replay waits for learning, not only for intake."""
+        with self._lock:
+            oversized, shed = self.oversized_observations, self.shed["observations_messages"]
+        return self.n_observation_messages + shed + oversized - self.pairer.waiting - len(self.pending)
+
+    def _take_in(self, inbox, now):
+        if inbox:
+            self.last_input_time = now
+        for kind, msg, received in inbox:
+            if not self._stamp_acceptable(msg, received, now):
+                continue
+            samples, rejections = feed_message(self.pairer, kind, msg, self.settings.joint_names,
+                                               self.settings.frame_id, self.settings.message_limits)
+            self.pending.extend((received, sample) for sample in samples)  # a sample is as old as its message
+            for code, detail in rejections:
+                self._reject(code, detail)
+        self.n_observation_messages += sum(item[0] == "observations" for item in inbox)
+        self.pending.extend((now, sample) for sample in self.pairer.flush(now))
+        while len(self.pending) > self.settings.max_pending_samples:
+            self.pending.popleft()
+            self.shed["samples"] += 1
+
+    def _stamp_acceptable(self, msg, received, now):
+        """Zero stamps per ``unstamped_policy``; stamps beyond ``stamp_tolerance`` ahead of the clock refused (one
+        such stamp would otherwise put every later message out of order)."""
+        stamp = msg.header.stamp
+        if stamp.sec == 0 and stamp.nanosec == 0:
+            if self.settings.unstamped_policy == "reject":
+                self._reject("unstamped", "zero stamp (unstamped_policy: reject)")
+                return False
+            msg.header.stamp = conversions.stamp_from_seconds(received)
+            self.restamped["unstamped"] += 1
+            return True
+        ahead = conversions.seconds_from_stamp(stamp) - now
+        if ahead > self.settings.stamp_tolerance:
+            self._reject("future_stamp", f"stamped {ahead:.3g} s ahead of the node clock (stamp_tolerance "
+                                         f"{self.settings.stamp_tolerance} s)")
+            return False
+        return True
