@@ -29,6 +29,7 @@ class Collector:
         self.structure = None
         self.snapshot = None
         self.diagnostics = {}
+        self.n_diagnostics = 0  # arrays received
         node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, LATCHED)
         node.create_subscription(ModelSnapshot, "body_scheme/snapshot", self._snapshot, LATCHED)
         node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
@@ -40,6 +41,7 @@ class Collector:
         self.snapshot = msg
 
     def _diagnostics(self, msg):
+        self.n_diagnostics += 1
         for status in msg.status:
             self.diagnostics[status.name] = status
 

@@ -30,6 +30,7 @@ class Watcher:
 
     def __init__(self, node):
         self.trajectories, self.actions, self.structure, self.babbling, self.joint_states = [], [], None, {}, []
+        self.n_babbling = 0  # babble_node statuses received (one a second of its clock)
         node.create_subscription(JointTrajectory, "joint_trajectory_controller/joint_trajectory",
                                  self.trajectories.append, 100)
         node.create_subscription(JointState, "joint_commands", self.actions.append, 100)
@@ -43,6 +44,7 @@ class Watcher:
     def _diagnostics(self, msg):
         for status in msg.status:
             if status.name.endswith(": babbling"):
+                self.n_babbling += 1
                 self.babbling = {"level": status.level, "message": status.message,
                                  **{kv.key: kv.value for kv in status.values}}
 
@@ -109,10 +111,13 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
     assert watcher.actions and not unsent, (unsent, len(watcher.actions), len(watcher.trajectories))
 
     # Pause: the current move ends, then nothing is sent; resume: babbling goes on.
+    # (Windows counted in babble_node's own statuses, one a second of its clock, not in the test's wall clock.)
     assert _call(ros_node, spin_until, "pause").success
-    spin_until(lambda: False, timeout=1.0)
-    n = len(watcher.trajectories)
-    spin_until(lambda: False, timeout=1.5)
+    assert spin_until(lambda: watcher.babbling.get("state") == "paused", timeout=60)
+    statuses = watcher.n_babbling
+    assert spin_until(lambda: watcher.n_babbling >= statuses + 1, timeout=60)  # what was in flight has arrived
+    n, statuses = len(watcher.trajectories), watcher.n_babbling
+    assert spin_until(lambda: watcher.n_babbling >= statuses + 2, timeout=60)
     assert len(watcher.trajectories) == n and watcher.babbling.get("state") == "paused"
     assert _call(ros_node, spin_until, "resume").success
     assert spin_until(lambda: len(watcher.trajectories) > n + 2, timeout=60)
@@ -126,14 +131,15 @@ def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_
         spin_until(lambda: False, timeout=0.05)
     assert _call(ros_node, spin_until, "stop").success
     assert spin_until(lambda: watcher.babbling.get("state") == "stopped", timeout=60)
-    spin_until(lambda: False, timeout=1.5)
+    statuses = watcher.n_babbling
+    assert spin_until(lambda: watcher.n_babbling >= statuses + 1, timeout=60)  # the hold has arrived
     hold = watcher.trajectories[-1]
     assert len(watcher.trajectories) > n and len(hold.points) == 1
     limits = (tree.action_lower + MARGIN - 1e-9, tree.action_upper - MARGIN + 1e-9)
     assert np.all(hold.points[0].positions >= limits[0]) and np.all(hold.points[0].positions <= limits[1])
     assert int(watcher.babbling["driver.joint_states_out_of_range"]) >= 1, watcher.babbling
-    n = len(watcher.trajectories)
-    spin_until(lambda: False, timeout=1.5)
+    n, statuses = len(watcher.trajectories), watcher.n_babbling
+    assert spin_until(lambda: watcher.n_babbling >= statuses + 2, timeout=60)
     assert len(watcher.trajectories) == n
     assert np.allclose(watcher.joint_states[-1].position, hold.points[0].positions, atol=0.02)
 

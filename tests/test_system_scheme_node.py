@@ -69,9 +69,12 @@ def test_scheme_node_learns_structure_over_dds(start_node, ros_node, spin_until)
     # Nothing learnt, nothing refitted: no snapshot is republished.
     assert spin_until(lambda: babbler.k == session.n_steps and _values(collector).get("pending_samples") == "0"
                       and _values(collector).get("pairing_waiting") == "0", timeout=60, during=babbler), babbler.k
-    spin_until(lambda: False, timeout=1.5)  # a refit of the last step goes out within a second
-    last = collector.snapshot
-    spin_until(lambda: False, timeout=2.5)
+    # A refit of the last step goes out right after the next /diagnostics array (the same timer): two arrays on, none
+    # is left; three more arrays (three periods of the node's timer, however slow the machine) bring no snapshot.
+    arrays = collector.n_diagnostics
+    assert spin_until(lambda: collector.n_diagnostics >= arrays + 2, timeout=60)
+    last, arrays = collector.snapshot, collector.n_diagnostics
+    assert spin_until(lambda: collector.n_diagnostics >= arrays + 3, timeout=60)
     assert collector.snapshot is last, (last.step, collector.snapshot.step)
 
 

@@ -113,8 +113,9 @@ def scheme_parameters_path(markers_path):
     (so two recordings in one directory never overwrite each other's)."""
     markers_path = pathlib.Path(markers_path)
     name = markers_path.name
-    stem = name[:-len("markers.yaml")] if name.endswith("markers.yaml") else markers_path.stem + "."
-    return markers_path.with_name(stem + "scheme_node.yaml")
+    if name == "markers.yaml" or name.endswith(".markers.yaml"):
+        return markers_path.with_name(name[:-len("markers.yaml")] + "scheme_node.yaml")
+    return markers_path.with_name(markers_path.stem + ".scheme_node.yaml")
 
 
 def write_scheme_parameters(robot, markers_path, path):

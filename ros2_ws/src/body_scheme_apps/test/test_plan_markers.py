@@ -40,3 +40,4 @@ def test_the_parameter_file_is_named_after_its_marker_file_so_none_overwrites_an
     assert scheme_parameters_path("bags/run1.markers.yaml") == pathlib.Path("bags/run1.scheme_node.yaml")
     assert scheme_parameters_path("bags/run2.markers.yaml") == pathlib.Path("bags/run2.scheme_node.yaml")
     assert scheme_parameters_path("plates.yaml") == pathlib.Path("plates.scheme_node.yaml")
+    assert scheme_parameters_path("mymarkers.yaml") == pathlib.Path("mymarkers.scheme_node.yaml")

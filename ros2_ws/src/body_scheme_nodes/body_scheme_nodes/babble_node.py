@@ -359,8 +359,9 @@ class BabbleNode(Node):
         takes no picture while the arm moves, and a move at a low ``max_velocity`` outlasts ``camera_timeout`` (the
         collision screen and the joint-state watchdog guard the move itself); a dead camera still stops babbling
         with rests shorter than ``camera_timeout`` (``wait_for_frame`` off, a short ``dwell``)."""
-        if self.judged_at is not None and self.driver.goal is not None:
-            self.moved_since_camera += now - self.judged_at
+        if self.judged_at is not None and self.driver.goal is not None:  # moving since then (or the last message)
+            since = self.judged_at if self.last_camera is None else max(self.judged_at, self.last_camera)
+            self.moved_since_camera += max(0.0, now - since)
         self.judged_at = now
         if self.camera_timeout > 0:
             quiet_since = self.last_camera if self.last_camera is not None else self.started

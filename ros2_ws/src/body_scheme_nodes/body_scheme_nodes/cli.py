@@ -14,7 +14,8 @@ The set-up from PyPI has no ros2cli (docs/ros-from-pypi.md); this command is ins
     body-scheme params NODE [NAME [VALUE]] # list, get or set (VALUE is YAML, as for ros2 param set)
 
 Exit codes: 0 done; 1 the node answered and refused (its reason on stderr); 2 the node could not be reached, or did
-not answer, in ``--timeout`` seconds (or the command line was wrong); 130 cut short by Ctrl-C (``events`` ends so: 0).
+not answer, in ``--timeout`` seconds (or the command line was wrong); 130 cut short by Ctrl-C (``events``, once it
+follows, ends so: 0).
 Node names may be given with or without the leading slash. Message formatting is in pure functions, tested without DDS.
 """
 
@@ -59,20 +60,17 @@ def format_event(event):
 
 
 def parse_value(text):
-    """A parameter value from the command line, as ``ros2 param set`` reads it (YAML: ``0.5``, ``true``,
-    ``[1, 2]``, ``abc``); argparse's error for what no ROS parameter type holds (a mapping, a mixed list)."""
+    """A parameter value from the command line, as ``ros2 param set`` reads it: YAML (``0.5``, ``true``, ``[1, 2]``,
+    ``abc``), and the text itself as a string when no ROS parameter type holds the YAML (``""``, ``null``, ``{a:
+    1}``, ``[1, 2.5]``: write ``[1.0, 2.5]`` for a list of doubles)."""
     from rclpy.parameter import Parameter
 
     try:
         value = yaml.safe_load(text)
-    except yaml.YAMLError:
-        value = text
-    try:
         Parameter("value", value=value)
-    except TypeError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a parameter value (a bool, number, string or a list of "
-                                         "one of them)") from None
-    return value
+    except (yaml.YAMLError, TypeError):
+        return text
+    return text if value is None else value
 
 
 def format_parameter_value(value):
@@ -187,6 +185,7 @@ def cmd_events(session, args):
         raise Unreachable(f"no publisher of {topic} within {args.timeout:g} s: is scheme_node running, in this "
                           "ROS_DOMAIN_ID?")
     print(f"following {topic} (Ctrl-C ends)", file=sys.stderr, flush=True)
+    args.following = True  # from here Ctrl-C ends it as intended (exit 0)
     session.spin_until(lambda: args.count is not None and len(seen) >= args.count, None)
     return DONE
 
@@ -298,16 +297,18 @@ def main(argv=None):
         return BAD_COMMAND_LINE
     from rclpy.executors import ExternalShutdownException
 
-    session = Session(args.timeout)
+    session = None
     try:
+        session = Session(args.timeout)
         return args.function(session, args)
     except Unreachable as error:
         print(error, file=sys.stderr)
         return UNREACHABLE
     except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C is how ``events`` ends; others were cut short
-        return DONE if args.command == "events" else INTERRUPTED
+        return DONE if getattr(args, "following", False) else INTERRUPTED
     finally:
-        session.close()
+        if session is not None:
+            session.close()
 
 
 if __name__ == "__main__":

@@ -29,7 +29,12 @@ class LearningLoop:
     publishes what came of it); ``reject(code, detail)`` counts and reports a refused input. Counters: ``received``
     (messages put, by kind), ``refused_at_intake`` (too large to read), ``restamped``, ``shed`` (``<kind>_messages``
     from the inbox, ``samples`` beyond ``max_pending_samples``, ``stale_samples`` beyond ``max_sample_age``), ``lag``
-    (the age of the last 200 samples when learnt, s)."""
+    (the age of the last 200 samples when learnt, s).
+
+    Threads: :meth:`put` and :meth:`intake_counts` take the loop's own lock (the executor's thread puts while the
+    learning thread takes the inbox). :meth:`work` writes ``pending``, the pairer, ``restamped``, ``lag``, the
+    learning thread's ``shed`` counts and ``last_input_time``: the caller holds one lock of its own around it and
+    around every read of those (scheme_node's ``_learner_lock``, which its /diagnostics takes)."""
 
     def __init__(self, settings, clock, learn, reject):
         self.settings, self.clock, self._learn, self._reject = settings, clock, learn, reject

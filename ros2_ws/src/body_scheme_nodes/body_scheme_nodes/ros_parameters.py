@@ -24,18 +24,14 @@ def declare_list_parameter(node, name, item_type):
     return list(value)
 
 
-APPLIED_BY_RCLPY = frozenset({"use_sim_time"})  # rclpy's TimeSource switches the node's clock at run time
-
-
 def refuse_parameter_changes(node):
-    """Refuse every later parameter change (but ``use_sim_time``, which rclpy applies), with the reason: our nodes
-    read their parameters once at start-up, so a change accepted at run time would silently not apply
-    (``body-scheme params NODE NAME VALUE`` prints the reason)."""
+    """Refuse every later parameter change, with the reason: our nodes read their parameters once at start-up, so
+    a change accepted at run time would silently not apply (``body-scheme params NODE NAME VALUE`` prints the
+    reason). ``use_sim_time`` too: its node keeps times of the clock it started with (receipt ages, the pairer's
+    stamps, watchdogs), and with no ``/clock`` its timers would stop."""
 
     def refuse(parameters):
-        names = ", ".join(p.name for p in parameters if p.name not in APPLIED_BY_RCLPY)
-        if not names:
-            return SetParametersResult(successful=True)
+        names = ", ".join(p.name for p in parameters)
         return SetParametersResult(successful=False,
                                    reason=f"{names}: read at start-up only; restart {node.get_name()} to change it")
 

@@ -244,8 +244,9 @@ class SchemeNode(Node):
         # Both topics in the order DDS received them (as callbacks would have seen them), with receipt times on the
         # node clock: the wait in the queue counts towards a sample's age.
         self.explorer.take_requests()
-        batch = sorted(((now - max(0.0, wall - received), kind, msg) for kind, intake in self._intake.items()
-                        for msg, received in intake.take()), key=lambda item: item[0])
+        batch = [(now - max(0.0, wall - received), kind, msg) for received, kind, msg in sorted(
+            ((received, kind, msg) for kind, intake in self._intake.items() for msg, received in intake.take()),
+            key=lambda item: item[0])]
         # Larger than max_message_bytes: never deserialized. Counts of joints and markers are checked by
         # feed_message, on the path the offline replay shares, before any conversion.
         refused = []

@@ -341,3 +341,25 @@ def test_a_dead_camera_stops_babbling_even_with_rests_shorter_than_the_timeout()
                 break
         assert node.state == "stopped" and "camera is quiet" in node.stop_reason, node.stop_reason
         assert 4 <= node.counts["actions"] <= 30, node.counts
+
+
+def test_a_camera_message_during_a_move_starts_the_silence_afresh():
+    """The moving time before a message is not credited after it: silence at rest counts from the message, less
+    only the moving time since it."""
+    clock = [50.0]
+    with babble_node([Parameter("camera_timeout", value=3.0), Parameter("joint_state_timeout", value=0.0),
+                      Parameter("settle_window", value=0.1), NO_INPUTS_BUT_JOINT_STATES]) as node:
+        node.monotonic = node.driver.clock = lambda: clock[0]
+        names = list(node.driver.joint_names)
+        node.driver._on_joint_states(JointState(name=names, position=[0.0] * 6))
+        node._on_camera(MarkerPoses())
+        node._on_timer()
+        assert node.driver.goal is not None
+        clock[0] += 5.0
+        node._on_camera(MarkerPoses())  # a picture halfway through the move
+        clock[0] += 5.0
+        _settle(node, clock, names)
+        rested = clock[0]
+        assert 5.0 <= node.moved_since_camera < 5.5  # since the message (and the settling ticks), not 10 s
+        assert node._quiet(rested + 2.5) == ""
+        assert "camera is quiet" in node._quiet(rested + 3.5)

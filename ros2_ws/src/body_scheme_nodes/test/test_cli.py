@@ -33,7 +33,8 @@ def test_an_event_reads_as_step_kind_edge_errors_and_reason():
 
 
 @pytest.mark.parametrize("text, value", [("0.5", 0.5), ("3", 3), ("true", True), ("[1, 2]", [1, 2]),
-                                         ("abc", "abc"), ("[a, b]", ["a", "b"]), ("{bad", "{bad")])
+                                         ("abc", "abc"), ("[a, b]", ["a", "b"]), ("{bad", "{bad"),
+                                         ("", ""), ("null", "null"), ("{a: 1}", "{a: 1}"), ("[1, 2.5]", "[1, 2.5]")])
 def test_a_value_is_read_as_ros2_param_set_reads_it(text, value):
     assert cli.parse_value(text) == value
 
@@ -56,10 +57,6 @@ def test_a_wrong_command_line_exits_2_before_any_ros(capsys):
         assert exited.value.code == 2, argv
     assert cli.main(["status", "--timeout", "0"]) == 2
     assert "--timeout must be positive" in capsys.readouterr().err
-    for value in ("{a: 1}", "[1, abc]"):  # no ROS parameter type holds them: said before any node is asked
-        with pytest.raises(SystemExit) as exited:
-            cli.main(["params", "/nobody", "rate", value])
-        assert exited.value.code == 2 and "is not a parameter value" in capsys.readouterr().err
 
 
 def test_a_node_refuses_a_parameter_change_with_the_reason(context):
@@ -70,7 +67,7 @@ def test_a_node_refuses_a_parameter_change_with_the_reason(context):
         result = node.set_parameters([Parameter("rate", value=2.0)])[0]
         assert not result.successful and result.reason == "rate: read at start-up only; restart some_node to change it"
         assert node.get_parameter("rate").value == 1.0
-        assert node.set_parameters([Parameter("use_sim_time", value=True)])[0].successful  # rclpy applies it
-        assert node.get_clock().ros_time_is_active
+        assert not node.set_parameters([Parameter("use_sim_time", value=True)])[0].successful  # times kept on its clock
+        assert not node.get_clock().ros_time_is_active
     finally:
         node.destroy_node()

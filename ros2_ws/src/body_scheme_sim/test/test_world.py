@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec, transform_from_xyz_rpy
 from body_scheme_core.world import Body, Joint, KinematicTree, Marker, deform_limb
+from body_scheme_sim import world as world_module
 from body_scheme_sim.camera import Camera, look_at
 from body_scheme_sim.markers import aruco_dictionary, marker_corners, plate_side
 from body_scheme_sim.world import SimWorld
@@ -383,6 +384,7 @@ def test_links_that_touch_in_almost_every_posture_are_not_checked_and_the_others
 
 
 def test_a_second_world_of_the_same_robot_reuses_the_sampled_pairs(tmp_path, monkeypatch):
+    monkeypatch.setattr(world_module, "_ALWAYS_IN_CONTACT", {})  # not what another test's world left
     path = tmp_path / "covered.urdf"
     path.write_text(COVER_URDF)
     with SimWorld(path, markers=(), marker_texture=False) as world:
