@@ -298,16 +298,24 @@ def _settle(node, clock, names):
         node._on_timer()
 
 
-def test_the_camera_is_judged_at_rest_only():
-    """A slow move (max_velocity 0.5) outlasts camera_timeout with no picture (sim_node renders none while the arm
-    moves): babbling goes on; once the arm has settled, camera_timeout without a message stops it."""
+@contextlib.contextmanager
+def watched_camera(*overrides):
+    """babble_node on an injected clock (``clock[0]``, from 50 s) with camera_timeout 3 s, its arm reported at zero
+    and one camera message: ``(node, clock, joint names)``."""
     clock = [50.0]
     with babble_node([Parameter("camera_timeout", value=3.0), Parameter("joint_state_timeout", value=0.0),
-                      Parameter("settle_window", value=0.1), NO_INPUTS_BUT_JOINT_STATES]) as node:
+                      Parameter("settle_window", value=0.1), *overrides, NO_INPUTS_BUT_JOINT_STATES]) as node:
         node.monotonic = node.driver.clock = lambda: clock[0]
         names = list(node.driver.joint_names)
         node.driver._on_joint_states(JointState(name=names, position=[0.0] * 6))
         node._on_camera(MarkerPoses())
+        yield node, clock, names
+
+
+def test_the_camera_is_judged_at_rest_only():
+    """A slow move (max_velocity 0.5) outlasts camera_timeout with no picture (sim_node renders none while the arm
+    moves): babbling goes on; once the arm has settled, camera_timeout without a message stops it."""
+    with watched_camera() as (node, clock, names):
         node._on_timer()
         assert node.state == "idle" and node.driver.goal is not None  # the first move went out
         clock[0] += 10.0  # the arm still on its way, no picture for 10 s
@@ -323,14 +331,8 @@ def test_the_camera_is_judged_at_rest_only():
 def test_a_dead_camera_stops_babbling_even_with_rests_shorter_than_the_timeout():
     """Without wait_for_frame the arm rests only ``dwell`` (0.3 s) between moves: the silence at rest is summed over
     the rests, so a camera that died stops babbling after about camera_timeout / dwell moves, not never."""
-    clock = [50.0]
-    with babble_node([Parameter("camera_timeout", value=3.0), Parameter("joint_state_timeout", value=0.0),
-                      Parameter("settle_window", value=0.1), Parameter("wait_for_frame", value=False),
-                      Parameter("dwell", value=0.3), NO_INPUTS_BUT_JOINT_STATES]) as node:
-        node.monotonic = node.driver.clock = lambda: clock[0]
-        names = list(node.driver.joint_names)
-        node.driver._on_joint_states(JointState(name=names, position=[0.0] * 6))
-        node._on_camera(MarkerPoses())  # its last message
+    with watched_camera(Parameter("wait_for_frame", value=False), Parameter("dwell", value=0.3)) as (
+            node, clock, names):  # the camera's last message
         for _ in range(200):
             node._on_timer()
             if node.driver.goal is not None:
@@ -346,13 +348,7 @@ def test_a_dead_camera_stops_babbling_even_with_rests_shorter_than_the_timeout()
 def test_a_camera_message_during_a_move_starts_the_silence_afresh():
     """The moving time before a message is not credited after it: silence at rest counts from the message, less
     only the moving time since it."""
-    clock = [50.0]
-    with babble_node([Parameter("camera_timeout", value=3.0), Parameter("joint_state_timeout", value=0.0),
-                      Parameter("settle_window", value=0.1), NO_INPUTS_BUT_JOINT_STATES]) as node:
-        node.monotonic = node.driver.clock = lambda: clock[0]
-        names = list(node.driver.joint_names)
-        node.driver._on_joint_states(JointState(name=names, position=[0.0] * 6))
-        node._on_camera(MarkerPoses())
+    with watched_camera() as (node, clock, names):
         node._on_timer()
         assert node.driver.goal is not None
         clock[0] += 5.0
