@@ -25,6 +25,7 @@ import argparse
 import array
 import math
 import pathlib
+import signal
 import sys
 
 import yaml
@@ -103,7 +104,10 @@ class Session:
         from rclpy.signals import SignalHandlerOptions
 
         self.rclpy, self.timeout = rclpy, timeout
-        # Ctrl-C is Python's KeyboardInterrupt (main's exit code), not rclpy's shutdown of the context under a wait.
+        # Ctrl-C is Python's KeyboardInterrupt (main's exit code), not rclpy's shutdown of the context under a wait;
+        # also when started with SIGINT ignored (a job of a non-interactive shell, as CI runs the tests), as rclpy's
+        # own handler would have taken it.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node("body_scheme_cli", use_global_arguments=False, start_parameter_services=False,
                                       enable_rosout=False)
