@@ -20,12 +20,12 @@ import pybullet_data
 import pytest
 import yaml
 from rclpy.parameter import Parameter
+from workspace import SRC, console_scripts
 
 from body_scheme_nodes import cli
 from body_scheme_nodes.settings import parameter_defaults
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-SRC = REPO / "ros2_ws" / "src"
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 OURS = {path.name for path in SRC.iterdir() if (path / "package.xml").is_file()}
 #: Commands of other tools, which the docs show and this test does not check.
@@ -99,16 +99,8 @@ def _accepts(module_name, argv):
 
 
 def _console_scripts(package):
-    """``{executable: module}`` from the package's setup.py."""
-    scripts = {}
-    for node in ast.walk(ast.parse((SRC / package / "setup.py").read_text(encoding="utf-8"))):
-        if isinstance(node, ast.Dict):
-            for key, value in zip(node.keys, node.values, strict=True):
-                if isinstance(key, ast.Constant) and key.value == "console_scripts":
-                    for item in value.elts:
-                        name, target = (part.strip() for part in item.value.split("="))
-                        scripts[name] = target.split(":")[0]
-    return scripts
+    """``{executable: module}`` of ``package``."""
+    return {name: target.split(":")[0] for owner, name, target in console_scripts() if owner == package}
 
 
 def _parameters(executable):

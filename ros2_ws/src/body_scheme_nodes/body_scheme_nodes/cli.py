@@ -87,8 +87,8 @@ def full_name(name):
 
 
 def events_topic(node_name):
-    """scheme_node's events topic: ``body_scheme/events`` in the node's namespace."""
-    return full_name(node_name).rpartition("/")[0] + "/body_scheme/events"
+    """scheme_node's events topic: ``body_scheme/events`` in the namespace of the node (its full name)."""
+    return node_name.rpartition("/")[0] + "/body_scheme/events"
 
 
 class Unreachable(Exception):
@@ -156,14 +156,14 @@ def cmd_status(session, args):
 
     def on_message(msg):
         for status in msg.status:
-            if args.node is None or status.name.startswith(f"{full_name(args.node)}:"):
+            if args.node is None or status.name.startswith(f"{args.node}:"):
                 statuses[status.name] = status
         if statuses and not first:
             first.append(True)
 
     session.node.create_subscription(DiagnosticArray, "/diagnostics", on_message, 10)
     if not session.spin_until(lambda: bool(first), args.timeout):
-        whose = f" from {full_name(args.node)}" if args.node else ""
+        whose = f" from {args.node}" if args.node else ""
         raise Unreachable(f"no diagnostics{whose} within {args.timeout:g} s: is the node running, in this "
                           "ROS_DOMAIN_ID?")
     # Our nodes publish once a second: one more period collects the other nodes' (and the other statuses') arrays.
@@ -200,7 +200,7 @@ def cmd_state(session, args):
 
     from body_scheme_msgs.srv import StatePath
 
-    name = f"{full_name(args.node)}/{args.command}"
+    name = f"{args.node}/{args.command}"
     if args.command == "reset":
         return _answer(session.call(Trigger, name), sys.stdout)
     return _answer(session.call(StatePath, name, StatePath.Request(path=args.name or "")), sys.stdout)
@@ -210,7 +210,7 @@ def cmd_get_urdf(session, args):
     """The learned URDF to stdout or ``--out``."""
     from body_scheme_msgs.srv import GetRobotDescription
 
-    response = session.call(GetRobotDescription, f"{full_name(args.node)}/get_urdf")
+    response = session.call(GetRobotDescription, f"{args.node}/get_urdf")
     if not response.success:
         return _answer(response, sys.stdout)
     if args.out is None:
@@ -225,7 +225,7 @@ def cmd_babble(session, args):
     """pause / resume / stop of babble_node (Trigger)."""
     from std_srvs.srv import Trigger
 
-    return _answer(session.call(Trigger, f"{full_name(args.node)}/{args.command}"), sys.stdout)
+    return _answer(session.call(Trigger, f"{args.node}/{args.command}"), sys.stdout)
 
 
 def cmd_params(session, args):
@@ -233,7 +233,7 @@ def cmd_params(session, args):
     from rclpy.parameter import Parameter, parameter_value_to_python
     from rclpy.parameter_client import AsyncParameterClient
 
-    target = full_name(args.target)
+    target = args.target
     client = AsyncParameterClient(session.node, target)
     if not client.wait_for_services(timeout_sec=args.timeout):
         raise Unreachable(f"no parameter services of {target} within {args.timeout:g} s: is the node running, in "
@@ -269,11 +269,12 @@ def parser():
         command = sub.add_parser(name, help=help_text, description=help_text, parents=[common])
         command.set_defaults(function=function)
         if node is not None:
-            command.add_argument("--node", default=node, help=f"the node's full name (default {node})")
+            command.add_argument("--node", default=node, type=full_name,
+                                 help=f"the node's full name (default {node})")
         return command
 
     status = add("status", cmd_status, "print /diagnostics readably (all nodes unless --node)", node=None)
-    status.add_argument("--node", default=None, help="only this node's statuses, e.g. /scheme_node")
+    status.add_argument("--node", default=None, type=full_name, help="only this node's statuses, e.g. /scheme_node")
     status.add_argument("--brief", action="store_true", help="one line per status, no values")
     status.add_argument("--settle", type=float, default=1.5, help="seconds to collect after the first array")
     add("events", cmd_events, "follow scheme_node's events").add_argument(
@@ -288,7 +289,7 @@ def parser():
     for name in ("pause", "resume", "stop"):
         add(name, cmd_babble, f"{name} the babbling (babble_node ~/{name})", node="/babble_node")
     params = add("params", cmd_params, "list, get or set a node's parameters", node=None)
-    params.add_argument("target", metavar="NODE", help="the node's full name, e.g. /scheme_node")
+    params.add_argument("target", metavar="NODE", type=full_name, help="the node's full name, e.g. /scheme_node")
     params.add_argument("name", nargs="?", default=None, help="a parameter (none: list all with their values)")
     params.add_argument("value", nargs="?", default=None, type=parse_value, help="set it to this value (YAML)")
     return p

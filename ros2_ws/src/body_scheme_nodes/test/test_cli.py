@@ -41,8 +41,11 @@ def test_a_value_is_read_as_ros2_param_set_reads_it(text, value):
 
 def test_a_node_name_may_lack_its_leading_slash():
     assert cli.full_name("scheme_node") == cli.full_name("/scheme_node") == "/scheme_node"
-    assert cli.events_topic("scheme_node") == cli.events_topic("/scheme_node") == "/body_scheme/events"
-    assert cli.events_topic("robot2/scheme_node") == "/robot2/body_scheme/events"
+    assert cli.events_topic("/scheme_node") == "/body_scheme/events"
+    assert cli.events_topic("/robot2/scheme_node") == "/robot2/body_scheme/events"
+    assert cli.parser().parse_args(["events", "--node", "robot2/scheme_node"]).node == "/robot2/scheme_node"
+    assert cli.parser().parse_args(["params", "babble_node"]).target == "/babble_node"
+    assert cli.parser().parse_args(["status", "--node", "scheme_node"]).node == "/scheme_node"
 
 
 def test_a_list_parameter_prints_as_a_list_whatever_its_container():
