@@ -55,7 +55,11 @@ class Collector:
 
 
 class Babbler:
-    """Publishes a synthetic babbling session: each command, then the marker poses observed after it."""
+    """Publishes a synthetic babbling session: each command, then the marker poses observed after it.
+
+    Samples are never closer than ``period`` apart: after a pause (the test spun without it) the babbler goes on
+    from now instead of publishing the samples that were due meanwhile in one burst, whose stamps would be too close
+    for the node to pair each observation with its own command."""
 
     def __init__(self, node, session, period=0.02, depth=100):
         self.node, self.session, self.period = node, session, period
@@ -64,13 +68,10 @@ class Babbler:
         self.k = 0
         self._next = time.monotonic()
 
-    def resume(self):
-        """Go on from now, after a pause (no burst of the samples that were due meanwhile)."""
-        self._next = time.monotonic()
-
     def __call__(self):
         """Publish the next sample if its time has come (called between spins)."""
-        if self.k >= self.session.n_steps or time.monotonic() < self._next:
+        due = time.monotonic()
+        if self.k >= self.session.n_steps or due < self._next:
             return
         now = self.node.get_clock().now().nanoseconds * 1e-9
         command = JointState(name=list(self.session.tree.action_joint_names),
@@ -80,7 +81,7 @@ class Babbler:
         observed = self.session.observations[self.k]
         self.observations.publish(conversions.marker_poses_msg(now + 0.005, "camera", observed))
         self.k += 1
-        self._next += self.period
+        self._next = max(self._next, due) + self.period
 
 
 def learned_the_tree(collector, true_edges):
