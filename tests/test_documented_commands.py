@@ -11,51 +11,21 @@ import argparse
 import ast
 import importlib
 import os
-import pathlib
 import re
-import shlex
 import subprocess
 
-import pybullet_data
 import pytest
 import yaml
 from rclpy.parameter import Parameter
-from workspace import SRC, console_scripts
+from workspace import REPO, SRC, console_scripts, documented_commands
 
 from body_scheme_nodes import cli
 from body_scheme_nodes.settings import parameter_defaults
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
-DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 OURS = {path.name for path in SRC.iterdir() if (path / "package.xml").is_file()}
 #: Commands of other tools, which the docs show and this test does not check.
 OTHER_TOOLS = {"source", "pip", "cd", "cat", "head", "grep", "colcon"}
 OTHER_PACKAGES = {"usb_cam", "camera_calibration"}
-#: What each ``$(...)`` in the docs gives in a shell (a new one is named by the test, to be added here).
-SUBSTITUTIONS = {
-    '$(python -c "import pybullet_data; print(pybullet_data.getDataPath())")': pybullet_data.getDataPath(),
-    """$(python -c 'import yaml; c=yaml.safe_load(open("markers/camera.yaml"))["camera"]; print(*c["xyz"], """
-    """*c["rpy"])')""": "0.0 -2.0 1.0 -2.2 0.0 0.0",
-}
-
-
-def documented_commands():
-    """``[(doc name, command words)]``: each command of each ``bash`` block (continuations joined, ``&&`` split,
-    comments dropped, ``$(...)`` substituted). A synopsis (``BAG [--params FILE]``, ``pause | resume``) is not one."""
-    found = []
-    for doc in DOCS:
-        for block in re.findall(r"^```bash\n(.*?)^```", doc.read_text(encoding="utf-8"), re.S | re.M):
-            for line in block.replace("\\\n", " ").splitlines():
-                for text, value in SUBSTITUTIONS.items():
-                    line = line.replace(text, value)
-                assert "$(" not in line, f"{doc.name}: add what {line!r}'s substitution gives to SUBSTITUTIONS"
-                for command in line.split("&&"):
-                    words = shlex.split(command, comments=True)
-                    if words and not any(word.startswith("[") or word == "|" for word in words):
-                        found.append((doc.name, words))
-    return found
-
-
 COMMANDS = documented_commands()
 
 

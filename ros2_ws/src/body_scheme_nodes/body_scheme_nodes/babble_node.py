@@ -16,8 +16,9 @@ arm without its gripper; give scheme_node the same list). The ``control_msgs``
 **Pre-flight.** Nothing is sent until every check passes (:mod:`.preflight`; each failing one is logged as one line
 every 5 s and named on /diagnostics): joint states fresh and naming the configured joints, a subscriber on the
 controller's trajectory topic, fresh observations on ``camera_topic``, a ``sensor_msgs/CameraInfo`` on
-``camera_info_topic``, and every marker of ``part_ids`` (any one if empty) seen while the arm stands at its start
-posture. ``preflight_skip`` lists checks skipped on purpose.
+``camera_info_topic``, and a marker of ``part_ids`` (any marker if empty) seen while the arm stands at its start
+posture (the others are named when it passes: a planned marker faces the camera in some postures only).
+``preflight_skip`` lists checks skipped on purpose.
 
 It stops by itself (a trajectory to where the arm is, clamped within the limits: the controller holds it there) when
 scheme_node's /diagnostics status stays ERROR for ``error_hold`` s (a model invalid after bootstrapping, or learning
@@ -71,7 +72,7 @@ from body_scheme_msgs.msg import MarkerPoses
 from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .intake import create_sized_subscription
-from .preflight import CHECKS, PreflightFacts, preflight_failures
+from .preflight import CHECKS, PreflightFacts, preflight_failures, unseen_markers
 from .ros_parameters import declare_list_parameter, refuse_parameter_changes
 from .scheme_diagnostics import status_name
 from .spin import run_node
@@ -348,8 +349,10 @@ class BabbleNode(Node):
                     self.get_logger().warn(f"pre-flight: {line}")
             return False
         skipped = f" (skipped: {list(self.preflight_skip)})" if self.preflight_skip else ""
+        unseen = unseen_markers(facts) if "markers" not in self.preflight_skip else []
+        unseen = f"; not seen at the start posture: markers {unseen} (seen as the arm moves)" if unseen else ""
         self.get_logger().info(f"pre-flight passed: {', '.join(c for c in CHECKS if c not in self.preflight_skip)}"
-                               f"{skipped}; babbling starts")
+                               f"{skipped}{unseen}; babbling starts")
         return True
 
     def _quiet(self, now):

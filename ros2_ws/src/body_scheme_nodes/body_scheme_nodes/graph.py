@@ -8,6 +8,7 @@ generated parameter file, and stop them with SIGINT (SIGKILL if they hang).
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import pathlib
 import signal
@@ -55,6 +56,8 @@ class NodeProcess:
         log_dir.mkdir(parents=True, exist_ok=True)
         self.name = name
         tag = "".join(c if c.isalnum() else "_" for c in " ".join(ros_args)).strip("_")
+        if len(tag) > 64:  # a file name has at most 255 bytes: long arguments are named by their digest
+            tag = f"{tag[:40]}_{hashlib.sha1(tag.encode()).hexdigest()[:12]}"
         self.log_path = log_dir / f"{name}{'.' + tag if tag else ''}.log"
         params_path = log_dir / f"{name}{'.' + tag if tag else ''}.params.yaml"
         params_path.write_text(yaml.safe_dump({"/**": {"ros__parameters": parameters}}))

@@ -33,7 +33,7 @@ class LearningLoop:
 
     Threads: :meth:`put` and :meth:`intake_counts` take the loop's own lock (the executor's thread puts while the
     learning thread takes the inbox). :meth:`work` writes ``pending``, the pairer, ``restamped``, ``lag``, the
-    learning thread's ``shed`` counts and ``last_input_time``: the caller holds one lock of its own around it and
+    learning thread's ``shed`` counts and ``last_command_time``: the caller holds one lock of its own around it and
     around every read of those (scheme_node's ``_learner_lock``, which its /diagnostics takes)."""
 
     def __init__(self, settings, clock, learn, reject):
@@ -46,7 +46,7 @@ class LearningLoop:
         self.lag = deque(maxlen=200)
         self.n_observation_messages = 0  # taken in by the learning thread
         self.oversized_observations = 0  # observation messages refused unread
-        self.last_input_time = None  # node time the learning thread last took input in
+        self.last_command_time = None  # node time the learning thread last took a command message in
 
     # -- the executor's thread ----------------------------------------------------------------------------------
     def put(self, batch, refused=()):
@@ -96,8 +96,8 @@ class LearningLoop:
         return self.n_observation_messages + shed + oversized - self.pairer.waiting - len(self.pending)
 
     def _take_in(self, inbox, now):
-        if inbox:
-            self.last_input_time = now
+        if any(kind == "command" for kind, _, _ in inbox):
+            self.last_command_time = now  # observations alone (the arm standing) are nothing to learn yet
         for kind, msg, received in inbox:
             if not self._stamp_acceptable(msg, received, now):
                 continue

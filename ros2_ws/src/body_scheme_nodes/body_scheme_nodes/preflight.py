@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-__all__ = ["CHECKS", "PreflightFacts", "preflight_failures"]
+__all__ = ["CHECKS", "PreflightFacts", "preflight_failures", "unseen_markers"]
 
 #: The checks, in the order they are reported.
 CHECKS = ("joint_states", "controller", "camera", "camera_info", "markers")
@@ -36,7 +36,8 @@ class PreflightFacts:
     seen_markers : set of int
         Markers observed since the arm reported its start posture.
     expected_markers : tuple of int
-        The markers that must be seen there (empty: at least one).
+        The robot's markers: at least one of them must be seen there (empty: any marker). The others need not be:
+        a planned marker faces the camera in some postures only, often not in the start posture.
     """
 
     joint_state_age: float | None = None
@@ -79,8 +80,13 @@ def preflight_failures(facts, fresh=3.0, skip=()):
         fail("camera_info", f"no sensor_msgs/CameraInfo on {facts.camera_info_topic}: the camera is not calibrated "
                             f"or not running")
     expected = set(facts.expected_markers)
-    unseen = sorted(expected - facts.seen_markers) if expected else ([] if facts.seen_markers else ["any"])
-    if unseen:
-        fail("markers", f"not seen at the start posture: {unseen}" + (
+    if not (facts.seen_markers & expected if expected else facts.seen_markers):
+        wanted = f"none of {sorted(expected)}" if expected else "no marker"
+        fail("markers", f"{wanted} seen at the start posture" + (
             f" (seen: {sorted(facts.seen_markers)})" if facts.seen_markers else " (none seen)"))
     return failures
+
+
+def unseen_markers(facts):
+    """The expected markers not seen at the start posture (named when the pre-flight passes)."""
+    return sorted(set(facts.expected_markers) - facts.seen_markers)

@@ -1,7 +1,7 @@
 """What scheme_node reports on /diagnostics: the body scheme's status, its counters, and one status per local model.
 
 Pure functions of the learner and the node's counters (no rclpy node), so the rules are tested without DDS:
-WARN while there is no body scheme or it is not trusted, ERROR while a local model is invalid or input arrives
+WARN while there is no body scheme or it is not trusted, ERROR while a local model is invalid or commands arrive
 without learning (``stall_timeout``), else OK.
 """
 
@@ -23,8 +23,8 @@ def status_name(node_name):
 
 
 def scheme_level(learner, edges, stalled_for):
-    """``(level, message)`` of the body scheme's status; ``stalled_for``: seconds without learning while input
-    arrives, or None."""
+    """``(level, message)`` of the body scheme's status; ``stalled_for``: seconds without learning while commands
+    arrive, or None."""
     n_invalid = sum(not e["valid"] for e in edges)
     if learner.body_scheme is None:
         level, message = DiagnosticStatus.WARN, f"no body scheme yet ({learner.phase}, step {learner.step})"
@@ -36,7 +36,7 @@ def scheme_level(learner, edges, stalled_for):
     else:
         level, message = DiagnosticStatus.OK, f"body scheme valid ({learner.phase})"
     if stalled_for is not None:
-        level, message = DiagnosticStatus.ERROR, (f"input arriving but nothing learnt for {stalled_for:.0f} s "
+        level, message = DiagnosticStatus.ERROR, (f"commands arriving but nothing learnt for {stalled_for:.0f} s "
                                                   f"(see rejected.*): {message}")
     return level, message
 

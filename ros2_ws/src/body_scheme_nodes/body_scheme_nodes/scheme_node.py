@@ -60,7 +60,7 @@ urdf_tolerance_trans : 0.005 m, urdf_tolerance_rot : 0.01745 rad   how far each 
 stamp_tolerance : double 1.0 s        messages stamped further ahead of the node clock are refused (future_stamp)
 unstamped_policy : "receipt_time"     zero-stamped messages: stamped with their receipt time (counted as
                                       restamped.unstamped) or, with "reject", refused (unstamped)
-stall_timeout : double 10.0 s         input arriving but no learning step for this long: /diagnostics ERROR
+stall_timeout : double 10.0 s         commands arriving but no learning step for this long: /diagnostics ERROR
 hardware_id : string ""               diagnostics hardware_id ("" = the node's fully qualified name)
 tf_prefix : string ""                 prefix of the TF frames and URDF links; joints keep the robot's names
 view_period : double 0.1 s            markers, poses and /tf at most this often
@@ -154,7 +154,7 @@ class SchemeNode(Node):
         # under _learner_lock, which /diagnostics (the executor's thread) takes to read the learner and the counters.
         self.loop = LearningLoop(self.settings, self._now, self._learn, self._reject)
         self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
-        self.last_learn_time = None  # node clock, s: the watchdog's input, with loop.last_input_time
+        self.last_learn_time = None  # node clock, s: the watchdog's input, with loop.last_command_time
 
         depth, max_bytes = self.settings.queue_depth, self.settings.max_message_bytes
         self._intake = {"command": BatchIntake(self, JointState, "joint_commands", depth, max_bytes),
@@ -421,10 +421,12 @@ class SchemeNode(Node):
         self.pub_diagnostics.publish(array)
 
     def _stalled_for(self):
-        """Seconds since the last learning step while input keeps arriving, if beyond ``stall_timeout``; else None."""
-        if self.loop.last_input_time is None:
+        """Seconds since the last learning step while commands keep arriving, if beyond ``stall_timeout``; else None.
+        Observations without commands are not a stall: the arm stands (babble_node waits, a pause), nothing to learn."""
+        if self.loop.last_command_time is None:
             return None
-        since = self.loop.last_input_time - (self.last_learn_time if self.last_learn_time is not None else self.started)
+        learnt = self.last_learn_time if self.last_learn_time is not None else self.started
+        since = self.loop.last_command_time - learnt
         return since if since > self.settings.stall_timeout else None
 
     # -- services ------------------------------------------------------------------------------------------------

@@ -1,0 +1,125 @@
+"""docs/your-robot.md rehearsed end to end with its commands as written: plan the markers of a URDF (step 2), run
+the graph a real arm uses (step 4: tracker_node, scheme_node from the planned parameter file, babble_node with the
+documented parameters), with sim_node in place of the arm's JointTrajectoryController and of the camera, placed where
+the plan assumes; learn the body scheme, save it with ``body-scheme`` and write the calibration report (step 6).
+
+Only what the doc leaves to the user is filled in: the URDF's path and the planned part ids. Files are where the doc
+puts them, relative to the working directory, and ``~`` is a home of the test's own."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+from workspace import documented_commands
+
+from body_scheme_msgs.msg import BodySchemeStructure
+from body_scheme_sim.robots import ROBOTS_DIR, load_robot
+
+pytestmark = pytest.mark.system
+
+#: "Your robot": a URDF only (the shipped arm's own marker file is not used; the planner places the markers).
+URDF = ROBOTS_DIR / "arm_4dof.urdf"
+PLACEHOLDERS = {"path/to/your_robot.urdf": str(URDF)}
+
+
+def _documented(*prefix):
+    """The commands of docs/your-robot.md that start with ``prefix``, as written but for :data:`PLACEHOLDERS`."""
+    found = [[_filled(word, PLACEHOLDERS) for word in words] for doc, words in documented_commands()
+             if doc == "your-robot.md" and tuple(words[:len(prefix)]) == prefix]
+    assert found, f"docs/your-robot.md has no command {' '.join(prefix)}"
+    return found
+
+
+def _filled(word, fill):
+    for placeholder, value in fill.items():
+        word = word.replace(placeholder, value)
+    return word
+
+
+def _ros_args(prefix, fill):
+    """The ``--ros-args`` of the documented ``ros2 run body_scheme_nodes <node>`` command, ``<...>`` filled in."""
+    (words,) = _documented("ros2", "run", "body_scheme_nodes", *prefix)
+    args = [_filled(arg, fill) for arg in words[words.index("--ros-args") + 1:]]
+    assert not any("<" in arg for arg in args), args
+    return args
+
+
+def _run(words, env):
+    """Run a documented shell command (``python``: this interpreter; a leading ``~/``: the test's home)."""
+    words = [sys.executable if word == "python" else word for word in words]
+    words = [env["HOME"] + word[1:] if word.startswith("~/") else word for word in words]
+    done = subprocess.run(words, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, (words, done.stdout[-3000:], done.stderr[-3000:])
+    return done.stdout
+
+
+def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(start_node, ros_node, spin_until,
+                                                                             ros_env, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    env = dict(ros_env, HOME=str(tmp_path / "home"))
+
+    # Step 2: plan, print.
+    (plan,) = _documented("python", "-m", "body_scheme_apps.plan_markers")
+    printed = _run(plan, env)
+    for name in ("markers.yaml", "markers.pdf", "camera.yaml", "scheme_node.yaml"):
+        assert (tmp_path / "markers" / name).is_file(), (name, printed)
+    planned = yaml.safe_load((tmp_path / "markers" / "scheme_node.yaml").read_text())["/**"]["ros__parameters"]
+    part_ids = [int(i) for i in planned["part_ids"]]
+    tree = load_robot(URDF, markers_path=tmp_path / "markers" / "markers.yaml")
+    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+
+    # Step 4's graph, with sim_node as the arm and the camera (the camera where the plan put it).
+    structures, commands, trajectories = [], [], []
+    ros_node.create_subscription(BodySchemeStructure, "body_scheme/structure", structures.append, 10)
+    ros_node.create_subscription(JointState, "joint_commands", commands.append, 100)
+    ros_node.create_subscription(JointTrajectory, "joint_trajectory_controller/joint_trajectory",
+                                 trajectories.append, 100)
+    babble_args = _ros_args(("babble_node",), {"<the part_ids of markers/scheme_node.yaml>":
+                                               ", ".join(map(str, part_ids))})
+    nodes = [start_node("body_scheme_nodes", name, {}, env_overrides=env, ros_args=args)
+             for name, args in (("tracker_node", _ros_args(("tracker_node",), {})),
+                                ("scheme_node", _ros_args(("scheme_node",), {})), ("babble_node", babble_args))]
+    camera = yaml.safe_load((tmp_path / "markers" / "camera.yaml").read_text())
+    nodes.append(start_node("body_scheme_nodes", "sim_node", {
+        "robot": str(URDF), "markers_path": "markers/markers.yaml", "perception_mode": "rendered", **camera},
+        env_overrides=env))
+
+    def learned():
+        return structures and {frozenset((e.parent_id, e.child_id)) for e in structures[-1].edges} == true_edges \
+            and all(e.valid for e in structures[-1].edges)
+
+    # However slow the machine: waited for as long as babble_node keeps sending action signals.
+    assert spin_until(learned, timeout=120, progress=lambda: len(commands)), (
+        len(commands), structures[-1] if structures else None, *(node.output()[-2000:] for node in nodes))
+    assert all(node.running() for node in nodes)
+
+    # Every move within the documented limits: the controller's cubic peaks at 1.5 d / T and 6 d / T^2.
+    documented = dict(arg.split(":=", 1) for arg in babble_args if ":=" in arg)
+    max_velocity, max_acceleration = float(documented["max_velocity"]), float(documented["max_acceleration"])
+    previous = np.zeros(tree.n_actions)  # sim_node's arm starts at the zero posture
+    for trajectory in trajectories:
+        goal = np.array(trajectory.points[-1].positions)
+        duration = trajectory.points[-1].time_from_start.sec + 1e-9 * trajectory.points[-1].time_from_start.nanosec
+        distance = np.max(np.abs(goal - previous))
+        assert 1.5 * distance <= max_velocity * duration + 1e-6, (distance, duration)
+        assert 6.0 * distance <= max_acceleration * duration ** 2 + 1e-6, (distance, duration)
+        previous = goal
+
+    # Step 6: save with body-scheme, then the report from the saved state.
+    (save,) = _documented("body-scheme", "save")
+    printed = _run(save, env)
+    (state,) = (tmp_path / "home" / ".ros" / "body_scheme").glob("*.json")
+    (report,) = _documented("python", "-m", "body_scheme_apps.calibrate", "--state")
+    printed = _run(report, env)
+    out = tmp_path / report[report.index("--out") + 1]
+    for name in ("learned.urdf", "report.txt", "report.json", "report.png"):
+        assert (out / name).is_file(), (name, printed)
+    assert "verdict: a true body scheme of the robot" in printed, printed
+    assert os.path.getsize(state) > 0
