@@ -7,8 +7,9 @@ clock (beyond ``max_inbox`` the oldest are shed, counted by kind). The learning 
 restamped at receipt or refused, a stamp beyond ``stamp_tolerance`` ahead of the clock is refused), pairing through
 :func:`~body_scheme_nodes.message_feed.feed_message` (the function the offline replay calls), the bound on waiting
 samples (``max_pending_samples``, oldest shed), and one learning step on the oldest sample not older than
-``max_sample_age`` (older ones are shed: under overload the learner keeps to the freshest data). scheme_node wraps it
-in ROS: subscriptions, the learning thread, publishers and /diagnostics.
+``max_sample_age`` (older ones are shed: under overload the learner keeps to the freshest data). The learning thread
+(:meth:`~LearningLoop.start`, :meth:`~LearningLoop.stop`) repeats that, waking when messages are put. scheme_node wraps
+it in ROS: subscriptions, publishers, services and /diagnostics.
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ class LearningLoop:
 
     Threads: :meth:`put` and :meth:`intake_counts` take the loop's own lock (the executor's thread puts while the
     learning thread takes the inbox). :meth:`work` writes ``pending``, the pairer, ``restamped``, ``lag``, the
-    learning thread's ``shed`` counts and ``last_command_time``: the caller holds one lock of its own around it and
-    around every read of those (scheme_node's ``_learner_lock``, which its /diagnostics takes)."""
+    learning thread's ``shed`` counts and ``last_command_time``: the learning thread holds the lock given to
+    :meth:`start` around it, and every reader of those (and of the learner) holds it too (scheme_node's
+    ``_learner_lock``, which its /diagnostics takes)."""
 
     def __init__(self, settings, clock, learn, reject):
         self.settings, self.clock, self._learn, self._reject = settings, clock, learn, reject
@@ -47,6 +49,8 @@ class LearningLoop:
         self.n_observation_messages = 0  # taken in by the learning thread
         self.oversized_observations = 0  # observation messages refused unread
         self.last_command_time = None  # node time the learning thread last took a command message in
+        self.thread = None  # the learning thread, once started
+        self._wake, self._stopping = threading.Event(), threading.Event()
 
     # -- the executor's thread ----------------------------------------------------------------------------------
     def put(self, batch, refused=()):
@@ -62,6 +66,8 @@ class LearningLoop:
                 self._inbox.append((kind, msg, received))
             while len(self._inbox) > self.settings.max_inbox:
                 self.shed[f"{self._inbox.popleft()[0]}_messages"] += 1
+        if batch:
+            self._wake.set()
 
     def intake_counts(self):
         """A copy of ``refused_at_intake`` (the executor's thread writes it)."""
@@ -69,6 +75,37 @@ class LearningLoop:
             return Counter(self.refused_at_intake)
 
     # -- the learning thread ------------------------------------------------------------------------------------
+    def start(self, lock, on_failure, after_step=lambda: None):
+        """Start the learning thread: take the inbox in and :meth:`work` on it under ``lock``, then ``after_step()``
+        (outside the lock), again and again; with no sample waiting, first wait for :meth:`put` or ``update_period``
+        (the pairer's grace runs out by the clock). An unexpected error ends the thread and is handed to
+        ``on_failure(error)``: scheme_node raises it in its executor, failing loudly rather than living on without
+        learning."""
+        self._stopping.clear()
+        self.thread = threading.Thread(target=self._learn_forever, args=(lock, on_failure, after_step),
+                                       name="learning", daemon=True)
+        self.thread.start()
+
+    def stop(self):
+        """Stop the learning thread after its current step and wait for it (nothing to do if it never started)."""
+        self._stopping.set()
+        self._wake.set()
+        if self.thread is not None:
+            self.thread.join()
+
+    def _learn_forever(self, lock, on_failure, after_step):
+        try:
+            while not self._stopping.is_set():
+                if not self.pending:
+                    self._wake.wait(self.settings.update_period)
+                    self._wake.clear()
+                inbox = self.take_inbox()
+                with lock:
+                    self.work(inbox)
+                after_step()
+        except Exception as error:  # any error: handed over, never lost with the thread
+            on_failure(error)
+
     def take_inbox(self):
         """Every message put since the last call, oldest first."""
         with self._lock:

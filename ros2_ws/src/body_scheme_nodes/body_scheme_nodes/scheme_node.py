@@ -195,10 +195,9 @@ class SchemeNode(Node):
         self._publish_structure(force=True)
         # Learning runs in a thread of its own, not in an executor callback: the executor's thread only takes
         # messages in, answers services and keeps diagnostics and checkpoints going, whatever a learning step costs.
-        self._wake, self._stopping, self._failure = threading.Event(), threading.Event(), None
+        self._failure = None
         self._failed = self.create_guard_condition(self._raise_failure)
-        self._learning_thread = threading.Thread(target=self._learn_forever, name="learning", daemon=True)
-        self._learning_thread.start()
+        self.loop.start(self._learner_lock, self._on_learning_failure, self._publish_progress)
         self.get_logger().info(
             f"scheme_node ready: parts {list(self.settings.part_ids)}, joints {self.joint_names}, "
             f"phase {self.learner.phase}")
@@ -257,44 +256,27 @@ class SchemeNode(Node):
                                        f"(max_message_bytes {self.settings.max_message_bytes})",
                                        throttle_duration_sec=5.0)
         self.loop.put(batch, refused)
-        if batch:
-            self._wake.set()
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
 
-    # -- the learning thread --------------------------------------------------------------------------------------
-    def _learn_forever(self):
-        """Take new messages in, learn one sample, repeat; wait for messages (or ``update_period``, as the pairer's
-        grace runs out by the clock) when no sample waits. An unexpected error is handed to the executor, which
-        raises it: the node fails loudly, as it would have in a callback, rather than living on without learning."""
-        try:
-            while not self._stopping.is_set():
-                if not self.loop.pending:
-                    self._wake.wait(self.settings.update_period)
-                    self._wake.clear()
-                self._work()
-        except Exception as error:  # re-raised in the executor's thread
-            self._failure = error
-            self._failed.trigger()
+    # -- the learning thread (LearningLoop.start) -----------------------------------------------------------------
+    def _on_learning_failure(self, error):
+        self._failure = error
+        self._failed.trigger()  # the executor raises it
 
     def _raise_failure(self):
         raise RuntimeError("the learning thread failed") from self._failure
 
     def destroy_node(self):
-        self._stopping.set()
-        self._wake.set()
-        self._learning_thread.join()
+        self.loop.stop()
         self._service_worker.stop()
         if self.checkpoint is not None:
             self.checkpoint.close()
         super().destroy_node()
 
-    def _work(self):
-        """Take the inbox in and learn one sample (:meth:`LearningLoop.work`); publish the progress."""
-        inbox = self.loop.take_inbox()
-        with self._learner_lock:  # the counters the executor's thread reads for /diagnostics change here
-            self.loop.work(inbox)
+    def _publish_progress(self):
+        """After each step of the learning thread: the replay's progress count, when it changed."""
         progress = self.loop.progress()
         if progress != self._last_progress:
             self._last_progress = progress

@@ -1,6 +1,9 @@
 """scheme_node's loop from messages to learning steps, without ROS (no node, no DDS): an injected clock, messages
 built in memory, the learning step and the rejections recorded."""
 
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -111,3 +114,37 @@ def test_observations_alone_do_not_feed_the_stall_watchdog_and_a_command_does():
     loop.put((10.9, command(10.9, 0.3)))
     loop.work()
     assert loop.loop.last_command_time == 11.0
+
+
+def test_the_learning_thread_learns_what_is_put_under_the_given_lock_and_stops():
+    loop, lock, steps, failures = Loop(), threading.Lock(), [], []
+    learn = loop.loop._learn
+
+    def learn_under_the_lock(*sample):
+        assert lock.locked()  # readers of the learner hold it too
+        learn(*sample)
+
+    loop.loop._learn = learn_under_the_lock
+    loop.loop.start(lock, on_failure=failures.append, after_step=lambda: steps.append(1))
+    try:
+        loop.put(*_pairs(9.0, 2))
+        deadline = time.monotonic() + 60  # a condition, waited for however busy the machine
+        while len(loop.learnt) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert len(loop.learnt) == 2 and steps and not failures, failures
+    finally:
+        loop.loop.stop()
+    assert not loop.loop.thread.is_alive()
+
+
+def test_an_error_in_the_learning_thread_is_handed_over_and_ends_it():
+    loop, failures = Loop(), []
+
+    def broken(inbox):
+        raise ZeroDivisionError("a bug in learning")
+
+    loop.loop.work = broken
+    loop.loop.start(threading.Lock(), on_failure=failures.append)
+    loop.loop.thread.join(timeout=60)
+    assert not loop.loop.thread.is_alive() and isinstance(failures[0], ZeroDivisionError)
+    loop.loop.stop()  # after the thread ended: nothing to wait for

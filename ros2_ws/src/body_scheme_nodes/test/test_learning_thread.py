@@ -27,17 +27,16 @@ def node(monkeypatch):
 
 
 def test_the_learning_thread_runs_until_the_node_is_destroyed(node):
-    assert node._learning_thread.is_alive()
+    assert node.loop.thread.is_alive()
     node.destroy_node()
-    assert not node._learning_thread.is_alive()
+    assert not node.loop.thread.is_alive()
 
 
 def test_an_error_in_the_learning_thread_is_raised_by_the_executor(node, monkeypatch):
-    def broken():
+    def broken(inbox):
         raise ZeroDivisionError("a bug in learning")
 
-    monkeypatch.setattr(node, "_work", broken)
-    node._wake.set()
+    monkeypatch.setattr(node.loop, "work", broken)  # the thread calls it at the latest after update_period
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     with pytest.raises(RuntimeError, match="the learning thread failed") as raised:
