@@ -8,6 +8,7 @@ puts them, relative to the working directory, and ``~`` is a home of the test's 
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -27,11 +28,15 @@ pytestmark = pytest.mark.system
 #: "Your robot": a URDF only (the shipped arm's own marker file is not used; the planner places the markers).
 URDF = ROBOTS_DIR / "arm_4dof.urdf"
 PLACEHOLDERS = {"path/to/your_robot.urdf": str(URDF)}
+#: What tests/workspace.py's SUBSTITUTIONS gives for the doc's ``$(... markers/camera.yaml ...)``: the planned camera.
+SUBSTITUTIONS_CAMERA = "0.0 -2.0 1.0 -2.2 0.0 0.0"
 
 
-def _documented(*prefix):
-    """The commands of docs/your-robot.md that start with ``prefix``, as written but for :data:`PLACEHOLDERS`."""
-    found = [[_filled(word, PLACEHOLDERS) for word in words] for doc, words in documented_commands()
+def _documented(*prefix, fill=None):
+    """The commands of docs/your-robot.md that start with ``prefix``, as written but for :data:`PLACEHOLDERS` (and
+    ``fill``)."""
+    fill = {**PLACEHOLDERS, **(fill or {})}
+    found = [[_filled(word, fill) for word in words] for doc, words in documented_commands()
              if doc == "your-robot.md" and tuple(words[:len(prefix)]) == prefix]
     assert found, f"docs/your-robot.md has no command {' '.join(prefix)}"
     return found
@@ -60,20 +65,38 @@ def _run(words, env):
     return done.stdout
 
 
-def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(start_node, ros_node, spin_until,
-                                                                             ros_env, tmp_path, monkeypatch):
+@pytest.fixture
+def planned(ros_env, tmp_path, monkeypatch):
+    """Step 2 (plan, print) in the test's working directory: ``(environment, part ids, true marker-tree edges)``."""
     monkeypatch.chdir(tmp_path)
     env = dict(ros_env, HOME=str(tmp_path / "home"))
-
-    # Step 2: plan, print.
     (plan,) = _documented("python", "-m", "body_scheme_apps.plan_markers")
     printed = _run(plan, env)
     for name in ("markers.yaml", "markers.pdf", "camera.yaml", "scheme_node.yaml"):
         assert (tmp_path / "markers" / name).is_file(), (name, printed)
-    planned = yaml.safe_load((tmp_path / "markers" / "scheme_node.yaml").read_text())["/**"]["ros__parameters"]
-    part_ids = [int(i) for i in planned["part_ids"]]
+    parameters = yaml.safe_load((tmp_path / "markers" / "scheme_node.yaml").read_text())["/**"]["ros__parameters"]
     tree = load_robot(URDF, markers_path=tmp_path / "markers" / "markers.yaml")
-    true_edges = {frozenset(edge) for edge in tree.marker_tree_edges()}
+    return env, [int(i) for i in parameters["part_ids"]], {frozenset(edge) for edge in tree.marker_tree_edges()}
+
+
+def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shipped_arms_faults(planned, tmp_path):
+    """Step 3's live_demo as written: the whole graph on the planned markers, the camera where the plan put it; no
+    fault of the shipped arm (its default blocked a joint of another robot); exit 0 only with the true tree."""
+    env, _, true_edges = planned
+    camera = yaml.safe_load((tmp_path / "markers" / "camera.yaml").read_text())["camera"]
+    (demo,) = _documented("python", "-m", "body_scheme_apps.live_demo", fill={
+        SUBSTITUTIONS_CAMERA: " ".join(str(v) for v in [*camera["xyz"], *camera["rpy"]])})
+    done = subprocess.run([sys.executable, *demo[1:]], env=env, capture_output=True, text=True, timeout=900)
+    summary = json.loads((tmp_path / "out" / "demo" / "summary.json").read_text())
+    assert summary["faults"] == [] and "IK:" in done.stdout, (done.stdout[-3000:], done.stderr[-3000:])
+    learned = {frozenset(edge) for edge in summary["learned_edges"]}
+    assert done.returncode == (0 if learned == true_edges else 1), (done.returncode, learned, done.stdout[-3000:])
+    assert {frozenset(edge) for edge in summary["true_edges"]} == true_edges
+
+
+def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(planned, start_node, ros_node, spin_until,
+                                                                             tmp_path):
+    env, part_ids, true_edges = planned
 
     # Step 4's graph, with sim_node as the arm and the camera (the camera where the plan put it).
     structures, commands, trajectories = [], [], []
@@ -103,7 +126,8 @@ def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(star
     # Every move within the documented limits: the controller's cubic peaks at 1.5 d / T and 6 d / T^2.
     documented = dict(arg.split(":=", 1) for arg in babble_args if ":=" in arg)
     max_velocity, max_acceleration = float(documented["max_velocity"]), float(documented["max_acceleration"])
-    previous = np.zeros(tree.n_actions)  # sim_node's arm starts at the zero posture
+    assert trajectories
+    previous = np.zeros(len(trajectories[0].joint_names))  # sim_node's arm starts at the zero posture
     for trajectory in trajectories:
         goal = np.array(trajectory.points[-1].positions)
         duration = trajectory.points[-1].time_from_start.sec + 1e-9 * trajectory.points[-1].time_from_start.nanosec
@@ -114,7 +138,7 @@ def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(star
 
     # Step 6: save with body-scheme, then the report from the saved state.
     (save,) = _documented("body-scheme", "save")
-    printed = _run(save, env)
+    _run(save, env)
     (state,) = (tmp_path / "home" / ".ros" / "body_scheme").glob("*.json")
     (report,) = _documented("python", "-m", "body_scheme_apps.calibrate", "--state")
     printed = _run(report, env)

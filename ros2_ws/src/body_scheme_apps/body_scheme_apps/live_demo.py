@@ -184,8 +184,11 @@ def _spin(executor, predicate, timeout, during=None):
     return bool(predicate())
 
 
-def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=("120:block_joint:5:0.8",
-                  "220:repair"), perception="noise", n_targets=5, seed=0, sigma_trans=None, sigma_rot=None,
+#: The demo's faults on the shipped 6-DOF arm: its fifth joint blocked at 0.8 rad, then repaired.
+DEMO_FAULTS = ("120:block_joint:5:0.8", "220:repair")
+
+
+def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=DEMO_FAULTS, perception="noise", n_targets=5, seed=0, sigma_trans=None, sigma_rot=None,
                   env=None, log=print, markers_path=None, camera=None, package_path=(), babble="sim"):
     """Start the graph, babble ``steps`` commands with the scheduled ``faults``, then test IK; returns a DemoResult.
 
@@ -452,8 +455,9 @@ def main(argv=None):
     timing.add_argument("--period", type=float, default=0.05, help="s between babbled commands (default 0.05)")
     timing.add_argument("--rate", type=float, default=None, help="babbled commands per second (instead of --period; "
                         "30: a camera's rate)")
-    parser.add_argument("--fault", action="append", dest="faults", help="sim fault schedule entry (repeatable); "
-                        "default: 120:block_joint:5:0.8 and 220:repair")
+    parser.add_argument("--fault", action="append", dest="faults", help="sim fault schedule entry STEP:KIND:ARGS "
+                        "(repeatable), e.g. 120:block_joint:2:0.5 and 220:repair; default: those of the demo on the "
+                        f"shipped powercube_6dof ({' and '.join(DEMO_FAULTS)}), none on any other robot")
     parser.add_argument("--perception", choices=["noise", "rendered"], default="rendered",
                         help="rendered: camera images through tracker_node (default); noise: the paper's noise model "
                         "straight to scheme_node")
@@ -468,13 +472,16 @@ def main(argv=None):
     if args.rate is not None and not (args.rate > 0 and args.rate <= 1000):
         parser.error(f"--rate must be in (0, 1000] commands per second, got {args.rate}")
     period = 1.0 / args.rate if args.rate is not None else args.period
-    faults = args.faults if args.faults is not None else ["120:block_joint:5:0.8", "220:repair"]
     try:
         choice = resolve_robot(args.robot, args.markers, args.camera, args.package_path,
                                pathlib.Path(args.out) / "markers.yaml", args.seed)
     except BodySchemeError as error:
         print(f"live_demo: {error}", file=sys.stderr)
         return 1
+    if args.faults is not None:
+        faults = args.faults
+    else:  # the demo's block is of the shipped arm's fifth joint: a rehearsal of your robot learns without faults
+        faults = list(DEMO_FAULTS) if choice.robot == "powercube_6dof" else []
     result = run_live_demo(args.out, robot=choice.robot, steps=args.steps, period=period, faults=faults,
                            perception=args.perception, n_targets=args.targets, seed=args.seed,
                            markers_path=choice.markers_path, camera=choice.camera, package_path=choice.package_path,
