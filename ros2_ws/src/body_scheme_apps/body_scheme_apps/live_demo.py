@@ -188,8 +188,9 @@ def _spin(executor, predicate, timeout, during=None):
 DEMO_FAULTS = ("120:block_joint:5:0.8", "220:repair")
 
 
-def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=DEMO_FAULTS, perception="noise", n_targets=5, seed=0, sigma_trans=None, sigma_rot=None,
-                  env=None, log=print, markers_path=None, camera=None, package_path=(), babble="sim"):
+def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=DEMO_FAULTS, perception="noise",
+                  n_targets=5, seed=0, sigma_trans=None, sigma_rot=None, env=None, log=print, markers_path=None,
+                  camera=None, package_path=(), babble="sim"):
     """Start the graph, babble ``steps`` commands with the scheduled ``faults``, then test IK; returns a DemoResult.
 
     Parameters

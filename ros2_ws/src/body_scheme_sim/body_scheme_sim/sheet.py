@@ -2,9 +2,12 @@
 
 A page is an image at ``dpi`` dots per inch (A4 by default). Each marker is drawn as on its simulated plate: the
 black ArUco square of the marker's size, exactly ``round(size * dpi / 0.0254)`` dots wide, inside a one-cell white
-quiet zone, surrounded by a dashed cut line; the label below names the id, the size in mm and the link. The PDF
-holds the same pages with their resolution recorded, so a printer at "actual size" (not "fit to page") prints the
-squares at the given size; the PNG is page 1 (or every page, numbered), for checking on screen.
+quiet zone, surrounded by a dashed cut line; the label below names the id, the size in mm and the link. The tags of
+a flat plate (markers with one ``plate`` key, in one plane and turned alike: an ArUco grid board) are printed as one
+piece, each at its place on the plate, so the spacing the tracker assumes is the printed one; the tags of a plate
+that is not flat (a cube with a tag per face) are printed one by one, labelled with their plate. The PDF holds the
+same pages with their resolution recorded, so a printer at "actual size" (not "fit to page") prints the squares at
+the given size; the PNG is page 1 (or every page, numbered), for checking on screen.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import cv2
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
+from body_scheme_core.plates import plates_from_markers
 
 from .markers import MARKER_CELLS, aruco_dictionary
 
@@ -25,6 +29,9 @@ A4_MM = (210.0, 297.0)
 _MARGIN_MM = 10.0
 _GAP_MM = 6.0
 _LABEL_MM = 6.0
+#: A plate's tags are printed as one piece when each lies within this of the reference tag's plane (m) and is
+#: turned like it (rad).
+_FLAT_M, _FLAT_RAD = 2e-4, 1e-3
 
 
 def marker_pixels(size, dpi):
@@ -32,28 +39,71 @@ def marker_pixels(size, dpi):
     return int(round(size / 0.0254 * dpi))
 
 
-def _tile(marker, dpi):
-    """One marker's tile: quiet zone, square, dashed cut line and label; ``(image, square_px)``."""
+def _square(marker, dpi):
     square = marker_pixels(marker.size, dpi)
     if square < 2 * MARKER_CELLS:
         raise InvalidInputError(f"marker {marker.id}: {marker.size} m is {square} dots at {dpi} dpi; too small to "
                                 f"print")
-    cell = square / MARKER_CELLS
-    quiet = int(round(cell))
+    return square
+
+
+def _tile(markers, centres, dpi, text):
+    """One piece to cut out: each marker's square (``centres``: its centre, (x right, y up) m, on the piece) in its
+    quiet zone, the dashed cut line around them all, ``text`` below; ``(image, {id: (row, column) of the square's
+    top-left dot within the tile, square dots})``."""
+    squares = {m.id: _square(m, dpi) for m in markers}
+    dots = dpi / 0.0254
+    boxes = {}  # id: (top, left, bottom, right) of the square with its quiet zone, dots from the centre
+    for m in markers:
+        half = 0.5 * squares[m.id] + int(round(squares[m.id] / MARKER_CELLS))
+        x, y = (float(v) * dots for v in centres[m.id])
+        boxes[m.id] = (-y - half, x - half, -y + half, x + half)
+    top, left = min(b[0] for b in boxes.values()), min(b[1] for b in boxes.values())
+    bottom, right = max(b[2] for b in boxes.values()), max(b[3] for b in boxes.values())
+    height, width = int(round(bottom - top)), int(round(right - left))
     label = int(round(_LABEL_MM / 25.4 * dpi))
-    side = square + 2 * quiet
-    tile = np.full((side + label + 2, side + 2), 255, dtype=np.uint8)
-    pattern = cv2.aruco.generateImageMarker(aruco_dictionary(), marker.id, square)
-    tile[1 + quiet:1 + quiet + square, 1 + quiet:1 + quiet + square] = pattern
+    tile = np.full((height + label + 2, width + 2), 255, dtype=np.uint8)
+    placed, black, quiet_zones = {}, np.zeros(tile.shape, dtype=bool), np.zeros(tile.shape, dtype=bool)
+    for m in markers:
+        square, quiet = squares[m.id], int(round(squares[m.id] / MARKER_CELLS))
+        row, column = (int(round(v - o)) + 1 + quiet for v, o in zip(boxes[m.id][:2], (top, left), strict=True))
+        zone = (slice(row - quiet, row + square + quiet), slice(column - quiet, column + square + quiet))
+        inner = (slice(row, row + square), slice(column, column + square))
+        if black[zone].any() or quiet_zones[inner].any():  # neighbours may share white, never cover a square
+            raise InvalidInputError(f"marker {m.id} overlaps another of its plate or its white border: move it")
+        black[inner] = quiet_zones[zone] = True
+        tile[row:row + square, column:column + square] = cv2.aruco.generateImageMarker(aruco_dictionary(), m.id,
+                                                                                         square)
+        placed[m.id] = ((row, column), square)
     dash = max(2, int(round(dpi / 25.4 * 2)))  # 2 mm dashes
-    for k in range(0, side + 2, 2 * dash):  # the cut line on the plate's outline
-        tile[0, k:k + dash] = tile[side + 1, k:k + dash] = 128
-        tile[k:k + dash, 0] = tile[k:k + dash, side + 1] = 128
-    text = f"id {marker.id}  {marker.size * 1000:.0f} mm  {marker.link}"
+    for k in range(0, max(height, width) + 2, 2 * dash):  # the cut line on the piece's outline
+        tile[0, k:min(k + dash, width + 2)] = tile[height + 1, k:min(k + dash, width + 2)] = 128
+        tile[k:min(k + dash, height + 2), 0] = tile[k:min(k + dash, height + 2), width + 1] = 128
     scale = 0.5 * label / 22.0
-    cv2.putText(tile, text, (2, side + 2 + int(0.75 * label)), cv2.FONT_HERSHEY_SIMPLEX, scale, 0,
+    cv2.putText(tile, text, (2, height + 2 + int(0.75 * label)), cv2.FONT_HERSHEY_SIMPLEX, scale, 0,
                 max(1, int(round(scale * 1.5))), cv2.LINE_AA)
-    return tile, square
+    return tile, placed
+
+
+def _pieces(markers):
+    """``[(markers, {id: centre (x, y) m}, label)]``: one piece per marker, and one per flat plate."""
+    markers = list(markers)
+    plates = plates_from_markers(markers)
+    pieces, printed = [], set()
+    for plate_id, plate in plates.items():
+        members = [m for m in markers if m.plate == plate_id]
+        flat = all(abs(T[2, 3]) <= _FLAT_M and np.allclose(T[:3, :3], np.eye(3), atol=_FLAT_RAD)
+                   for _, T in plate.tags.values())
+        if flat:
+            ids = ", ".join(str(m.id) for m in sorted(members, key=lambda m: m.id))
+            pieces.append((members, {m.id: plate.tags[m.id][1][:2, 3] for m in members},
+                           f"plate {plate_id}: ids {ids}  {members[0].link}"))
+            printed.update(m.id for m in members)
+    for m in markers:
+        if m.id not in printed:
+            on = f"  plate {m.plate}" if m.plate is not None else ""
+            pieces.append(([m], {m.id: (0.0, 0.0)}, f"id {m.id}  {m.size * 1000:.0f} mm  {m.link}{on}"))
+    return pieces
 
 
 def sheet_pages(markers, dpi=300, page_mm=A4_MM):
@@ -76,19 +126,21 @@ def sheet_pages(markers, dpi=300, page_mm=A4_MM):
     margin, gap = (int(round(v / 25.4 * dpi)) for v in (_MARGIN_MM, _GAP_MM))
     pages, boxes = [], []
     x = y = row_height = 0
-    for marker in sorted(markers, key=lambda m: (-m.size, m.id)):
-        tile, square = _tile(marker, dpi)
+    tiles = [(_tile(members, centres, dpi, text), members) for members, centres, text in _pieces(markers)]
+    for (tile, placed), members in sorted(tiles, key=lambda t: (-t[0][0].size, min(m.id for m in t[1]))):
         h, w = tile.shape
         if w > width - 2 * margin or h > height - 2 * margin:
-            raise InvalidInputError(f"marker {marker.id} ({marker.size} m) does not fit on a {page_mm} mm page")
+            what = f"marker {members[0].id} ({members[0].size} m)" if len(members) == 1 else \
+                f"plate {members[0].plate}"
+            raise InvalidInputError(f"{what} does not fit on a {page_mm} mm page")
         if not pages or x + w > width - margin:
             x, y, row_height = margin, (y + row_height + gap) if pages else margin, 0
         if not pages or y + h > height - margin:
             pages.append(np.full((height, width), 255, dtype=np.uint8))
             x, y, row_height = margin, margin, 0
         pages[-1][y:y + h, x:x + w] = tile
-        quiet = int(round(square / MARKER_CELLS))
-        boxes.append((len(pages) - 1, marker.id, (y + 1 + quiet, x + 1 + quiet), square))
+        for marker_id, ((row, column), square) in sorted(placed.items()):
+            boxes.append((len(pages) - 1, marker_id, (y + row, x + column), square))
         x += w + gap
         row_height = max(row_height, h)
     return pages, boxes
@@ -106,11 +158,11 @@ def write_sheet(markers, stem, dpi=300, page_mm=A4_MM):
     pages, _ = sheet_pages(markers, dpi, page_mm)
     stem = pathlib.Path(stem)
     images = [Image.fromarray(page) for page in pages]
-    pdf = stem.with_suffix(".pdf")
+    pdf = stem.with_name(stem.name + ".pdf")  # a stem may hold dots: my.markers -> my.markers.pdf
     images[0].save(pdf, save_all=True, append_images=images[1:], resolution=float(dpi))
     paths = [pdf]
     for k, image in enumerate(images):
-        png = stem.with_suffix(".png") if len(images) == 1 else stem.with_name(f"{stem.name}-{k + 1}.png")
+        png = stem.with_name(f"{stem.name}.png" if len(images) == 1 else f"{stem.name}-{k + 1}.png")
         image.save(png, dpi=(dpi, dpi))
         paths.append(png)
     return paths

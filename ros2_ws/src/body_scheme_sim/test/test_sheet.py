@@ -1,12 +1,18 @@
-"""The printable marker sheet: true scale, every id readable by our tracker, a PDF of A4 pages."""
+"""The printable marker sheet: true scale, every id readable by our tracker, plates as one piece, a PDF of A4
+pages."""
 
 import re
 
+import cv2
+import numpy as np
 import pytest
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.perception import MarkerTracker
+from body_scheme_core.plates import plates_from_markers
+from body_scheme_core.transforms import transform_from_xyz_rpy
 from body_scheme_core.world import Marker
+from body_scheme_sim.markers import aruco_dictionary
 from body_scheme_sim.sheet import marker_pixels, sheet_pages, write_sheet
 
 DPI = 150
@@ -72,3 +78,48 @@ def test_markers_that_cannot_be_printed_are_refused():
         sheet_pages([Marker(id=1, link="l", size=0.5)], dpi=DPI)
     with pytest.raises(InvalidInputError, match="dpi"):
         sheet_pages(_markers(), dpi=10)
+
+
+def _plate(ids, size=0.03, pitch=0.04, rotated=False):
+    """A 2 x 2 grid plate of tags on ``tool`` (tag frames as in a grid board), the first id the plate's."""
+    markers = []
+    for k, tag_id in enumerate(ids):
+        link2marker = np.eye(4)
+        link2marker[:3, 3] = ((k % 2) * pitch, -(k // 2) * pitch, 0.02)
+        if rotated and k == 3:  # a cube's face: turned 90 deg out of the plate
+            link2marker[:3, :3] = transform_from_xyz_rpy((0, 0, 0), (np.pi / 2, 0, 0))[:3, :3]
+        markers.append(Marker(id=tag_id, link="tool", size=size, link2marker=link2marker, plate=ids[0]))
+    return markers
+
+
+def test_a_flat_plate_is_printed_as_one_piece_with_the_spacing_the_tracker_assumes():
+    """A 2 x 2 plate beside single markers: its tags on one piece, each tag's centre on the printed page relative
+    to the plate's reference tag as in the marker file (within a dot), and the tracker, told the plate, gives one
+    pose for it, 1 m away, with no tag refused."""
+    markers = [*_markers()[:3], *_plate([20, 21, 22, 23])]
+    pages, boxes = sheet_pages(markers, dpi=DPI)
+    on_page = {marker_id: page for page, marker_id, _, _ in boxes}
+    assert len({on_page[k] for k in (20, 21, 22, 23)}) == 1
+    page = pages[on_page[20]]
+    f = DISTANCE * DPI / 0.0254
+    K = [[f, 0.0, page.shape[1] / 2 - 0.5], [0.0, f, page.shape[0] / 2 - 0.5], [0.0, 0.0, 1.0]]
+    corners, ids, _ = cv2.aruco.ArucoDetector(aruco_dictionary()).detectMarkers(page)
+    centre = {int(i): c.reshape(4, 2).mean(axis=0) for i, c in zip(np.ravel(ids), corners, strict=True)}
+    dots = DPI / 0.0254
+    by_id = {m.id: m for m in markers}
+    for tag_id in (21, 22, 23):
+        planned = (np.linalg.inv(by_id[20].link2marker) @ by_id[tag_id].link2marker)[:2, 3] * dots
+        printed = (centre[tag_id] - centre[20]) * (1.0, -1.0)  # image rows grow down, the tag's y points up
+        assert np.abs(printed - planned).max() < 1.0, (tag_id, printed, planned)  # within a dot (0.17 mm)
+    sizes = {m.id: m.size for m in markers}
+    poses, rejected = MarkerTracker(K, marker_sizes=sizes, max_ambiguity=1.0,
+                                    plates=plates_from_markers(markers)).detect(page)
+    assert 20 in poses and not {21, 22, 23} & set(poses) and rejected == []
+    assert poses[20][2, 3] == pytest.approx(DISTANCE, rel=5e-3)
+
+
+def test_a_plate_that_is_not_flat_is_printed_tag_by_tag_and_overlapping_tags_are_refused():
+    pages, boxes = sheet_pages(_plate([20, 21, 22, 23], rotated=True), dpi=DPI)
+    assert sorted(marker_id for _, marker_id, _, _ in boxes) == [20, 21, 22, 23]
+    with pytest.raises(InvalidInputError, match="overlaps"):
+        sheet_pages(_plate([20, 21, 22, 23], pitch=0.02), dpi=DPI)
