@@ -16,7 +16,7 @@ import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
 
-__all__ = ["ARUCO_DICTIONARY", "MARKER_CELLS", "PLATE_THICKNESS", "aruco_dictionary", "marker_texture",
+__all__ = ["ARUCO_DICTIONARY", "MARKER_CELLS", "PLATE_THICKNESS", "aruco_dictionary", "marker_image",
            "plate_side", "marker_corners", "write_plate_obj"]
 
 #: OpenCV predefined dictionary of the markers; a marker's id is its ArUco id.
@@ -71,27 +71,20 @@ def aruco_dictionary():
     return cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY)
 
 
-def marker_texture(marker_id, pixels_per_cell=16):
-    """Image of a marker on its plate: the ArUco square with a one-cell white border.
+def marker_image(marker_id, pixels):
+    """The black ArUco square of ``marker_id``, ``pixels`` wide (grey levels, 0 black and 255 white, top row first).
 
-    Parameters
-    ----------
-    marker_id : int
-        ArUco id in :data:`ARUCO_DICTIONARY`.
-    pixels_per_cell : int
-
-    Returns
-    -------
-    image : ndarray, shape ((MARKER_CELLS + 2) * pixels_per_cell,) * 2, dtype uint8
-        Grey levels, 0 black and 255 white, top row first.
+    Raises
+    ------
+    InvalidInputError
+        If :data:`ARUCO_DICTIONARY` holds no such id.
     """
     dictionary = aruco_dictionary()
     n_ids = dictionary.bytesList.shape[0]
     if isinstance(marker_id, bool) or int(marker_id) != marker_id or not (0 <= int(marker_id) < n_ids):
         raise InvalidInputError(
             f"marker id {marker_id!r} has no ArUco marker: DICT_4X4_50 holds ids 0..{n_ids - 1}")
-    square = cv2.aruco.generateImageMarker(dictionary, int(marker_id), MARKER_CELLS * pixels_per_cell)
-    return np.pad(square, pixels_per_cell, constant_values=255)
+    return cv2.aruco.generateImageMarker(dictionary, int(marker_id), int(pixels))
 
 
 def plate_side(size):

@@ -20,9 +20,9 @@ import numpy as np
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.plates import plates_from_markers
 
-from .markers import MARKER_CELLS, aruco_dictionary
+from .markers import MARKER_CELLS, marker_image
 
-__all__ = ["A4_MM", "marker_pixels", "sheet_pages", "write_sheet"]
+__all__ = ["A4_MM", "marker_pixels", "plate_face", "flat_plates", "sheet_pages", "write_sheet"]
 
 #: Page size, mm (width, height).
 A4_MM = (210.0, 297.0)
@@ -39,42 +39,77 @@ def marker_pixels(size, dpi):
     return int(round(size / 0.0254 * dpi))
 
 
-def _square(marker, dpi):
-    square = marker_pixels(marker.size, dpi)
+def _square(marker, dots_per_m):
+    square = int(round(marker.size * dots_per_m))
     if square < 2 * MARKER_CELLS:
-        raise InvalidInputError(f"marker {marker.id}: {marker.size} m is {square} dots at {dpi} dpi; too small to "
-                                f"print")
+        raise InvalidInputError(f"marker {marker.id}: {marker.size} m is {square} dots at "
+                                f"{dots_per_m * 0.0254:.0f} dpi; too small to print")
     return square
 
 
-def _tile(markers, centres, dpi, text):
-    """One piece to cut out: each marker's square (``centres``: its centre, (x right, y up) m, on the piece) in its
-    quiet zone, the dashed cut line around them all, ``text`` below; ``(image, {id: (row, column) of the square's
-    top-left dot within the tile, square dots})``."""
-    squares = {m.id: _square(m, dpi) for m in markers}
-    dots = dpi / 0.0254
-    boxes = {}  # id: (top, left, bottom, right) of the square with its quiet zone, dots from the centre
+def plate_face(markers, centres, dots_per_m, patterns=True):
+    """The face of a plate (or of one marker's own plate): each marker's square at its centre (``centres``: (x right,
+    y up) m in the plate's frame) in its one-cell white quiet zone, on white cropped to the quiet zones; with
+    ``patterns`` False the squares are plain black (any id).
+
+    Returns
+    -------
+    image : ndarray (height, width), uint8
+    placed : dict
+        ``{id: ((row, column) of the square's top-left dot, square dots)}``.
+    centre : (float, float)
+        Where the image's centre is in the plate's frame, m (x, y).
+
+    Raises
+    ------
+    InvalidInputError
+        A square too small for the resolution, or on another marker's square or quiet zone (neighbours may share
+        their white).
+    """
+    squares = {m.id: _square(m, dots_per_m) for m in markers}
+    boxes = {}  # id: (top, left) of the square with its quiet zone, dots from the plate's origin
     for m in markers:
         half = 0.5 * squares[m.id] + int(round(squares[m.id] / MARKER_CELLS))
-        x, y = (float(v) * dots for v in centres[m.id])
+        x, y = (float(v) * dots_per_m for v in centres[m.id])
         boxes[m.id] = (-y - half, x - half, -y + half, x + half)
     top, left = min(b[0] for b in boxes.values()), min(b[1] for b in boxes.values())
     bottom, right = max(b[2] for b in boxes.values()), max(b[3] for b in boxes.values())
-    height, width = int(round(bottom - top)), int(round(right - left))
-    label = int(round(_LABEL_MM / 25.4 * dpi))
-    tile = np.full((height + label + 2, width + 2), 255, dtype=np.uint8)
-    placed, black, quiet_zones = {}, np.zeros(tile.shape, dtype=bool), np.zeros(tile.shape, dtype=bool)
+    image = np.full((int(round(bottom - top)), int(round(right - left))), 255, dtype=np.uint8)
+    placed, black, quiet_zones = {}, np.zeros(image.shape, dtype=bool), np.zeros(image.shape, dtype=bool)
     for m in markers:
         square, quiet = squares[m.id], int(round(squares[m.id] / MARKER_CELLS))
-        row, column = (int(round(v - o)) + 1 + quiet for v, o in zip(boxes[m.id][:2], (top, left), strict=True))
+        row, column = (int(round(v - o)) + quiet for v, o in zip(boxes[m.id][:2], (top, left), strict=True))
         zone = (slice(row - quiet, row + square + quiet), slice(column - quiet, column + square + quiet))
         inner = (slice(row, row + square), slice(column, column + square))
-        if black[zone].any() or quiet_zones[inner].any():  # neighbours may share white, never cover a square
+        if black[zone].any() or quiet_zones[inner].any():
             raise InvalidInputError(f"marker {m.id} overlaps another of its plate or its white border: move it")
         black[inner] = quiet_zones[zone] = True
-        tile[row:row + square, column:column + square] = cv2.aruco.generateImageMarker(aruco_dictionary(), m.id,
-                                                                                         square)
+        image[inner] = marker_image(m.id, square) if patterns else 0
         placed[m.id] = ((row, column), square)
+    return image, placed, (0.5 * (left + right) / dots_per_m, -0.5 * (top + bottom) / dots_per_m)
+
+
+def flat_plates(markers):
+    """``{plate id: (markers, {id: centre (x, y) m on the plate})}`` of the plates whose tags lie in one plane, turned
+    alike (an ArUco grid board): printed and drawn as one piece."""
+    markers = list(markers)
+    flat = {}
+    for plate_id, plate in plates_from_markers(markers).items():
+        if all(abs(T[2, 3]) <= _FLAT_M and np.allclose(T[:3, :3], np.eye(3), atol=_FLAT_RAD)
+               for _, T in plate.tags.values()):
+            members = sorted((m for m in markers if m.plate == plate_id), key=lambda m: m.id)
+            flat[plate_id] = (members, {m.id: plate.tags[m.id][1][:2, 3] for m in members})
+    return flat
+
+
+def _tile(markers, centres, dpi, text):
+    """One piece to cut out: :func:`plate_face` with the dashed cut line around it and ``text`` below; ``(image,
+    {id: (row, column) of the square's top-left dot within the tile, square dots})``."""
+    face, placed, _ = plate_face(markers, centres, dpi / 0.0254)
+    height, width = face.shape
+    label = int(round(_LABEL_MM / 25.4 * dpi))
+    tile = np.full((height + label + 2, width + 2), 255, dtype=np.uint8)
+    tile[1:1 + height, 1:1 + width] = face
     dash = max(2, int(round(dpi / 25.4 * 2)))  # 2 mm dashes
     for k in range(0, max(height, width) + 2, 2 * dash):  # the cut line on the piece's outline
         tile[0, k:min(k + dash, width + 2)] = tile[height + 1, k:min(k + dash, width + 2)] = 128
@@ -82,23 +117,17 @@ def _tile(markers, centres, dpi, text):
     scale = 0.5 * label / 22.0
     cv2.putText(tile, text, (2, height + 2 + int(0.75 * label)), cv2.FONT_HERSHEY_SIMPLEX, scale, 0,
                 max(1, int(round(scale * 1.5))), cv2.LINE_AA)
-    return tile, placed
+    return tile, {k: ((row + 1, column + 1), square) for k, ((row, column), square) in placed.items()}
 
 
 def _pieces(markers):
-    """``[(markers, {id: centre (x, y) m}, label)]``: one piece per marker, and one per flat plate."""
+    """``[(markers, {id: centre (x, y) m}, label)]``: one piece per flat plate, and one per other marker."""
     markers = list(markers)
-    plates = plates_from_markers(markers)
     pieces, printed = [], set()
-    for plate_id, plate in plates.items():
-        members = [m for m in markers if m.plate == plate_id]
-        flat = all(abs(T[2, 3]) <= _FLAT_M and np.allclose(T[:3, :3], np.eye(3), atol=_FLAT_RAD)
-                   for _, T in plate.tags.values())
-        if flat:
-            ids = ", ".join(str(m.id) for m in sorted(members, key=lambda m: m.id))
-            pieces.append((members, {m.id: plate.tags[m.id][1][:2, 3] for m in members},
-                           f"plate {plate_id}: ids {ids}  {members[0].link}"))
-            printed.update(m.id for m in members)
+    for plate_id, (members, centres) in flat_plates(markers).items():
+        ids = ", ".join(str(m.id) for m in members)
+        pieces.append((members, centres, f"plate {plate_id}: ids {ids}  {members[0].link}"))
+        printed.update(m.id for m in members)
     for m in markers:
         if m.id not in printed:
             on = f"  plate {m.plate}" if m.plate is not None else ""

@@ -42,8 +42,9 @@ from body_scheme_core.world import (
 )
 
 from .camera import Camera
-from .markers import PLATE_THICKNESS, marker_corners, marker_texture, plate_side, write_plate_obj
+from .markers import MARKER_CELLS, PLATE_THICKNESS, marker_corners, write_plate_obj
 from .robots import ROBOT_BUILDERS, load_robot, robot_files
+from .sheet import flat_plates, plate_face
 
 __all__ = ["SimWorld", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE", "ALWAYS_SAMPLES",
            "ALWAYS_FRACTION"]
@@ -69,6 +70,7 @@ _RAY_STANDOFF = 2e-3
 _GROUND_HALF_SIZE = 1.4  # m; the floor ends behind the robot (a white wall beyond)
 _GROUND_RGBA = (0.55, 0.6, 0.5, 1.0)
 _PLAIN_PLATE_RGBA = (0.9, 0.9, 0.9, 1.0)
+_PIXELS_PER_CELL = 16  # texture resolution of the smallest marker of a plate
 
 
 def direct_client():
@@ -209,24 +211,33 @@ class SimWorld:
                                   baseVisualShapeIndex=speck)
 
     def _create_markers(self, tree, textured):
+        """One textured plate body per marker, and one per flat plate of several tags (:func:`.sheet.flat_plates`:
+        drawn as printed, one piece); ``{id of the marker or plate: (body, marker2body)}``."""
         pb = self._pb
         obj_path = str(write_plate_obj(self._dir))
+        pieces = {plate_id: members for plate_id, members in flat_plates(tree.markers).items()}
+        drawn = {m.id for members, _ in pieces.values() for m in members}
+        pieces.update({m.id: ([m], {m.id: (0.0, 0.0)}) for m in tree.markers if m.id not in drawn})
         bodies = {}
-        for marker in tree.markers:
-            side = plate_side(marker.size)
+        for piece_id, (members, centres) in pieces.items():
+            pixels_per_m = _PIXELS_PER_CELL * MARKER_CELLS / min(m.size for m in members)
+            face, _, (cx, cy) = plate_face(members, centres, pixels_per_m, patterns=textured)
+            width, height = face.shape[1] / pixels_per_m, face.shape[0] / pixels_per_m
             visual = pb.createVisualShape(pybullet.GEOM_MESH, fileName=obj_path,
-                                          meshScale=(side, side, PLATE_THICKNESS),
+                                          meshScale=(width, height, PLATE_THICKNESS),
                                           rgbaColor=(1.0, 1.0, 1.0, 1.0) if textured else _PLAIN_PLATE_RGBA)
-            shape = pb.createCollisionShape(pybullet.GEOM_BOX, halfExtents=(0.5 * side, 0.5 * side,
+            shape = pb.createCollisionShape(pybullet.GEOM_BOX, halfExtents=(0.5 * width, 0.5 * height,
                                                                             0.5 * PLATE_THICKNESS),
                                             collisionFramePosition=(0.0, 0.0, -0.5 * PLATE_THICKNESS))
             body = pb.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=shape, baseVisualShapeIndex=visual)
             pb.setCollisionFilterGroupMask(body, -1, _MARKER_GROUP, 0)
             if textured:
-                texture_path = self._dir / f"aruco_{marker.id}.png"
-                cv2.imwrite(str(texture_path), cv2.cvtColor(marker_texture(marker.id), cv2.COLOR_GRAY2BGR))
+                texture_path = self._dir / f"aruco_{piece_id}.png"
+                cv2.imwrite(str(texture_path), cv2.cvtColor(face, cv2.COLOR_GRAY2BGR))
                 pb.changeVisualShape(body, -1, textureUniqueId=pb.loadTexture(str(texture_path)))
-            bodies[marker.id] = body
+            marker2body = np.eye(4)
+            marker2body[:2, 3] = (cx, cy)
+            bodies[piece_id] = (body, marker2body)
         return bodies
 
     def _pairs_in_contact(self):
@@ -360,8 +371,8 @@ class SimWorld:
         self._q = np.array(q, dtype=float)
         root2marker = self._body.tree.marker_poses(self._q)
         self._world2marker = root2marker
-        for marker_id, body in self._marker_bodies.items():
-            pose = root2marker[marker_id]
+        for marker_id, (body, marker2body) in self._marker_bodies.items():
+            pose = root2marker[marker_id] @ marker2body
             pb.resetBasePositionAndOrientation(body, pose[:3, 3], Rotation.from_matrix(pose[:3, :3]).as_quat())
 
     def drawn_link_poses(self):

@@ -44,7 +44,7 @@ def test_planned_plates_sit_outside_the_robot_and_the_camera_sees_them(panda_pla
     with SimWorld(PANDA, camera=camera, markers=[p.marker for p in planned], marker_texture=False) as world:
         pb = world._pb
         pb.performCollisionDetection()
-        for marker_id, body in world._marker_bodies.items():
+        for marker_id, (body, _) in world._marker_bodies.items():
             deepest = min((c[8] for c in pb.getClosestPoints(body, world._robot_id, 0.0)), default=0.0)
             assert deepest > -1e-4, (marker_id, deepest)
         seen, rng = set(), np.random.default_rng(1)
