@@ -18,7 +18,7 @@ import pytest
 import yaml
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
-from workspace import documented_commands
+from workspace import SUBSTITUTIONS, documented_commands
 
 from body_scheme_msgs.msg import BodySchemeStructure
 from body_scheme_sim.robots import ROBOTS_DIR, load_robot
@@ -28,8 +28,10 @@ pytestmark = pytest.mark.system
 #: "Your robot": a URDF only (the shipped arm's own marker file is not used; the planner places the markers).
 URDF = ROBOTS_DIR / "arm_4dof.urdf"
 PLACEHOLDERS = {"path/to/your_robot.urdf": str(URDF)}
-#: What tests/workspace.py's SUBSTITUTIONS gives for the doc's ``$(... markers/camera.yaml ...)``: the planned camera.
-SUBSTITUTIONS_CAMERA = "0.0 -2.0 1.0 -2.2 0.0 0.0"
+#: What tests/workspace.py gives for the doc's ``$(... markers/camera.yaml ...)``; the planned camera replaces it.
+SUBSTITUTIONS_CAMERA = next(value for text, value in SUBSTITUTIONS.items() if "markers/camera.yaml" in text)
+#: Action signals before the rehearsal gives up on the true tree (as many as step 3's rehearsals babble).
+MAX_COMMANDS = 600
 
 
 def _documented(*prefix, fill=None):
@@ -81,7 +83,9 @@ def planned(ros_env, tmp_path, monkeypatch):
 
 def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shipped_arms_faults(planned, tmp_path):
     """Step 3's live_demo as written: the whole graph on the planned markers, the camera where the plan put it; no
-    fault of the shipped arm (its default blocked a joint of another robot); exit 0 only with the true tree."""
+    fault of the shipped arm (its default blocked a joint of another robot); exit 0 exactly when the true tree was
+    learnt. Whether 600 commands suffice is measured (the closing notes), not asserted: learning from scratch varies
+    from run to run, as the doc says."""
     env, _, true_edges = planned
     camera = yaml.safe_load((tmp_path / "markers" / "camera.yaml").read_text())["camera"]
     (demo,) = _documented("python", "-m", "body_scheme_apps.live_demo", fill={
@@ -118,8 +122,9 @@ def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(plan
         return structures and {frozenset((e.parent_id, e.child_id)) for e in structures[-1].edges} == true_edges \
             and all(e.valid for e in structures[-1].edges)
 
-    # However slow the machine: waited for as long as babble_node keeps sending action signals.
-    assert spin_until(learned, timeout=120, progress=lambda: len(commands)), (
+    # However slow the machine: waited for as long as babble_node keeps sending action signals, up to MAX_COMMANDS.
+    spin_until(lambda: learned() or len(commands) >= MAX_COMMANDS, timeout=120, progress=lambda: len(commands))
+    assert learned(), (
         len(commands), structures[-1] if structures else None, *(node.output()[-2000:] for node in nodes))
     assert all(node.running() for node in nodes)
 

@@ -184,11 +184,11 @@ def _spin(executor, predicate, timeout, during=None):
     return bool(predicate())
 
 
-#: The demo's faults on the shipped 6-DOF arm: its fifth joint blocked at 0.8 rad, then repaired.
+#: The demo's faults on the shipped 6-DOF arm: its sixth joint (action 5) blocked at 0.8 rad, then repaired.
 DEMO_FAULTS = ("120:block_joint:5:0.8", "220:repair")
 
 
-def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=DEMO_FAULTS, perception="noise",
+def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=None, perception="noise",
                   n_targets=5, seed=0, sigma_trans=None, sigma_rot=None, env=None, log=print, markers_path=None,
                   camera=None, package_path=(), babble="sim"):
     """Start the graph, babble ``steps`` commands with the scheduled ``faults``, then test IK; returns a DemoResult.
@@ -203,8 +203,9 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
         Babbled commands before the IK phase.
     period : float
         Seconds between babbled commands.
-    faults : sequence of str
-        sim_node fault schedule (``"step:kind:args"``, steps count executed commands).
+    faults : sequence of str, optional
+        sim_node fault schedule (``"step:kind:args"``, steps count executed commands). Default: :data:`DEMO_FAULTS`
+        on the shipped ``powercube_6dof`` (the demo's block is of its sixth joint), none on any other robot.
     perception : {"noise", "rendered"}
         The simulator's noise model straight to scheme_node (the paper's protocol), or rendered images through
         tracker_node.
@@ -242,6 +243,8 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
     end_effector = max(ids)
     names = list(tree.action_joint_names)
     lower, upper = [float(v) for v in tree.action_lower], [float(v) for v in tree.action_upper]
+    if faults is None:
+        faults = DEMO_FAULTS if robot == "powercube_6dof" else ()
     result = DemoResult(steps=steps, faults=list(faults), perception=perception,
                         true_edges=[list(e) for e in tree.marker_tree_edges()])
 
@@ -479,11 +482,7 @@ def main(argv=None):
     except BodySchemeError as error:
         print(f"live_demo: {error}", file=sys.stderr)
         return 1
-    if args.faults is not None:
-        faults = args.faults
-    else:  # the demo's block is of the shipped arm's fifth joint: a rehearsal of your robot learns without faults
-        faults = list(DEMO_FAULTS) if choice.robot == "powercube_6dof" else []
-    result = run_live_demo(args.out, robot=choice.robot, steps=args.steps, period=period, faults=faults,
+    result = run_live_demo(args.out, robot=choice.robot, steps=args.steps, period=period, faults=args.faults,
                            perception=args.perception, n_targets=args.targets, seed=args.seed,
                            markers_path=choice.markers_path, camera=choice.camera, package_path=choice.package_path,
                            babble=args.babble)

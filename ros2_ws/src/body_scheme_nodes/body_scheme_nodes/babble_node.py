@@ -349,10 +349,12 @@ class BabbleNode(Node):
                     self.get_logger().warn(f"pre-flight: {line}")
             return False
         skipped = f" (skipped: {list(self.preflight_skip)})" if self.preflight_skip else ""
-        unseen = unseen_markers(facts) if "markers" not in self.preflight_skip else []
-        unseen = f"; not seen at the start posture: markers {unseen} (seen as the arm moves)" if unseen else ""
         self.get_logger().info(f"pre-flight passed: {', '.join(c for c in CHECKS if c not in self.preflight_skip)}"
-                               f"{skipped}{unseen}; babbling starts")
+                               f"{skipped}; babbling starts")
+        unseen = unseen_markers(facts) if "markers" not in self.preflight_skip else []
+        if unseen:
+            self.get_logger().warn(f"pre-flight: markers {unseen} not seen at the start posture; each must face the "
+                                   f"camera in other postures (scheme_node's /diagnostics shows what it learns)")
         return True
 
     def _quiet(self, now):

@@ -34,7 +34,7 @@ class LearningLoop:
 
     Threads: :meth:`put` and :meth:`intake_counts` take the loop's own lock (the executor's thread puts while the
     learning thread takes the inbox). :meth:`work` writes ``pending``, the pairer, ``restamped``, ``lag``, the
-    learning thread's ``shed`` counts and ``last_command_time``: the learning thread holds the lock given to
+    learning thread's ``shed`` counts and the stall's command times: the learning thread holds the lock given to
     :meth:`start` around it, and every reader of those (and of the learner) holds it too (scheme_node's
     ``_learner_lock``, which its /diagnostics takes)."""
 
@@ -48,7 +48,7 @@ class LearningLoop:
         self.lag = deque(maxlen=200)
         self.n_observation_messages = 0  # taken in by the learning thread
         self.oversized_observations = 0  # observation messages refused unread
-        self.last_command_time = None  # node time the learning thread last took a command message in
+        self._unlearnt = None  # (first, last) node times of the commands taken in since a sample was last learnt
         self.thread = None  # the learning thread, once started
         self._wake, self._stopping = threading.Event(), threading.Event()
 
@@ -106,6 +106,16 @@ class LearningLoop:
         except Exception as error:  # any error: handed over, never lost with the thread
             on_failure(error)
 
+    def learnt(self):
+        """A sample was learnt (the ``learn`` callback says so when the learner took it)."""
+        self._unlearnt = None
+
+    def stalled_for(self):
+        """Seconds over which commands kept arriving with no sample learnt: from the first command taken in since the
+        last learnt sample to the latest (0.0 when none waits). One command after a quiet spell is not a stall; a
+        dead camera, or commands that cannot be learnt, are."""
+        return 0.0 if self._unlearnt is None else self._unlearnt[1] - self._unlearnt[0]
+
     def take_inbox(self):
         """Every message put since the last call, oldest first."""
         with self._lock:
@@ -133,8 +143,8 @@ class LearningLoop:
         return self.n_observation_messages + shed + oversized - self.pairer.waiting - len(self.pending)
 
     def _take_in(self, inbox, now):
-        if any(kind == "command" for kind, _, _ in inbox):
-            self.last_command_time = now  # observations alone (the arm standing) are nothing to learn yet
+        if any(kind == "command" for kind, _, _ in inbox):  # observations alone (the arm standing): nothing to learn
+            self._unlearnt = (now if self._unlearnt is None else self._unlearnt[0], now)
         for kind, msg, received in inbox:
             if not self._stamp_acceptable(msg, received, now):
                 continue

@@ -146,7 +146,6 @@ class SchemeNode(Node):
         self._specification = specification_tree(self.settings.urdf_path, self.settings.markers_path,
                                                  self.joint_names, self.settings.part_ids) \
             if self.settings.urdf_path else None
-        self.started = self._now()
         self.rejected = Counter()
         self.event_counts = Counter()
         self.latency = deque(maxlen=200)
@@ -154,7 +153,6 @@ class SchemeNode(Node):
         # under _learner_lock, which /diagnostics (the executor's thread) takes to read the learner and the counters.
         self.loop = LearningLoop(self.settings, self._now, self._learn, self._reject)
         self._learner_lock = threading.Lock()  # the learner between the learning thread and the executor's
-        self.last_learn_time = None  # node clock, s: the watchdog's input, with loop.last_command_time
 
         depth, max_bytes = self.settings.queue_depth, self.settings.max_message_bytes
         self._intake = {"command": BatchIntake(self, JointState, "joint_commands", depth, max_bytes),
@@ -288,7 +286,7 @@ class SchemeNode(Node):
         if rejection is not None:
             self._reject(*rejection)
             return
-        self.last_learn_time = self._now()
+        self.loop.learnt()
         self.latency.append(time.perf_counter() - start)
         events = events + self.explorer.after_learning(self.learner, stamp, actions)
         for event in events:
@@ -403,12 +401,9 @@ class SchemeNode(Node):
         self.pub_diagnostics.publish(array)
 
     def _stalled_for(self):
-        """Seconds since the last learning step while commands keep arriving, if beyond ``stall_timeout``; else None.
-        Observations without commands are not a stall: the arm stands (babble_node waits, a pause), nothing to learn."""
-        if self.loop.last_command_time is None:
-            return None
-        learnt = self.last_learn_time if self.last_learn_time is not None else self.started
-        since = self.loop.last_command_time - learnt
+        """Seconds over which commands kept arriving with nothing learnt, if beyond ``stall_timeout``; else None
+        (:meth:`LearningLoop.stalled_for`: observations alone, while the arm stands, are not a stall)."""
+        since = self.loop.stalled_for()
         return since if since > self.settings.stall_timeout else None
 
     # -- services ------------------------------------------------------------------------------------------------

@@ -52,7 +52,7 @@ def test_one_sample_is_learnt_per_step_oldest_first_and_progress_counts_the_deci
     assert loop.loop.progress() == 1 and len(loop.loop.pending) == 1  # the second waits its turn
     loop.work()
     assert [stamp for stamp, _, _ in loop.learnt] == [pytest.approx(9.1), pytest.approx(9.6)]
-    assert loop.loop.progress() == 2 and loop.loop.last_command_time == 10.0
+    assert loop.loop.progress() == 2
 
 
 def test_a_sample_older_than_max_sample_age_when_its_turn_comes_is_shed_and_the_next_is_learnt():
@@ -103,17 +103,21 @@ def test_messages_too_large_to_read_are_counted_as_received_and_decided():
     assert loop.loop.intake_counts() == {"oversized_message": 2} and loop.loop.progress() == 1
 
 
-def test_observations_alone_do_not_feed_the_stall_watchdog_and_a_command_does():
-    """The arm standing (babble_node waiting in its pre-flight, paused) sends observations only: nothing to learn,
-    no stall. A command is what the watchdog waits to see learnt."""
+def test_the_stall_is_how_long_commands_keep_arriving_unlearnt_not_observations_nor_one_late_command():
+    """The arm standing (babble_node in its pre-flight, a pause) sends observations only: no stall. The first command
+    after a quiet spell is no stall either; commands that keep arriving with nothing learnt (a dead camera) are,
+    until a sample is learnt."""
     loop = Loop()
     loop.put((9.1, observations(9.1)), (9.6, observations(9.6)))
     loop.work()
-    assert loop.loop.last_command_time is None and not loop.learnt
-    loop.now = 11.0
-    loop.put((10.9, command(10.9, 0.3)))
-    loop.work()
-    assert loop.loop.last_command_time == 11.0
+    assert loop.loop.stalled_for() == 0.0 and not loop.learnt
+    for now in (40.0, 45.0, 52.0):  # 30 s after the start, then every few seconds, never an observation after them
+        loop.now = now
+        loop.put((now, command(now, 0.3)))
+        loop.work()
+    assert loop.loop.stalled_for() == 12.0
+    loop.loop.learnt()
+    assert loop.loop.stalled_for() == 0.0
 
 
 def test_the_learning_thread_learns_what_is_put_under_the_given_lock_and_stops():

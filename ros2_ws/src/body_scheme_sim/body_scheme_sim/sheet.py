@@ -125,8 +125,9 @@ def _pieces(markers):
     markers = list(markers)
     pieces, printed = [], set()
     for plate_id, (members, centres) in flat_plates(markers).items():
-        ids = ", ".join(str(m.id) for m in members)
-        pieces.append((members, centres, f"plate {plate_id}: ids {ids}  {members[0].link}"))
+        sizes = sorted({round(m.size * 1000) for m in members})
+        size = f"{sizes[0]} mm" if len(sizes) == 1 else "/".join(map(str, sizes)) + " mm"
+        pieces.append((members, centres, f"plate {plate_id}: {len(members)} tags {size}  {members[0].link}"))
         printed.update(m.id for m in members)
     for m in markers:
         if m.id not in printed:

@@ -215,7 +215,7 @@ class SimWorld:
         drawn as printed, one piece); ``{id of the marker or plate: (body, marker2body)}``."""
         pb = self._pb
         obj_path = str(write_plate_obj(self._dir))
-        pieces = {plate_id: members for plate_id, members in flat_plates(tree.markers).items()}
+        pieces = flat_plates(tree.markers)
         drawn = {m.id for members, _ in pieces.values() for m in members}
         pieces.update({m.id: ([m], {m.id: (0.0, 0.0)}) for m in tree.markers if m.id not in drawn})
         bodies = {}
