@@ -15,7 +15,7 @@ import pathlib
 import sys
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.world.robot_files import load_markers_yaml
+from body_scheme_core.world import load_markers_yaml
 
 from .entry import command
 
