@@ -161,12 +161,13 @@ def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_f
     """A tick long after the previous one (the process was paused) neither judges the camera's silence nor sends:
     the frame that waited in the queue meanwhile is read first and babbling goes on; a silence seen by a tick on time
     stops it."""
-    with babble_node([Parameter("camera_timeout", value=0.2), NO_INPUTS_BUT_JOINT_STATES]) as node:
+    # camera_timeout 3 s against pauses of 20 s: a busy machine's stall between two calls (seconds) changes nothing.
+    with babble_node([Parameter("camera_timeout", value=3.0), NO_INPUTS_BUT_JOINT_STATES]) as node:
         node.driver._on_joint_states(JointState(name=list(node.driver.joint_names), position=[0.0] * 6))
         node._on_timer()
         assert node.state == "idle"
         node.driver.goal = None  # the first tick's move is over
-        node.last_camera = node.last_tick = time.monotonic() - 2.0  # paused for 2 s
+        node.last_camera = node.last_tick = time.monotonic() - 20.0  # paused for 20 s
         sent = node.counts["actions"], node.driver.goal
         node._on_timer()
         assert node.state == "idle" and (node.counts["actions"], node.driver.goal) == sent  # no verdict, no command
@@ -174,7 +175,7 @@ def test_after_a_pause_of_the_node_itself_the_camera_watchdog_reads_the_queued_f
         node._on_timer()
         assert node.state == "idle"
         node.driver.goal = None  # at rest again (the camera is judged at rest)
-        node.last_camera = time.monotonic() - 2.0  # no pause, a silent camera
+        node.last_camera = time.monotonic() - 20.0  # no pause, a silent camera
         node._on_timer()
         assert node.state == "stopped" and "camera is quiet" in node.stop_reason
 
