@@ -26,11 +26,11 @@ __all__ = ["LearningLoop"]
 class LearningLoop:
     """The loop for one learner's settings (:class:`~body_scheme_nodes.settings.SchemeSettings`).
 
-    ``clock()`` is the node's time in seconds; ``learn(stamp, actions, observations)`` learns one sample (scheme_node
-    publishes what came of it); ``reject(code, detail)`` counts and reports a refused input. Counters: ``received``
-    (messages put, by kind), ``refused_at_intake`` (too large to read), ``restamped``, ``shed`` (``<kind>_messages``
-    from the inbox, ``samples`` beyond ``max_pending_samples``, ``stale_samples`` beyond ``max_sample_age``), ``lag``
-    (the age of the last 200 samples when learnt, s).
+    ``clock()`` is the node's time in seconds; ``learn(stamp, actions, observations)`` learns one sample and says
+    whether the learner took it (scheme_node publishes what came of it); ``reject(code, detail)`` counts and reports
+    a refused input. Counters: ``received`` (messages put, by kind), ``refused_at_intake`` (too large to read),
+    ``restamped``, ``shed`` (``<kind>_messages`` from the inbox, ``samples`` beyond ``max_pending_samples``,
+    ``stale_samples`` beyond ``max_sample_age``), ``lag`` (the age of the last 200 samples when learnt, s).
 
     Threads: :meth:`put` and :meth:`intake_counts` take the loop's own lock (the executor's thread puts while the
     learning thread takes the inbox). :meth:`work` writes ``pending``, the pairer, ``restamped``, ``lag``, the
@@ -106,10 +106,6 @@ class LearningLoop:
         except Exception as error:  # any error: handed over, never lost with the thread
             on_failure(error)
 
-    def learnt(self):
-        """A sample was learnt (the ``learn`` callback says so when the learner took it)."""
-        self._unlearnt = None
-
     def stalled_for(self):
         """Seconds over which commands kept arriving with no sample learnt: from the first command taken in since the
         last learnt sample to the latest (0.0 when none waits). One command after a quiet spell is not a stall; a
@@ -130,7 +126,8 @@ class LearningLoop:
             age = self.clock() - received
             if age <= self.settings.max_sample_age:
                 self.lag.append(age)  # how far learning is behind its input (camera rate: it must not grow)
-                self._learn(*sample)
+                if self._learn(*sample):
+                    self._unlearnt = None  # no stall: a sample was learnt
                 return
             self.shed["stale_samples"] += 1
 

@@ -281,12 +281,12 @@ class SchemeNode(Node):
             self.pub_progress.publish(UInt64(data=progress))
 
     def _learn(self, stamp, actions, observations):
+        """Learn one sample and publish what came of it; False if the learner refused it (LearningLoop's ``learn``)."""
         start = time.perf_counter()
         events, rejection = learn_sample(self.learner, stamp, actions, observations)
         if rejection is not None:
             self._reject(*rejection)
-            return
-        self.loop.learnt()
+            return False
         self.latency.append(time.perf_counter() - start)
         events = events + self.explorer.after_learning(self.learner, stamp, actions)
         for event in events:
@@ -302,6 +302,7 @@ class SchemeNode(Node):
             self.pub_predicted.publish(conversions.marker_poses_msg(stamp, self.frame_id, poses, std))
             self._publish_view(stamp, poses, std, observations, edges)
         self._publish_structure(edges=edges)
+        return True
 
     def _publish_view(self, stamp, poses, std, observations, edges):
         """Markers, PoseArray and /tf of a prediction, at most every ``view_period`` (body_scheme_nodes.view)."""

@@ -18,8 +18,12 @@ class Loop:
     def __init__(self, **settings):
         self.now, self.learnt, self.rejected = 10.0, [], []
         values = {"part_ids": [1, 2], "joint_names": ["j"], "pairing_grace": 0.0, **settings}
-        self.loop = LearningLoop(SchemeSettings.from_parameters(values), lambda: self.now,
-                                 lambda *sample: self.learnt.append(sample), lambda *why: self.rejected.append(why))
+        self.loop = LearningLoop(SchemeSettings.from_parameters(values), lambda: self.now, self._learn,
+                                 lambda *why: self.rejected.append(why))
+
+    def _learn(self, *sample):
+        self.learnt.append(sample)
+        return True  # the learner took it
 
     def put(self, *messages):
         """Put ``(receipt time, message)`` pairs, received in that order."""
@@ -116,8 +120,10 @@ def test_the_stall_is_how_long_commands_keep_arriving_unlearnt_not_observations_
         loop.put((now, command(now, 0.3)))
         loop.work()
     assert loop.loop.stalled_for() == 12.0
-    loop.loop.learnt()
-    assert loop.loop.stalled_for() == 0.0
+    loop.now = 52.1
+    loop.put((52.1, observations(52.1)))  # the last command's observation: a sample, learnt
+    loop.work()
+    assert loop.learnt and loop.loop.stalled_for() == 0.0
 
 
 def test_the_learning_thread_learns_what_is_put_under_the_given_lock_and_stops():
@@ -126,7 +132,7 @@ def test_the_learning_thread_learns_what_is_put_under_the_given_lock_and_stops()
 
     def learn_under_the_lock(*sample):
         assert lock.locked()  # readers of the learner hold it too
-        learn(*sample)
+        return learn(*sample)
 
     loop.loop._learn = learn_under_the_lock
     loop.loop.start(lock, on_failure=failures.append, after_step=lambda: steps.append(1))

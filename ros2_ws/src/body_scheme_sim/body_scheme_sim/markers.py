@@ -1,4 +1,4 @@
-"""ArUco marker plates: the texture images and the plate mesh the simulator renders.
+"""ArUco marker plates: the markers' patterns and corners, and the plate mesh the simulator renders.
 
 A marker of ``size`` s is the black ArUco square of side s (OpenCV's marker length, the one ``solvePnP`` uses),
 printed on a white plate one marker cell wider on every side (the quiet zone detectors need). The marker frame is

@@ -22,7 +22,7 @@ from body_scheme_core.plates import plates_from_markers
 
 from .markers import MARKER_CELLS, marker_image
 
-__all__ = ["A4_MM", "marker_pixels", "plate_face", "flat_plates", "sheet_pages", "write_sheet"]
+__all__ = ["A4_MM", "marker_pixels", "plate_face", "pieces", "sheet_pages", "write_sheet"]
 
 #: Page size, mm (width, height).
 A4_MM = (210.0, 297.0)
@@ -40,7 +40,7 @@ def marker_pixels(size, dpi):
 
 
 def _square(marker, dots_per_m):
-    square = int(round(marker.size * dots_per_m))
+    square = marker_pixels(marker.size, dots_per_m * 0.0254)
     if square < 2 * MARKER_CELLS:
         raise InvalidInputError(f"marker {marker.id}: {marker.size} m is {square} dots at "
                                 f"{dots_per_m * 0.0254:.0f} dpi; too small to print")
@@ -89,17 +89,19 @@ def plate_face(markers, centres, dots_per_m, patterns=True):
     return image, placed, (0.5 * (left + right) / dots_per_m, -0.5 * (top + bottom) / dots_per_m)
 
 
-def flat_plates(markers):
-    """``{plate id: (markers, {id: centre (x, y) m on the plate})}`` of the plates whose tags lie in one plane, turned
-    alike (an ArUco grid board): printed and drawn as one piece."""
+def pieces(markers):
+    """``[(id, markers, {id: centre (x, y) m})]``: what is printed and drawn as one piece, in its own frame. A flat
+    plate (one ``plate`` key, its tags in one plane and turned alike: an ArUco grid board) is one piece under the
+    plate's id, its tags at their places; every other marker is a piece of its own, centred."""
     markers = list(markers)
-    flat = {}
+    found, placed = [], set()
     for plate_id, plate in plates_from_markers(markers).items():
         if all(abs(T[2, 3]) <= _FLAT_M and np.allclose(T[:3, :3], np.eye(3), atol=_FLAT_RAD)
                for _, T in plate.tags.values()):
             members = sorted((m for m in markers if m.plate == plate_id), key=lambda m: m.id)
-            flat[plate_id] = (members, {m.id: plate.tags[m.id][1][:2, 3] for m in members})
-    return flat
+            found.append((plate_id, members, {m.id: plate.tags[m.id][1][:2, 3] for m in members}))
+            placed.update(m.id for m in members)
+    return found + [(m.id, [m], {m.id: (0.0, 0.0)}) for m in markers if m.id not in placed]
 
 
 def _tile(markers, centres, dpi, text):
@@ -120,20 +122,13 @@ def _tile(markers, centres, dpi, text):
     return tile, {k: ((row + 1, column + 1), square) for k, ((row, column), square) in placed.items()}
 
 
-def _pieces(markers):
-    """``[(markers, {id: centre (x, y) m}, label)]``: one piece per flat plate, and one per other marker."""
-    markers = list(markers)
-    pieces, printed = [], set()
-    for plate_id, (members, centres) in flat_plates(markers).items():
-        sizes = sorted({round(m.size * 1000) for m in members})
-        size = f"{sizes[0]} mm" if len(sizes) == 1 else "/".join(map(str, sizes)) + " mm"
-        pieces.append((members, centres, f"plate {plate_id}: {len(members)} tags {size}  {members[0].link}"))
-        printed.update(m.id for m in members)
-    for m in markers:
-        if m.id not in printed:
-            on = f"  plate {m.plate}" if m.plate is not None else ""
-            pieces.append(([m], {m.id: (0.0, 0.0)}, f"id {m.id}  {m.size * 1000:.0f} mm  {m.link}{on}"))
-    return pieces
+def _label(members):
+    """What is printed under a piece: a marker's id, size and link, or a plate's id, tags, size and link."""
+    m = members[0]
+    if len(members) == 1:
+        return f"id {m.id}  {m.size * 1000:.0f} mm  {m.link}" + (f"  plate {m.plate}" if m.plate is not None else "")
+    sizes = "/".join(str(size) for size in sorted({round(t.size * 1000) for t in members}))
+    return f"plate {m.plate}: {len(members)} tags {sizes} mm  {m.link}"
 
 
 def sheet_pages(markers, dpi=300, page_mm=A4_MM):
@@ -156,7 +151,7 @@ def sheet_pages(markers, dpi=300, page_mm=A4_MM):
     margin, gap = (int(round(v / 25.4 * dpi)) for v in (_MARGIN_MM, _GAP_MM))
     pages, boxes = [], []
     x = y = row_height = 0
-    tiles = [(_tile(members, centres, dpi, text), members) for members, centres, text in _pieces(markers)]
+    tiles = [(_tile(members, centres, dpi, _label(members)), members) for _, members, centres in pieces(markers)]
     for (tile, placed), members in sorted(tiles, key=lambda t: (-t[0][0].size, min(m.id for m in t[1]))):
         h, w = tile.shape
         if w > width - 2 * margin or h > height - 2 * margin:

@@ -44,7 +44,7 @@ from body_scheme_core.world import (
 from .camera import Camera
 from .markers import MARKER_CELLS, PLATE_THICKNESS, marker_corners, write_plate_obj
 from .robots import ROBOT_BUILDERS, load_robot, robot_files
-from .sheet import flat_plates, plate_face
+from .sheet import pieces, plate_face
 
 __all__ = ["SimWorld", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE", "ALWAYS_SAMPLES",
            "ALWAYS_FRACTION"]
@@ -211,15 +211,12 @@ class SimWorld:
                                   baseVisualShapeIndex=speck)
 
     def _create_markers(self, tree, textured):
-        """One textured plate body per marker, and one per flat plate of several tags (:func:`.sheet.flat_plates`:
-        drawn as printed, one piece); ``{id of the marker or plate: (body, marker2body)}``."""
+        """One textured plate body per piece of :func:`.sheet.pieces` (a marker, or a flat plate of several tags drawn
+        as printed); ``{id of the marker or plate: (body, marker2body)}``."""
         pb = self._pb
         obj_path = str(write_plate_obj(self._dir))
-        pieces = flat_plates(tree.markers)
-        drawn = {m.id for members, _ in pieces.values() for m in members}
-        pieces.update({m.id: ([m], {m.id: (0.0, 0.0)}) for m in tree.markers if m.id not in drawn})
         bodies = {}
-        for piece_id, (members, centres) in pieces.items():
+        for piece_id, members, centres in pieces(tree.markers):
             pixels_per_m = _PIXELS_PER_CELL * MARKER_CELLS / min(m.size for m in members)
             face, _, (cx, cy) = plate_face(members, centres, pixels_per_m, patterns=textured)
             width, height = face.shape[1] / pixels_per_m, face.shape[0] / pixels_per_m
