@@ -6,13 +6,11 @@ from __future__ import annotations
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from body_scheme_msgs.msg import BodySchemeStructure, MarkerPoses, ModelSnapshot
 from body_scheme_nodes import conversions
-
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+from body_scheme_nodes.qos import LATCHED
 
 
 def scheme_parameters(tree):

@@ -11,19 +11,19 @@ import numpy as np
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool
 
 from body_scheme_apps.other_stacks import write_layout
 from body_scheme_core.world import make_session, planar_2dof
 from body_scheme_msgs.msg import BodySchemeStructure, SchemeEvent
 from body_scheme_nodes.offline_replay import default_params_file, replay_bag
+from body_scheme_nodes.qos import LATCHED
 from body_scheme_nodes.settings import SchemeSettings
 
 pytestmark = pytest.mark.system
 
 BAG = pathlib.Path(__file__).resolve().parents[1] / "bags" / "joint_blocked_seed0"
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class Collector:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from body_scheme_core.models.engineered import engineered_models
@@ -12,10 +11,10 @@ from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.world import Body, ObservationModel, default_world2root, planar_2dof
 from body_scheme_msgs.msg import IKResult, IKTarget, ModelSnapshot
 from body_scheme_nodes import conversions
+from body_scheme_nodes.qos import LATCHED
 
 pytestmark = pytest.mark.system
 
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def test_control_node_solves_reports_and_refuses(start_node, ros_node, spin_until):

@@ -41,7 +41,6 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovariance
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, JointState
 from std_msgs.msg import Header
 
@@ -52,6 +51,7 @@ from body_scheme_msgs.msg import BodySchemeStructure, ExploreNear, IKResult, IKT
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
 from body_scheme_nodes.message_feed import MESSAGE_KINDS
+from body_scheme_nodes.qos import LATCHED
 from body_scheme_nodes.settings import SchemeSettings
 
 from .entry import command
@@ -63,7 +63,6 @@ PERIOD = 0.05
 #: Valid samples before backwards-stamped messages start (they are stamped 1 s back, behind every decided sample).
 BACKWARDS_FROM = 2 * int(1.0 / PERIOD)
 BURST = 40
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def _pose(x=0.1, y=0.0, z=1.0, q=(0.0, 0.0, 0.0, 1.0)):

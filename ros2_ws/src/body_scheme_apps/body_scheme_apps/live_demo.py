@@ -26,7 +26,6 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
@@ -38,6 +37,7 @@ from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
+from body_scheme_nodes.qos import LATCHED
 from body_scheme_nodes.recorder import GraphRecorder
 from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
@@ -59,7 +59,6 @@ RECORDED_TOPICS = (
     ("body_scheme/robot_description", String, True), ("ik_target", IKTarget, False), ("ik_result", IKResult, False),
 )
 
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _LEVELS = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR",
            DiagnosticStatus.STALE: "STALE"}
 

@@ -50,13 +50,14 @@ import math
 import time
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from std_msgs.msg import Bool, UInt64
 
 from body_scheme_core.errors import InvalidInputError
 
 from .bag_io import MESSAGE_CLASSES, BagError, bag_topics, read_messages
+from .qos import LATCHED
 from .ros_parameters import refuse_parameter_changes
 from .sources import SourceMap, translate
 from .spin import run_node
@@ -67,7 +68,6 @@ DEFAULT_TOPICS = ["/joint_commands", "/observations", "/ground_truth/marker_pose
 #: The bag topic whose messages scheme_node counts on body_scheme/progress, and the commands' topic.
 BACKPRESSURE_TOPIC, COMMANDS = "/observations", "/joint_commands"
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Seconds between timer ticks; each tick publishes every message that is due.
 TICK = 0.005
 #: Smallest spacing of restamped stamps in rate 0, ns: keeps them distinct as float seconds (ulp ~0.24 us in 2023).

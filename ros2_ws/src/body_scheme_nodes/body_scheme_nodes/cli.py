@@ -5,7 +5,7 @@ The set-up from PyPI has no ros2cli (docs/ros-from-pypi.md); this command is ins
 ``python -m body_scheme_nodes.cli ...``)::
 
     body-scheme status                     # /diagnostics, readable: one line per status, the values indented
-    body-scheme events                     # follow scheme_node's decisions (Ctrl-C ends; --count N)
+    body-scheme events                     # scheme_node's latest decisions, then follow (Ctrl-C ends; --count N)
     body-scheme save [NAME]                # scheme_node's ~/save, ~/load (a name inside its state_directory;
     body-scheme load [NAME]                #   none: its checkpoint_path) and ~/reset
     body-scheme reset
@@ -174,8 +174,11 @@ def cmd_status(session, args):
 
 
 def cmd_events(session, args):
-    """Print scheme_node's events as they come, until ``--count`` events or Ctrl-C."""
+    """Print scheme_node's latest events (up to 100 kept), then each as it comes, until ``--count`` events or
+    Ctrl-C."""
     from body_scheme_msgs.msg import SchemeEvent
+
+    from .qos import RECENT_EVENTS
 
     seen = []
 
@@ -184,7 +187,7 @@ def cmd_events(session, args):
         print(format_event(msg), flush=True)
 
     topic = events_topic(args.node)
-    session.node.create_subscription(SchemeEvent, topic, on_event, 100)
+    session.node.create_subscription(SchemeEvent, topic, on_event, RECENT_EVENTS)  # the latest 100 first
     if not session.spin_until(lambda: session.node.count_publishers(topic) > 0, args.timeout):
         raise Unreachable(f"no publisher of {topic} within {args.timeout:g} s: is scheme_node running, in this "
                           "ROS_DOMAIN_ID?")

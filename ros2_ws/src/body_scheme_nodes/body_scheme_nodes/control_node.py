@@ -75,7 +75,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PointStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from body_scheme_core.control import NearFocus, solve_ik, trained_bounds
@@ -85,10 +84,9 @@ from body_scheme_msgs.msg import ExploreNear, IKResult, IKTarget, MarkerPoses, M
 from . import conversions
 from .arm_driver import declare_driver_parameters, driver_from_parameters
 from .intake import BatchIntake, create_sized_subscription
+from .qos import LATCHED
 from .ros_parameters import refuse_parameter_changes
 from .spin import run_node
-
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class ExploreSettings:

@@ -18,11 +18,11 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
 from .bag_io import name_the_distro, typestore
+from .qos import LATCHED
 
 __all__ = ["GraphRecorder", "bag_qos"]
 
 _VOLATILE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def bag_qos(profile):
@@ -67,7 +67,7 @@ class GraphRecorder:
         store = typestore()
         for topic, msg_class, latched in topics:
             name = topic if topic.startswith("/") else f"/{topic}"
-            qos = LATCHED_QOS if latched else _VOLATILE
+            qos = LATCHED if latched else _VOLATILE
             connection = self._writer.add_connection(name, _type_name(msg_class), typestore=store,
                                                      offered_qos_profiles=[bag_qos(qos)])
             self.counts[name] = 0

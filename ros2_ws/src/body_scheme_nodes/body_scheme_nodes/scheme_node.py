@@ -18,7 +18,7 @@ predicted_poses : body_scheme_msgs/MarkerPoses
 body_scheme/structure : body_scheme_msgs/BodySchemeStructure  (transient local)
 body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
     The body scheme for control_node: with the structure, and within a second of a joint fit that changed it.
-body_scheme/events : body_scheme_msgs/SchemeEvent
+body_scheme/events : body_scheme_msgs/SchemeEvent  (transient local, the latest 100)
 /diagnostics : diagnostic_msgs/DiagnosticArray
 body_scheme/progress : std_msgs/UInt64
     Number of observation messages decided so far: learnt, refused or shed (bag_replay's backpressure signal).
@@ -98,7 +98,6 @@ from collections import Counter, deque
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String, UInt64
 from std_srvs.srv import Trigger
@@ -117,11 +116,10 @@ from .explorer import SchemeExplorer
 from .intake import BatchIntake, RequestIntake, ServiceWorker
 from .learning_loop import LearningLoop
 from .message_feed import learn_sample
+from .qos import LATCHED, RECENT_EVENTS
 from .ros_parameters import refuse_parameter_changes
 from .settings import SchemeSettings, parameter_defaults, specification_tree
 from .spin import run_node
-
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class SchemeNode(Node):
@@ -160,7 +158,7 @@ class SchemeNode(Node):
         self.pub_predicted = self.create_publisher(MarkerPoses, "predicted_poses", 10)
         self.pub_structure = self.create_publisher(BodySchemeStructure, "body_scheme/structure", LATCHED)
         self.pub_snapshot = self.create_publisher(ModelSnapshot, "body_scheme/snapshot", LATCHED)
-        self.pub_events = self.create_publisher(SchemeEvent, "body_scheme/events", 100)
+        self.pub_events = self.create_publisher(SchemeEvent, "body_scheme/events", RECENT_EVENTS)
         self.explorer = SchemeExplorer(self, self.settings, self.learner.config.prior_sigma_trans / math.sqrt(3.0),
                                        self._publish_snapshot)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)

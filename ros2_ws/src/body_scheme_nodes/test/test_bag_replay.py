@@ -6,7 +6,6 @@ import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, UInt64
@@ -15,9 +14,9 @@ from body_scheme_core.errors import InvalidInputError
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_nodes.bag_io import BagError, write_session
 from body_scheme_nodes.bag_replay import BagReplay, main
+from body_scheme_nodes.qos import LATCHED
 from body_scheme_sim.sessions import record_session
 
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 N_STEPS = 20
 
 

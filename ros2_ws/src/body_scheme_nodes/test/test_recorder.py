@@ -7,13 +7,14 @@ import yaml
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import String
 
-from body_scheme_nodes.recorder import LATCHED_QOS, GraphRecorder
+from body_scheme_nodes.qos import LATCHED
+from body_scheme_nodes.recorder import GraphRecorder
 
 
 def test_latched_topics_are_recorded_with_their_qos_so_a_replay_latches_them(tmp_path, context):
     node = rclpy.create_node("recorder_test", context=context)
     try:
-        node.create_publisher(String, "description", LATCHED_QOS).publish(String(data="latched before recording"))
+        node.create_publisher(String, "description", LATCHED).publish(String(data="latched before recording"))
         recorder = GraphRecorder(node, tmp_path / "bag", [("description", String, True), ("chatter", String, False)])
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
