@@ -18,7 +18,7 @@ import pytest
 import yaml
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
-from workspace import SUBSTITUTIONS, documented_commands
+from workspace import documented_commands
 
 from body_scheme_msgs.msg import BodySchemeStructure
 from body_scheme_sim.robots import ROBOTS_DIR, load_robot
@@ -28,8 +28,6 @@ pytestmark = pytest.mark.system
 #: "Your robot": a URDF only (the shipped arm's own marker file is not used; the planner places the markers).
 URDF = ROBOTS_DIR / "arm_4dof.urdf"
 PLACEHOLDERS = {"path/to/your_robot.urdf": str(URDF)}
-#: What tests/workspace.py gives for the doc's ``$(... markers/camera.yaml ...)``; the planned camera replaces it.
-SUBSTITUTIONS_CAMERA = next(value for text, value in SUBSTITUTIONS.items() if "markers/camera.yaml" in text)
 #: Action signals before the rehearsal gives up on the true tree (as many as step 3's rehearsals babble).
 MAX_COMMANDS = 600
 
@@ -87,12 +85,11 @@ def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shippe
     learnt. Whether 600 commands suffice is measured (the closing notes), not asserted: learning from scratch varies
     from run to run, as the doc says."""
     env, _, true_edges = planned
-    camera = yaml.safe_load((tmp_path / "markers" / "camera.yaml").read_text())["camera"]
-    (demo,) = _documented("python", "-m", "body_scheme_apps.live_demo", fill={
-        SUBSTITUTIONS_CAMERA: " ".join(str(v) for v in [*camera["xyz"], *camera["rpy"]])})
+    (demo,) = _documented("python", "-m", "body_scheme_apps.live_demo")
     done = subprocess.run([sys.executable, *demo[1:]], env=env, capture_output=True, text=True, timeout=900)
     summary = json.loads((tmp_path / "out" / "demo" / "summary.json").read_text())
     assert summary["faults"] == [] and "IK:" in done.stdout, (done.stdout[-3000:], done.stderr[-3000:])
+    assert "camera of markers/camera.yaml (the one the markers were planned for" in done.stdout  # no --camera needed
     learned = {frozenset(edge) for edge in summary["learned_edges"]}
     assert done.returncode == (0 if learned == true_edges else 1), (done.returncode, learned, done.stdout[-3000:])
     assert {frozenset(edge) for edge in summary["true_edges"]} == true_edges

@@ -31,8 +31,6 @@ DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 #: What each ``$(...)`` in the docs gives in a shell (a new one is named by the test, to be added here).
 SUBSTITUTIONS = {
     '$(python -c "import pybullet_data; print(pybullet_data.getDataPath())")': pybullet_data.getDataPath(),
-    """$(python -c 'import yaml; c=yaml.safe_load(open("markers/camera.yaml"))["camera"]; print(*c["xyz"], """
-    """*c["rpy"])')""": "0.0 -2.0 1.0 -2.2 0.0 0.0",
 }
 
 

@@ -293,7 +293,8 @@ def main(argv=None):
 
 def verdict(learner, nominal, report, out):
     """One paragraph a user reads first: whether the learned body scheme is a true one of the robot (its edges
-    model the right joints with no extra actions), the worst joint, and where the files are."""
+    model the right joints with no extra actions), which edges are not joints (GPs), the worst joint, and where the
+    files are."""
     scheme = learner.body_scheme
     edges = "no body scheme" if scheme is None else f"{len(scheme.models)} edges"
     if is_true_tree(nominal, scheme):
@@ -301,6 +302,13 @@ def verdict(learner, nominal, report, out):
     else:
         lines = [f"verdict: NOT a true body scheme of the robot ({edges}, phase {learner.phase}): more commands, or "
                  f"markers the camera sees together more often (docs/your-robot.md)"]
+    not_joints = [] if scheme is None else [m for m in scheme.models if m.kind == "gp"]
+    if not_joints:
+        lines.append(f"not joints: {len(not_joints)} of {len(scheme.models)} edges are GP models "
+                     f"({', '.join(f'{m.parent}->{m.child}' for m in not_joints)}), which learned.urdf fixes at "
+                     f"mid-range and the report leaves out: the observations of these parts depend on the posture in "
+                     f"a way no rigid joint explains (a tracker whose error changes with the viewing angle, or a joint "
+                     f"that is not rigid)")
     rows = [] if report is None else report["joints"]
     if rows:
         axis = max(rows, key=lambda r: r["axis_deg"])

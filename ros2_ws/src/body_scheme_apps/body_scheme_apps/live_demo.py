@@ -32,13 +32,14 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.transforms import translational_error, xyz_rpy_from_transform
+from body_scheme_core.transforms import translational_error
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
 from body_scheme_nodes.qos import LATCHED
 from body_scheme_nodes.recorder import GraphRecorder
+from body_scheme_sim.planning import camera_parameters
 from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
 
@@ -277,7 +278,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                 start_node("body_scheme_nodes", "babble_node", {**arm, "steps": steps, "seed": seed, "dwell": 0.05,
                                                                 "error_hold": 600.0})
             start_node("body_scheme_nodes", "sim_node", {"wait_for_subscribers": 0 if controller else 2,
-                **_camera_parameters(camera), "camera_period": 0.05,
+                **({} if camera is None else camera_parameters(camera)), "camera_period": 0.05,
                 "markers_path": str(markers_path), "package_path": list(package_path),
                 "robot": str(robot), "perception_mode": perception, "babbling": not controller,
                 "babbling_period": period,
@@ -436,16 +437,6 @@ def format_summary(result):
         lines.append(f"recorded {sum(result.recorded.values())} messages on {topics} topics into session/ (rosbag2 "
                      f"mcap; Foxglove layout: body_scheme_nodes/config/body_scheme.foxglove.json)")
     return "\n".join(lines)
-
-
-def _camera_parameters(camera):
-    """sim_node's camera parameters for a :class:`~body_scheme_sim.camera.Camera` (none: its default camera)."""
-    if camera is None:
-        return {}
-    xyz, rpy = xyz_rpy_from_transform(camera.world2camera)
-    return {"camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
-                       "cx": camera.cx, "cy": camera.cy, "xyz": [float(v) for v in xyz],
-                       "rpy": [float(v) for v in rpy]}}
 
 
 @command

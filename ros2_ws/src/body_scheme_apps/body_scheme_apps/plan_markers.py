@@ -17,10 +17,7 @@ import argparse
 import pathlib
 import sys
 
-import yaml
-
 from body_scheme_core.errors import BodySchemeError
-from body_scheme_core.transforms import xyz_rpy_from_transform
 
 from .entry import command
 from .robot_option import scheme_parameters_path, write_scheme_parameters
@@ -31,7 +28,7 @@ __all__ = ["main"]
 @command
 def main(argv=None):
     """Console entry point; exit code 1 with a one-line error."""
-    from body_scheme_sim.planning import parse_camera, plan_markers, write_markers
+    from body_scheme_sim.planning import beside_markers, parse_camera, plan_markers, write_camera, write_markers
     from body_scheme_sim.sheet import write_sheet
 
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.plan_markers",
@@ -60,10 +57,7 @@ def main(argv=None):
         markers = write_markers(planned, out / "markers.yaml")
         sheet = write_sheet([p.marker for p in planned], out / "markers", dpi=args.dpi)
         params = write_scheme_parameters(args.robot, markers, scheme_parameters_path(markers))
-        xyz, rpy = xyz_rpy_from_transform(camera.world2camera)
-        (out / "camera.yaml").write_text(yaml.safe_dump({"camera": {
-            "width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
-            "cy": camera.cy, "xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy]}}, sort_keys=False))
+        camera_file = write_camera(camera, beside_markers(markers, "camera.yaml"))
     except (OSError, BodySchemeError) as error:
         print(f"plan_markers: {error}", file=sys.stderr)
         return 1
@@ -73,7 +67,7 @@ def main(argv=None):
               f"{100 * p.visible:3.0f} % of postures")
     for link, why in skipped.items():
         print(f"      {link:24s} no marker: {why}")
-    print(f"wrote {markers}, {', '.join(str(p) for p in sheet)}, {out / 'camera.yaml'} and {params} (scheme_node's "
+    print(f"wrote {markers}, {', '.join(str(p) for p in sheet)}, {camera_file} and {params} (scheme_node's "
           f"parameters for this robot: --params-file)")
     return 0
 

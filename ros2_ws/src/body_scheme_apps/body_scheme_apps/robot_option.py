@@ -5,7 +5,10 @@ shares (``calibrate --simulate``, ``record``, ``live_demo``, ``core_demo``, ``pl
 ``<stem>.markers.yaml`` beside the URDF, else they are planned for the camera
 (:func:`body_scheme_sim.planning.plan_markers`) and written next to the command's output. The camera is
 ``--camera "x y z roll pitch yaw"`` (its optical frame in the world, m and rad, URDF rpy; a 1280 x 960 camera),
-``auto`` (framing every marker), or by default the simulator's camera for a shipped robot and ``auto`` for a URDF.
+``auto`` (framing every marker), or by default the camera the markers were planned for (``camera.yaml`` beside a
+``markers.yaml``, ``<stem>.camera.yaml`` beside ``<stem>.markers.yaml``:
+:func:`body_scheme_sim.planning.beside_markers`), else the simulator's camera for a shipped robot and ``auto`` for a
+URDF.
 """
 
 from __future__ import annotations
@@ -58,8 +61,8 @@ def add_camera_arguments(parser, camera=True, package_path=True, prefix=""):
     if camera:
         parser.add_argument("--camera", default="default",
                             help=f'{prefix}"x y z roll pitch yaw" of the camera\'s optical frame in the world (m, '
-                                 "rad), or auto (default: the simulator's camera for a shipped robot, auto for a "
-                                 "URDF)")
+                                 "rad), or auto (default: the camera the markers were planned for, camera.yaml "
+                                 "beside them; else the simulator's camera for a shipped robot, auto for a URDF)")
     if package_path:
         parser.add_argument("--package-path", action="append", default=[], metavar="DIR",
                             help=f"{prefix}a directory searched first for package:// meshes (repeatable; then "
@@ -75,18 +78,31 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
         One line: an unknown robot, an unreadable URDF or marker file, no marker could be planned.
     """
     from body_scheme_sim.errors import RobotFileError
-    from body_scheme_sim.planning import auto_camera, parse_camera, plan_markers, write_markers
+    from body_scheme_sim.planning import (
+        auto_camera,
+        beside_markers,
+        parse_camera,
+        plan_markers,
+        read_camera,
+        write_camera,
+        write_markers,
+    )
     from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
     from body_scheme_sim.sheet import write_sheet
 
     shipped = robot in ROBOT_BUILDERS
-    if camera == "default":
-        camera = None if shipped else "auto"
-    chosen = None if camera is None else parse_camera(camera)
     markers_path = None if markers is None else pathlib.Path(markers)
     if markers_path is None and not shipped:
         markers_path = robot_files(robot, require_markers=False)[1]
-        if markers_path is None:
+    planned_camera = None if markers_path is None else beside_markers(markers_path, "camera.yaml")
+    if camera == "default" and planned_camera is not None and planned_camera.is_file():
+        chosen = read_camera(planned_camera)  # the camera the markers were planned for (plan_markers wrote it)
+        log(f"camera of {planned_camera} (the one the markers were planned for; --camera overrides it)")
+    else:
+        if camera == "default":
+            camera = None if shipped else "auto"
+        chosen = None if camera is None else parse_camera(camera)
+        if markers_path is None and not shipped:
             planned, skipped, chosen = plan_markers(robot, camera=chosen, package_path=package_path, seed=seed)
             if not planned:
                 raise RobotFileError(f"no marker could be planned on {robot}: no link's collision geometry is in "
@@ -96,8 +112,10 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
             markers_path = write_markers(planned, plan_to)
             sheet = write_sheet([p.marker for p in planned], plan_to.with_suffix(""))
             params = write_scheme_parameters(robot, markers_path, scheme_parameters_path(markers_path))
+            camera_file = write_camera(chosen, beside_markers(markers_path, "camera.yaml"))
             log(f"planned {len(planned)} markers ({', '.join(p.marker.link for p in planned)}), wrote {markers_path}, "
-                f"scheme_node's parameters {params} and the sheet to print ({', '.join(str(path) for path in sheet)})"
+                f"its camera {camera_file}, scheme_node's parameters {params} and the sheet to print "
+                f"({', '.join(str(path) for path in sheet)})"
                 + "".join(f"; no marker on {link}: {why}" for link, why in skipped.items()))
     tree = load_robot(robot, markers_path)
     if camera is not None and chosen is None:
@@ -108,14 +126,11 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
 
 
 def scheme_parameters_path(markers_path):
-    """Where scheme_node's parameter file for the markers of ``markers_path`` goes, beside it and named after it:
-    ``dir/markers.yaml`` -> ``dir/scheme_node.yaml``, ``bags/run.markers.yaml`` -> ``bags/run.scheme_node.yaml``
-    (so two recordings in one directory never overwrite each other's)."""
-    markers_path = pathlib.Path(markers_path)
-    name = markers_path.name
-    if name == "markers.yaml" or name.endswith(".markers.yaml"):
-        return markers_path.with_name(name[:-len("markers.yaml")] + "scheme_node.yaml")
-    return markers_path.with_name(markers_path.stem + ".scheme_node.yaml")
+    """Where scheme_node's parameter file for the markers of ``markers_path`` goes: ``dir/markers.yaml`` ->
+    ``dir/scheme_node.yaml``, ``bags/run.markers.yaml`` -> ``bags/run.scheme_node.yaml``."""
+    from body_scheme_sim.planning import beside_markers
+
+    return beside_markers(markers_path, "scheme_node.yaml")
 
 
 def write_scheme_parameters(robot, markers_path, path):

@@ -3,14 +3,19 @@
 import json
 import math
 import pathlib
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from urdf_parser_py.urdf import URDF
 
 from body_scheme_apps.calibrate import main, verdict
+from body_scheme_apps.robot_option import resolve_robot
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import save_state
+from body_scheme_core.models import GPModel
+from body_scheme_core.models.engineered import engineered_models
+from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.world import Marker, load_markers_yaml, make_session, resolve_meshes, tree_from_urdf
 from body_scheme_sim.robots import load_robot, robot_files
 
@@ -46,7 +51,18 @@ def test_the_verdict_says_when_there_is_no_true_body_scheme(tmp_path):
                                 action_upper=robot.action_upper)
     text = verdict(learner, robot, None, tmp_path)
     assert text.startswith("verdict: NOT a true body scheme of the robot (no body scheme, phase bootstrapping)")
-    assert "worst joint" not in text and "report.txt" not in text
+    assert "worst joint" not in text and "report.txt" not in text and "not joints" not in text
+
+
+def test_the_verdict_names_the_edges_that_are_gps_not_joints(tmp_path):
+    """A true tree whose edge 2->3 is a GP (right actions, no rigid joint): true, and the GP edge named as no joint."""
+    robot = load_robot("planar_2dof")
+    first = next(m for m in engineered_models(robot) if {m.parent, m.child} == {1, 2})
+    gp = GPModel(2, 3, (1,)).fit(np.zeros((3, 2)), np.stack([np.eye(4)] * 3))
+    learner = SimpleNamespace(body_scheme=BodyScheme(robot.marker_ids, 1, [first, gp]), phase="steady")
+    text = verdict(learner, robot, None, tmp_path)
+    assert text.startswith("verdict: a true body scheme of the robot (2 edges, phase steady)"), text
+    assert "\nnot joints: 1 of 2 edges are GP models (2->3), which learned.urdf fixes at mid-range" in text, text
 
 
 def test_unreadable_input_is_one_line_and_exit_code_1(tmp_path, capsys):
@@ -73,6 +89,13 @@ def test_a_robots_urdf_alone_is_enough_to_simulate_and_calibrate(tmp_path, capsy
     assert {"markers.yaml", "markers.pdf", "learned.urdf", "report.json", "report.png"} <= names
     assert any(name.startswith("markers") and name.endswith(".png") for name in names)  # one png per page
     assert "and the sheet to print" in printed and "verdict: a true body scheme of the robot" in printed
+    assert f"its camera {out / 'camera.yaml'}" in printed  # the camera the markers were planned for, kept with them
+    lines = []
+    again = resolve_robot(urdf, out / "markers.yaml", log=lines.append).camera  # a later command with these markers
+    assert lines == [f"camera of {out / 'camera.yaml'} (the one the markers were planned for; --camera overrides it)"]
+    assert (again.width, again.height, again.fx) == (1280, 960, pytest.approx(640.0 / math.tan(math.radians(30))))
+    assert np.allclose(again.world2camera, resolve_robot(urdf, camera="auto", log=lines.append).camera.world2camera,
+                       atol=1e-9)  # the planned camera (auto, as the first run's) to the last digit YAML keeps
     report = json.loads((out / "report.json").read_text())
     assert len(report["joints"]) == 7 and report["max_axis_deg"] < 3.0
     _check_the_calibrated_urdf(out, pathlib.Path(urdf), pybullet_data.getDataPath())

@@ -6,9 +6,21 @@ import pathlib
 import numpy as np
 import pybullet_data
 import pytest
+import yaml
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_sim.planning import auto_camera, moving_bodies, parse_camera, plan_markers
+from body_scheme_core.transforms import transform_from_xyz_rpy
+from body_scheme_sim.planning import (
+    auto_camera,
+    beside_markers,
+    camera_parameters,
+    hd_camera,
+    moving_bodies,
+    parse_camera,
+    plan_markers,
+    read_camera,
+    write_camera,
+)
 from body_scheme_sim.robots import load_robot
 from body_scheme_sim.world import SimWorld
 
@@ -104,3 +116,22 @@ def test_a_root_without_geometry_in_view_gets_a_marker_on_a_stand(tmp_path):
     to_camera = camera.position - stand.marker.link2marker[:3, 3]
     angle = math.degrees(math.acos(stand.marker.link2marker[:3, 2] @ to_camera / np.linalg.norm(to_camera)))
     assert 15.0 < angle < 35.0  # tilted away from the line of sight: not the ambiguous square-on view
+
+
+def test_the_plans_camera_file_round_trips_and_a_broken_one_is_one_line_naming_it(tmp_path):
+    camera = hd_camera(transform_from_xyz_rpy([1.5, -0.2, 1.1], [-2.0, 0.1, 1.4]))
+    path = write_camera(camera, beside_markers(tmp_path / "run.markers.yaml", "camera.yaml"))
+    assert path == tmp_path / "run.camera.yaml"
+    back = read_camera(path)
+    assert (back.width, back.height, back.fx, back.fy, back.cx, back.cy) == \
+        (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+    assert np.allclose(back.world2camera, camera.world2camera, atol=1e-12)
+    assert yaml.safe_load(path.read_text()) == camera_parameters(camera)  # sim_node's camera.* parameters
+    broken = {"missing.yaml": None, "not_yaml.yaml": "camera: [", "no_key.yaml": "camera: {width: 640}",
+              "short.yaml": yaml.safe_dump({"camera": {**camera_parameters(camera)["camera"], "xyz": [1.0, 2.0]}})}
+    for name, text in broken.items():
+        if text is not None:
+            (tmp_path / name).write_text(text)
+        with pytest.raises(InvalidInputError, match=f"camera file {tmp_path / name}: ") as error:
+            read_camera(tmp_path / name)
+        assert "\n" not in str(error.value), name
