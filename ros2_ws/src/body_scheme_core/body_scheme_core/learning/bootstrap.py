@@ -369,16 +369,14 @@ class Bootstrap:
 
     def _replay(self, entries):
         """Train new candidates on the recorded history, test-then-train; returns the steps that observed a pair."""
-        ids = np.array([e.id for e in entries], dtype=np.int64)
         pair = np.array([self.pairs.index(e.parent, e.child) for e in entries], dtype=np.intp)
-        used = 0
-        for rec_step, a, obs in self.history:
+
+        def targets_at(a, obs):
             relative = self.pairs.observe(obs)
             sel = np.flatnonzero(relative.row[pair] >= 0)
-            if sel.size:
-                self.pool.train(ids[sel], a, relative.targets(pair[sel]), rec_step)
-                used += 1
-        return used
+            return sel, relative.targets(pair[sel])
+
+        return self.pool.replay(entries, self.history, targets_at)
 
     def veto(self, entry_id):
         """Exclude a candidate from the search until its training set has grown by half (a tree edge whose calibrated

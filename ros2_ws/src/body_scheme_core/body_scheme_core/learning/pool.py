@@ -401,6 +401,23 @@ class ModelPool:
                 refit |= (size % _SLOW_REFIT == 0) | (size >= limit)
                 batch.add_samples(slots[learn], a, targets.Z[learn], targets.sigma[learn], refit=refit)
 
+    def replay(self, entries, history, targets_at, start=None):
+        """Train learning ``entries`` on recorded ``history`` (``(step, a, observations)`` records) at once,
+        test-then-train as if live, from step ``start`` on (None: all of it). ``targets_at(a, observations)`` gives
+        ``(index, targets)``: which entries the record gives a target, and their :class:`Targets`. Returns the number
+        of records that gave at least one entry a target. The one history replay of bootstrapping, repair and the
+        challengers."""
+        ids = np.array([e.id for e in entries], dtype=np.int64)
+        used = 0
+        for rec_step, a, obs in history:
+            if start is not None and rec_step < start:
+                continue
+            index, targets = targets_at(a, obs)
+            if len(index):
+                self.train(ids[index], a, targets, rec_step)
+                used += 1
+        return used
+
     def _promising(self, entries, rows):
         """Mask: not yet judged (fewer than ``min_test_samples``), or among the ``_PROMISING`` lowest mean errors of
         its pair, target and class."""

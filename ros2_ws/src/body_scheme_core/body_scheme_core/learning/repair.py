@@ -442,17 +442,8 @@ class Repair:
     def _replay(self, entries, chain_at, start):
         """Replay the history since step ``start`` to learning ``entries`` (test-then-train); returns the number of
         steps that gave at least one of them a target."""
-        pool = self.pool
-        used = 0
-        for rec_step, a, obs in self.history:
-            if rec_step < start:
-                continue
-            past = chain_at(a, obs)
-            index, targets = past.for_entries(entries, own=True)
-            if index.size:
-                pool.train([entries[k].id for k in index], a, targets, rec_step)
-                used += 1
-        return used
+        return self.pool.replay(entries, self.history, lambda a, obs: chain_at(a, obs).for_entries(entries, own=True),
+                                start)
 
     # ------------------------------------------------------------------ state
     def refining_state(self):
