@@ -82,8 +82,9 @@ def planned(ros_env, tmp_path, monkeypatch):
 def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shipped_arms_faults(planned, tmp_path):
     """Step 3's live_demo as written: the whole graph on the planned markers, the camera where the plan put it; no
     fault of the shipped arm (its default blocked a joint of another robot); exit 0 exactly when the true tree was
-    learnt. Whether 600 commands suffice is measured (the closing notes), not asserted: learning from scratch varies
-    from run to run, as the doc says."""
+    learnt. Then step 3's calibrate --simulate as written: the report of an offline rehearsal. Whether 600 commands
+    suffice is measured (the closing notes), not asserted: learning from scratch varies from run to run, as the doc
+    says."""
     env, _, true_edges = planned
     (demo,) = _documented("python", "-m", "body_scheme_apps.live_demo")
     done = subprocess.run([sys.executable, *demo[1:]], env=env, capture_output=True, text=True, timeout=900)
@@ -93,6 +94,16 @@ def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shippe
     learned = {frozenset(edge) for edge in summary["learned_edges"]}
     assert done.returncode == (0 if learned == true_edges else 1), (done.returncode, learned, done.stdout[-3000:])
     assert {frozenset(edge) for edge in summary["true_edges"]} == true_edges
+
+    # The second command of step 3: learn offline in the simulator, with the plan's camera, and write the report.
+    (rehearsal,) = _documented("python", "-m", "body_scheme_apps.calibrate", "--simulate")
+    printed = _run(rehearsal, env)
+    out = tmp_path / rehearsal[rehearsal.index("--out") + 1]
+    assert "camera of markers/camera.yaml (the one the markers were planned for" in printed, printed
+    for name in ("learned.urdf", "calibrated.urdf", "report.txt", "report.json", "report.png", "accuracy.txt"):
+        assert (out / name).is_file(), (name, printed)
+    assert printed.count("\nverdict: ") == 1 and f"files: {rehearsal[rehearsal.index('--out') + 1]}/learned.urdf" \
+        in printed, printed  # true or not is measured (the closing notes), as for live_demo
 
 
 def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(planned, start_node, ros_node, spin_until,
