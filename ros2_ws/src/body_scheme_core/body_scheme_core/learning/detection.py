@@ -120,7 +120,7 @@ class Detection:
         observed = [pool.tracked[i] for i in tree if i in alarms and i not in self.mismatch]
         if not observed:
             return
-        upstream = upstream_edges(self.root, [(pool.tracked[i].parent, pool.tracked[i].child, i) for i in tree])
+        upstream = None  # the tree's paths, found when an edge alarms (rarely: not every step)
         st, valid = pool.window_stats([e.row for e in observed], [pool.n_now(e) for e in observed])
         for k, e in enumerate(observed):
             if e.id in self.mismatch:  # attributed from an edge below it earlier in this loop
@@ -129,6 +129,9 @@ class Detection:
             if not (alarms[e.id] or window_bad):
                 self._challenge_from_memory(e, step, events, st, k)
                 continue
+            if upstream is None:
+                upstream = upstream_edges(self.root, [(pool.tracked[i].parent, pool.tracked[i].child, i)
+                                                      for i in tree])
             above = upstream.get(e.id, [])
             if any(i in self.mismatch for i in above):
                 continue  # its errors follow from the edge above (it should not have had a target)
