@@ -39,7 +39,7 @@ from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
 from body_scheme_nodes.qos import LATCHED
 from body_scheme_nodes.recorder import GraphRecorder
-from body_scheme_sim.planning import camera_parameters
+from body_scheme_sim.camera import camera_parameters
 from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS
 

@@ -28,7 +28,9 @@ __all__ = ["main"]
 @command
 def main(argv=None):
     """Console entry point; exit code 1 with a one-line error."""
-    from body_scheme_sim.planning import beside_markers, parse_camera, plan_markers, write_camera, write_markers
+    from body_scheme_sim.camera import write_camera
+    from body_scheme_sim.markers import beside_markers
+    from body_scheme_sim.planning import parse_camera, plan_markers, write_markers
     from body_scheme_sim.sheet import write_sheet
 
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.plan_markers",

@@ -7,7 +7,7 @@ shares (``calibrate --simulate``, ``record``, ``live_demo``, ``core_demo``, ``pl
 ``--camera "x y z roll pitch yaw"`` (its optical frame in the world, m and rad, URDF rpy; a 1280 x 960 camera),
 ``auto`` (framing every marker), or by default the camera the markers were planned for (``camera.yaml`` beside a
 ``markers.yaml``, ``<stem>.camera.yaml`` beside ``<stem>.markers.yaml``:
-:func:`body_scheme_sim.planning.beside_markers`), else the simulator's camera for a shipped robot and ``auto`` for a
+:func:`body_scheme_sim.markers.beside_markers`), else the simulator's camera for a shipped robot and ``auto`` for a
 URDF.
 """
 
@@ -77,16 +77,10 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
     BodySchemeError
         One line: an unknown robot, an unreadable URDF or marker file, no marker could be planned.
     """
+    from body_scheme_sim.camera import read_camera, write_camera
     from body_scheme_sim.errors import RobotFileError
-    from body_scheme_sim.planning import (
-        auto_camera,
-        beside_markers,
-        parse_camera,
-        plan_markers,
-        read_camera,
-        write_camera,
-        write_markers,
-    )
+    from body_scheme_sim.markers import beside_markers
+    from body_scheme_sim.planning import auto_camera, parse_camera, plan_markers, write_markers
     from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
     from body_scheme_sim.sheet import write_sheet
 
@@ -128,7 +122,7 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
 def scheme_parameters_path(markers_path):
     """Where scheme_node's parameter file for the markers of ``markers_path`` goes: ``dir/markers.yaml`` ->
     ``dir/scheme_node.yaml``, ``bags/run.markers.yaml`` -> ``bags/run.scheme_node.yaml``."""
-    from body_scheme_sim.planning import beside_markers
+    from body_scheme_sim.markers import beside_markers
 
     return beside_markers(markers_path, "scheme_node.yaml")
 

@@ -17,7 +17,7 @@ import numpy as np
 from body_scheme_core.errors import InvalidInputError
 
 __all__ = ["ARUCO_DICTIONARY", "MARKER_CELLS", "PLATE_THICKNESS", "aruco_dictionary", "marker_image",
-           "plate_side", "marker_corners", "write_plate_obj"]
+           "plate_side", "marker_corners", "write_plate_obj", "beside_markers"]
 
 #: OpenCV predefined dictionary of the markers; a marker's id is its ArUco id.
 ARUCO_DICTIONARY = cv2.aruco.DICT_4X4_50
@@ -108,3 +108,14 @@ def write_plate_obj(directory):
     path = pathlib.Path(directory) / "marker_plate.obj"
     path.write_text(_PLATE_OBJ, encoding="utf-8")
     return path
+
+
+def beside_markers(markers_path, name):
+    """A file that goes with a marker file, beside it and named after it: ``beside_markers("dir/markers.yaml",
+    "camera.yaml")`` is ``dir/camera.yaml``; ``bags/run.markers.yaml`` gives ``bags/run.camera.yaml`` (so two
+    recordings in one directory never overwrite each other's); ``plates.yaml`` gives ``plates.camera.yaml``."""
+    markers_path = pathlib.Path(markers_path)
+    stem = markers_path.name
+    if stem == "markers.yaml" or stem.endswith(".markers.yaml"):
+        return markers_path.with_name(stem[:-len("markers.yaml")] + name)
+    return markers_path.with_name(f"{markers_path.stem}.{name}")

@@ -31,8 +31,7 @@ from .camera import DEFAULT_EYE, DEFAULT_TARGET, Camera, look_at
 from .markers import PLATE_THICKNESS, marker_corners, plate_side
 
 __all__ = ["MARKER_SIZES", "ROOT_MARKER_SIZE", "hd_camera", "PlannedMarker", "moving_bodies", "plan_markers",
-           "write_markers", "auto_camera", "parse_camera", "beside_markers", "camera_parameters", "write_camera",
-           "read_camera"]
+           "write_markers", "auto_camera", "parse_camera"]
 
 #: Marker edge lengths tried, m (largest first: a bigger marker is seen farther and more often).
 MARKER_SIZES = (0.08, 0.06, 0.05, 0.04, 0.03)
@@ -479,69 +478,6 @@ def parse_camera(text):
     if len(values) != 6 or not all(math.isfinite(v) for v in values):
         raise InvalidInputError(f"--camera takes 'x y z roll pitch yaw' (m, rad) or 'auto', got {text!r}")
     return hd_camera(transform_from_xyz_rpy(values[:3], values[3:]))
-
-
-def beside_markers(markers_path, name):
-    """A file that goes with a marker file, beside it and named after it: ``beside_markers("dir/markers.yaml",
-    "camera.yaml")`` is ``dir/camera.yaml``; ``bags/run.markers.yaml`` gives ``bags/run.camera.yaml`` (so two
-    recordings in one directory never overwrite each other's); ``plates.yaml`` gives ``plates.camera.yaml``."""
-    markers_path = pathlib.Path(markers_path)
-    stem = markers_path.name
-    if stem == "markers.yaml" or stem.endswith(".markers.yaml"):
-        return markers_path.with_name(stem[:-len("markers.yaml")] + name)
-    return markers_path.with_name(f"{markers_path.stem}.{name}")
-
-
-_CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "xyz", "rpy")
-
-
-def camera_parameters(camera):
-    """``{camera: {width, height, fx, fy, cx, cy, xyz, rpy}}``: sim_node's ``camera.*`` parameters of a
-    :class:`Camera` (``xyz`` / ``rpy``: the optical frame in the world, m and rad); the content of ``camera.yaml``."""
-    from body_scheme_core.transforms import xyz_rpy_from_transform
-
-    xyz, rpy = xyz_rpy_from_transform(camera.world2camera)
-    return {"camera": {"width": int(camera.width), "height": int(camera.height), "fx": float(camera.fx),
-                       "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy),
-                       "xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy]}}
-
-
-def write_camera(camera, path):
-    """Write :func:`camera_parameters` of ``camera`` to ``path`` as YAML; returns ``path``."""
-    import yaml
-
-    path = pathlib.Path(path)
-    path.write_text(yaml.safe_dump(camera_parameters(camera), sort_keys=False), encoding="utf-8")
-    return path
-
-
-def read_camera(path):
-    """The :class:`Camera` of a file :func:`write_camera` wrote (plan_markers' ``camera.yaml``).
-
-    Raises
-    ------
-    InvalidInputError
-        One line naming the file: unreadable, not YAML, or a key missing or not a number.
-    """
-    import yaml
-
-    from body_scheme_core.transforms import transform_from_xyz_rpy
-
-    try:
-        values = yaml.safe_load(pathlib.Path(path).read_text(encoding="utf-8"))["camera"]
-        missing = [key for key in _CAMERA_KEYS if key not in values]
-        if missing:
-            raise KeyError(", ".join(missing))
-        xyz, rpy = ([float(v) for v in values[key]] for key in ("xyz", "rpy"))
-        if len(xyz) != 3 or len(rpy) != 3:
-            raise ValueError("xyz and rpy take three numbers each")
-        return Camera(width=values["width"], height=values["height"], fx=float(values["fx"]),
-                      fy=float(values["fy"]), cx=float(values["cx"]), cy=float(values["cy"]),
-                      world2camera=transform_from_xyz_rpy(xyz, rpy))
-    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as error:
-        why = " ".join(str(error).split())  # one line, whatever YAML's message spans
-        raise InvalidInputError(f"camera file {path}: {type(error).__name__}: {why} (plan_markers writes it: "
-                                f"{{camera: {{{', '.join(_CAMERA_KEYS)}}}}})") from None
 
 
 def write_markers(planned, path):

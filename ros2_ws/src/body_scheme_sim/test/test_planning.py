@@ -10,17 +10,9 @@ import yaml
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.transforms import transform_from_xyz_rpy
-from body_scheme_sim.planning import (
-    auto_camera,
-    beside_markers,
-    camera_parameters,
-    hd_camera,
-    moving_bodies,
-    parse_camera,
-    plan_markers,
-    read_camera,
-    write_camera,
-)
+from body_scheme_sim.camera import camera_parameters, read_camera, write_camera
+from body_scheme_sim.markers import beside_markers
+from body_scheme_sim.planning import auto_camera, hd_camera, moving_bodies, parse_camera, plan_markers
 from body_scheme_sim.robots import load_robot
 from body_scheme_sim.world import SimWorld
 
