@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool
 
 from body_scheme_apps.other_stacks import write_layout
@@ -35,9 +35,9 @@ class Collector:
         self.done = None
         self.step = None
         node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, LATCHED)
-        self.events_subscription = node.create_subscription(
+        self.events_subscription = node.create_subscription(  # the publisher's latest 100 too (a late match)
             SchemeEvent, "body_scheme/events", self.events.append,
-            QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+            QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         node.create_subscription(Bool, "bag_replay/done", self._done, LATCHED)
         node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
 
@@ -66,7 +66,7 @@ def test_replay_through_the_graph_equals_the_offline_replay(start_node, ros_node
     collector = Collector(ros_node)
     parameters = yaml.safe_load(params_file.read_text())["/**"]["ros__parameters"]
     scheme = start_node("body_scheme_nodes", "scheme_node", parameters)
-    # Events are not latched: replay only once this test's subscription is matched with scheme_node's publisher.
+    # Replay once this test's subscription is matched with scheme_node's events (kept for late joiners anyway).
     assert spin_until(lambda: collector.structure is not None
                       and collector.events_subscription.get_publisher_count() > 0, timeout=60), scheme.output()
     replay = start_node("body_scheme_nodes", "bag_replay",
