@@ -122,3 +122,36 @@ def test_pause_resume_stop_and_params_of_babble_node_and_a_node_that_is_not_ther
     assert spin_until(lambda: "body_scheme_cli" in ros_node.get_node_names(), timeout=60)
     waiting.send_signal(signal.SIGINT)  # Ctrl-C while it waits: cut short, not done
     assert waiting.wait(timeout=30) == 130, waiting.communicate()
+
+
+def _event(step):
+    from body_scheme_msgs.msg import SchemeEvent
+
+    return SchemeEvent(step=step, kind="model_sampled", reason=f"event {step}", parent_id=-1, child_id=-1,
+                       trans_error=float("nan"), rot_error=float("nan"))
+
+
+def _follow(ros_env, node, *args):
+    """``body-scheme events --node NODE --count 1 ARGS`` started, once it says it follows (its stderr's first line)."""
+    process = subprocess.Popen([CLI, "events", "--node", node, "--count", "1", "--timeout", "120", *args],
+                               env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert process.stderr.readline().startswith("following "), process.communicate(timeout=30)
+    return process
+
+
+def test_events_follows_what_comes_new_skips_what_is_kept_and_a_played_bag_is_followed_too(ros_env, ros_node,
+                                                                                           spin_until):
+    """``--new`` prints what comes, not what the publisher kept; a publisher that keeps nothing (a bag played back,
+    volatile) is followed too (a transient local subscription would never be matched with it)."""
+    from body_scheme_nodes.qos import RECENT_EVENTS
+
+    for namespace, qos, args in (("/kept", RECENT_EVENTS, ("--new",)), ("/played", 100, ())):
+        publisher = ros_node.create_publisher(_event(0).__class__, f"{namespace}/body_scheme/events", qos)
+        publisher.publish(_event(1))  # before the follower: kept by /kept, gone for /played
+        follower = _follow(ros_env, f"{namespace}/scheme_node", *args)
+        steps = iter(range(100, 10**6))  # published until one arrives, however long matching takes
+        assert spin_until(lambda p=publisher, f=follower, s=steps: p.publish(_event(next(s))) or f.poll() is not None,
+                          timeout=60), namespace
+        out, err = follower.communicate(timeout=30)
+        assert follower.returncode == 0 and out.count("\n") == 1, (namespace, out, err)
+        assert out.startswith("step ") and int(out.split()[1]) >= 100, (namespace, out)  # not the kept event 1

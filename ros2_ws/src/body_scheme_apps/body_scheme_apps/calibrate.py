@@ -8,10 +8,11 @@
 ``--state`` reads a state saved by scheme_node (``~/save``, checkpoints) or the core (``save_state``); ``--simulate``
 learns one first from a babbling session in the simulator and compares it with the robot's specification. ``ROBOT``
 is a shipped robot's name or any URDF path: its markers come from ``--markers``, else ``<stem>.markers.yaml`` beside
-the URDF, else they are planned (:func:`body_scheme_sim.planning.plan_markers`, written to ``DIR/markers.yaml``).
-The camera is ``--camera`` (default: the simulator's camera for a shipped robot, ``auto`` for a URDF: framing every
-marker). ``rendered`` perception (the default) runs our ArUco tracker on the simulator's images; ``noise`` draws
-observations at the rendered tracker's accuracy (10 mm, 5 deg). Writes to ``DIR``:
+the URDF, else they are planned (:func:`body_scheme_sim.planning.plan_markers`, written to ``DIR/markers.yaml`` with
+the camera they were planned for, ``DIR/camera.yaml``). The camera is ``--camera``; by default the one the markers
+were planned for (``camera.yaml`` beside them), else the simulator's camera for a shipped robot and ``auto`` for a
+URDF (framing every marker). ``rendered`` perception (the default) runs our ArUco tracker on the simulator's images;
+``noise`` draws observations at the rendered tracker's accuracy (10 mm, 5 deg). Writes to ``DIR``:
 
 - ``learned.urdf``: :func:`body_scheme_core.prediction.learned_body.learned_urdf` (limits: the trained range);
 - with a nominal robot: ``report.txt``, ``report.json`` (per joint ``axis_deg``, ``origin_mm``, ``marker_mm``,
@@ -302,13 +303,15 @@ def verdict(learner, nominal, report, out):
     else:
         lines = [f"verdict: NOT a true body scheme of the robot ({edges}, phase {learner.phase}): more commands, or "
                  f"markers the camera sees together more often (docs/your-robot.md)"]
-    not_joints = [] if scheme is None else [m for m in scheme.models if m.kind == "gp"]
+    exported = [] if scheme is None else learned_tree(scheme, list(nominal.action_joint_names),
+                                                      *learner.trained_range()).joints
+    not_joints = [j for j in exported if j.type == "fixed" and j.model != "static"]
     if not_joints:
-        lines.append(f"not joints: {len(not_joints)} of {len(scheme.models)} edges are GP models "
-                     f"({', '.join(f'{m.parent}->{m.child}' for m in not_joints)}), which learned.urdf fixes at "
-                     f"mid-range and the report leaves out: the observations of these parts depend on the posture in "
-                     f"a way no rigid joint explains (a tracker whose error changes with the viewing angle, or a joint "
-                     f"that is not rigid)")
+        lines.append(f"not joints: {len(not_joints)} of {len(scheme.models)} edges are no URDF joint "
+                     f"({', '.join(f'{j.parent}->{j.child} ({j.model})' for j in not_joints)}): learned.urdf fixes "
+                     f"them at mid-range and the report leaves them out. A GP edge: the observations of its part "
+                     f"depend on the posture in a way no rigid joint explains (a tracker whose error changes with the "
+                     f"viewing angle, or a joint that is not rigid)")
     rows = [] if report is None else report["joints"]
     if rows:
         axis = max(rows, key=lambda r: r["axis_deg"])

@@ -37,7 +37,7 @@ from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_nodes import conversions
 from body_scheme_nodes.graph import NodeProcess, monitor_node
-from body_scheme_nodes.qos import LATCHED
+from body_scheme_nodes.qos import LATCHED, RECENT_EVENTS
 from body_scheme_nodes.recorder import GraphRecorder
 from body_scheme_sim.camera import camera_parameters
 from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
@@ -48,14 +48,14 @@ from .robot_option import add_robot_arguments, resolve_robot
 
 __all__ = ["DemoResult", "RECORDED_TOPICS", "run_live_demo", "main"]
 
-#: (topic, type, latched) of the session recording: commands, observations, predictions, structure, events,
-#: diagnostics, the view (markers, poses, tf, learned URDF), IK and the simulator's ground truth. Camera images are
-#: left out (megabytes per second).
+#: (topic, type, latched or QoS profile) of the session recording: commands, observations, predictions, structure,
+#: events, diagnostics, the view (markers, poses, tf, learned URDF), IK and the simulator's ground truth. Camera images
+#: are left out (megabytes per second).
 RECORDED_TOPICS = (
     ("joint_commands", JointState, False), ("observations", MarkerPoses, False),
     ("predicted_poses", MarkerPoses, False), ("ground_truth/marker_poses", MarkerPoses, False),
     ("body_scheme/structure", BodySchemeStructure, True), ("body_scheme/snapshot", ModelSnapshot, True),
-    ("body_scheme/events", SchemeEvent, False), ("/diagnostics", DiagnosticArray, False),
+    ("body_scheme/events", SchemeEvent, RECENT_EVENTS), ("/diagnostics", DiagnosticArray, False),
     ("body_scheme/markers", MarkerArray, False), ("body_scheme/poses", PoseArray, False), ("/tf", TFMessage, False),
     ("body_scheme/robot_description", String, True), ("ik_target", IKTarget, False), ("ik_result", IKResult, False),
 )
@@ -110,7 +110,7 @@ class _Monitor:
         node.create_subscription(MarkerPoses, "ground_truth/marker_poses", self._truth, 100)
         node.create_subscription(MarkerPoses, "predicted_poses", self._predicted, 100)
         node.create_subscription(MarkerPoses, "observations", self._observation, 100)
-        node.create_subscription(SchemeEvent, "body_scheme/events", self.events.append, 100)
+        node.create_subscription(SchemeEvent, "body_scheme/events", self.events.append, RECENT_EVENTS)  # none missed
         node.create_subscription(BodySchemeStructure, "body_scheme/structure", self._structure, LATCHED)
         node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
         node.create_subscription(IKResult, "ik_result", self.ik_results.append, 10)

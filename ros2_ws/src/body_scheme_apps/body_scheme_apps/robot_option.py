@@ -69,14 +69,17 @@ def add_camera_arguments(parser, camera=True, package_path=True, prefix=""):
                                  "ROS_PACKAGE_PATH, the ament index and the URDF's directory)")
 
 
-def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_to="markers.yaml", seed=0, log=print):
-    """Resolve the options (see the module docstring); plans markers into the file ``plan_to`` when none exist.
+def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_to=None, seed=0, log=print):
+    """Resolve the options (see the module docstring); plans markers into the file ``plan_to`` when none exist
+    (the caller's output directory: ``plan_to`` None with no markers to read is a ``ValueError``).
 
     Raises
     ------
     BodySchemeError
-        One line: an unknown robot, an unreadable URDF or marker file, no marker could be planned.
+        One line: an unknown robot, an unreadable URDF, marker file or camera file (``camera.yaml`` beside the
+        markers), no marker could be planned.
     """
+    from body_scheme_core.errors import InvalidInputError
     from body_scheme_sim.camera import read_camera, write_camera
     from body_scheme_sim.errors import RobotFileError
     from body_scheme_sim.markers import beside_markers
@@ -90,13 +93,20 @@ def resolve_robot(robot, markers=None, camera="default", package_path=(), plan_t
         markers_path = robot_files(robot, require_markers=False)[1]
     planned_camera = None if markers_path is None else beside_markers(markers_path, "camera.yaml")
     if camera == "default" and planned_camera is not None and planned_camera.is_file():
-        chosen = read_camera(planned_camera)  # the camera the markers were planned for (plan_markers wrote it)
+        try:
+            chosen = read_camera(planned_camera)  # the camera the markers were planned for (plan_markers wrote it)
+        except InvalidInputError as error:
+            raise InvalidInputError(f"{error}; read as the camera {markers_path} was planned for (it is beside it): "
+                                    f"--camera auto or --camera \"x y z roll pitch yaw\" does without it") from None
         log(f"camera of {planned_camera} (the one the markers were planned for; --camera overrides it)")
     else:
         if camera == "default":
             camera = None if shipped else "auto"
         chosen = None if camera is None else parse_camera(camera)
         if markers_path is None and not shipped:
+            if plan_to is None:
+                raise ValueError("resolve_robot: plan_to (where planned markers go) is needed for a URDF without "
+                                 "markers")
             planned, skipped, chosen = plan_markers(robot, camera=chosen, package_path=package_path, seed=seed)
             if not planned:
                 raise RobotFileError(f"no marker could be planned on {robot}: no link's collision geometry is in "

@@ -13,8 +13,7 @@ from body_scheme_apps.calibrate import main, verdict
 from body_scheme_apps.robot_option import resolve_robot
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import save_state
-from body_scheme_core.models import GPModel
-from body_scheme_core.models.engineered import engineered_models
+from body_scheme_core.models import GPModel, RevoluteModel
 from body_scheme_core.prediction.scheme import BodyScheme
 from body_scheme_core.world import Marker, load_markers_yaml, make_session, resolve_meshes, tree_from_urdf
 from body_scheme_sim.robots import load_robot, robot_files
@@ -57,12 +56,15 @@ def test_the_verdict_says_when_there_is_no_true_body_scheme(tmp_path):
 def test_the_verdict_names_the_edges_that_are_gps_not_joints(tmp_path):
     """A true tree whose edge 2->3 is a GP (right actions, no rigid joint): true, and the GP edge named as no joint."""
     robot = load_robot("planar_2dof")
-    first = next(m for m in engineered_models(robot) if {m.parent, m.child} == {1, 2})
+    A = np.random.default_rng(0).uniform(robot.action_lower, robot.action_upper, (20, robot.n_actions))
+    poses = [robot.marker_poses(a) for a in A]
+    first = RevoluteModel(1, 2, (0,)).fit(A, np.stack([np.linalg.inv(p[1]) @ p[2] for p in poses]))
     gp = GPModel(2, 3, (1,)).fit(np.zeros((3, 2)), np.stack([np.eye(4)] * 3))
-    learner = SimpleNamespace(body_scheme=BodyScheme(robot.marker_ids, 1, [first, gp]), phase="steady")
+    learner = SimpleNamespace(body_scheme=BodyScheme(robot.marker_ids, 1, [first, gp]), phase="steady",
+                              trained_range=lambda: (robot.action_lower, robot.action_upper))
     text = verdict(learner, robot, None, tmp_path)
     assert text.startswith("verdict: a true body scheme of the robot (2 edges, phase steady)"), text
-    assert "\nnot joints: 1 of 2 edges are GP models (2->3), which learned.urdf fixes at mid-range" in text, text
+    assert "\nnot joints: 1 of 2 edges are no URDF joint (2->3 (gp)): learned.urdf fixes them at mid-range" in text
 
 
 def test_unreadable_input_is_one_line_and_exit_code_1(tmp_path, capsys):
@@ -94,8 +96,10 @@ def test_a_robots_urdf_alone_is_enough_to_simulate_and_calibrate(tmp_path, capsy
     again = resolve_robot(urdf, out / "markers.yaml", log=lines.append).camera  # a later command with these markers
     assert lines == [f"camera of {out / 'camera.yaml'} (the one the markers were planned for; --camera overrides it)"]
     assert (again.width, again.height, again.fx) == (1280, 960, pytest.approx(640.0 / math.tan(math.radians(30))))
-    assert np.allclose(again.world2camera, resolve_robot(urdf, camera="auto", log=lines.append).camera.world2camera,
-                       atol=1e-9)  # the planned camera (auto, as the first run's) to the last digit YAML keeps
+    replanned = resolve_robot(urdf, camera="auto", plan_to=tmp_path / "again" / "markers.yaml", log=lines.append)
+    assert np.allclose(again.world2camera, replanned.camera.world2camera, atol=1e-9)  # auto, as the first run's
+    with pytest.raises(ValueError, match="plan_to"):
+        resolve_robot(urdf, camera="auto")  # planning needs a place for its files (never the working directory)
     report = json.loads((out / "report.json").read_text())
     assert len(report["joints"]) == 7 and report["max_axis_deg"] < 3.0
     _check_the_calibrated_urdf(out, pathlib.Path(urdf), pybullet_data.getDataPath())
@@ -166,6 +170,19 @@ def test_every_failure_to_load_a_robot_is_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("calibrate: "), (name, err)
     assert "--package-path" in err[0]
+
+    # A camera.yaml beside the markers that is not the plan's (a camera driver's calibration file): one line that says
+    # why it was read and how to do without it.
+    urdf_path, markers_path = robot_files("planar_2dof")
+    (tmp_path / "mine").mkdir()
+    markers = tmp_path / "mine" / "markers.yaml"
+    markers.write_text(markers_path.read_text())
+    (tmp_path / "mine" / "camera.yaml").write_text("image_width: 640\ncamera_matrix: {rows: 3, cols: 3}\n")
+    assert main(["--simulate", str(urdf_path), "--markers", str(markers), "--steps", "5", "--out",
+                 str(tmp_path / "mine" / "out")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"calibrate: camera file {tmp_path / 'mine' / 'camera.yaml'}: "), err
+    assert err[0].endswith('--camera auto or --camera "x y z roll pitch yaw" does without it'), err
 
 
 def test_the_accuracy_report_cross_validates_and_two_sessions_give_the_repeatability(tmp_path, capsys):

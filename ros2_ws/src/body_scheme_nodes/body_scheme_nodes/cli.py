@@ -5,7 +5,7 @@ The set-up from PyPI has no ros2cli (docs/ros-from-pypi.md); this command is ins
 ``python -m body_scheme_nodes.cli ...``)::
 
     body-scheme status                     # /diagnostics, readable: one line per status, the values indented
-    body-scheme events                     # scheme_node's latest decisions, then follow (Ctrl-C ends; --count N)
+    body-scheme events                     # scheme_node's latest decisions, then follow (Ctrl-C ends; --count N, --new)
     body-scheme save [NAME]                # scheme_node's ~/save, ~/load (a name inside its state_directory;
     body-scheme load [NAME]                #   none: its checkpoint_path) and ~/reset
     body-scheme reset
@@ -174,8 +174,10 @@ def cmd_status(session, args):
 
 
 def cmd_events(session, args):
-    """Print scheme_node's latest events (up to 100 kept), then each as it comes, until ``--count`` events or
-    Ctrl-C."""
+    """Print scheme_node's latest events (up to 100 kept), then each as it comes, until ``--count`` events or Ctrl-C;
+    with ``--new`` only those that come."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
     from body_scheme_msgs.msg import SchemeEvent
 
     from .qos import RECENT_EVENTS
@@ -187,10 +189,17 @@ def cmd_events(session, args):
         print(format_event(msg), flush=True)
 
     topic = events_topic(args.node)
-    session.node.create_subscription(SchemeEvent, topic, on_event, RECENT_EVENTS)  # the latest 100 first
     if not session.spin_until(lambda: session.node.count_publishers(topic) > 0, args.timeout):
         raise Unreachable(f"no publisher of {topic} within {args.timeout:g} s: is scheme_node running, in this "
                           "ROS_DOMAIN_ID?")
+    offered = [info.qos_profile.durability for info in session.node.get_publishers_info_by_topic(topic)]
+    if args.new or any(d != DurabilityPolicy.TRANSIENT_LOCAL for d in offered):
+        # Only what comes: asked for, or a publisher keeps no history (a bag played back, an older scheme_node),
+        # which a transient local subscription would not be matched with.
+        qos = QoSProfile(depth=RECENT_EVENTS.depth, reliability=ReliabilityPolicy.RELIABLE)
+    else:
+        qos = RECENT_EVENTS  # the latest events first
+    session.node.create_subscription(SchemeEvent, topic, on_event, qos)
     print(f"following {topic} (Ctrl-C ends)", file=sys.stderr, flush=True)
     args.following = True  # from here Ctrl-C ends it as intended (exit 0)
     session.spin_until(lambda: args.count is not None and len(seen) >= args.count, None)
@@ -280,8 +289,9 @@ def parser():
     status.add_argument("--node", default=None, type=full_name, help="only this node's statuses, e.g. /scheme_node")
     status.add_argument("--brief", action="store_true", help="one line per status, no values")
     status.add_argument("--settle", type=float, default=1.5, help="seconds to collect after the first array")
-    add("events", cmd_events, "follow scheme_node's events").add_argument(
-        "--count", type=int, default=None, help="exit after this many events")
+    events = add("events", cmd_events, "scheme_node's latest events (up to 100 kept), then follow them")
+    events.add_argument("--count", type=int, default=None, help="exit after this many events (the kept ones count)")
+    events.add_argument("--new", action="store_true", help="only events from now on, not the kept ones")
     for name, help_text in (("save", "save the learner's state (scheme_node ~/save)"),
                             ("load", "load a saved state (scheme_node ~/load)")):
         add(name, cmd_state, help_text).add_argument(

@@ -52,8 +52,9 @@ class GraphRecorder:
     node : rclpy.node.Node
         The node to subscribe with (its executor must spin).
     path : path-like
-    topics : iterable of (str, type, bool)
-        Topic name, rclpy message class, and whether it is latched (transient local).
+    topics : iterable of (str, type, bool or QoSProfile)
+        Topic name, rclpy message class, and whether it is latched (transient local, the latest message), or the
+        publisher's QoS profile (e.g. :data:`~body_scheme_nodes.qos.RECENT_EVENTS`), recorded as offered.
     """
 
     def __init__(self, node, path, topics):
@@ -67,7 +68,7 @@ class GraphRecorder:
         store = typestore()
         for topic, msg_class, latched in topics:
             name = topic if topic.startswith("/") else f"/{topic}"
-            qos = LATCHED if latched else _VOLATILE
+            qos = latched if isinstance(latched, QoSProfile) else LATCHED if latched else _VOLATILE
             connection = self._writer.add_connection(name, _type_name(msg_class), typestore=store,
                                                      offered_qos_profiles=[bag_qos(qos)])
             self.counts[name] = 0

@@ -77,12 +77,11 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
-from body_scheme_core.transforms import transform_from_xyz_rpy, xyz_rpy_from_transform
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel, babble, parse_fault_schedule
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import InjectFault
 from body_scheme_sim.babbling import babbling_screen
-from body_scheme_sim.camera import Camera
+from body_scheme_sim.camera import CAMERA_KEYS, Camera, camera_from_values, camera_parameters
 from body_scheme_sim.world import SimWorld
 
 from . import conversions
@@ -99,13 +98,12 @@ IMAGE_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
 
 def camera_from_parameters(node, prefix="camera."):
     """Declare the camera parameters (defaults: :class:`Camera`'s) and build the camera from their values."""
-    default = Camera()
-    xyz, rpy = xyz_rpy_from_transform(default.world2camera)
-    values = {name: node.declare_parameter(prefix + name, getattr(default, name)).value
-              for name in ("width", "height", "fx", "fy", "cx", "cy")}
-    xyz = node.declare_parameter(prefix + "xyz", [float(v) for v in xyz]).value
-    rpy = node.declare_parameter(prefix + "rpy", [float(v) for v in rpy]).value
-    return Camera(**values, world2camera=transform_from_xyz_rpy(list(xyz), list(rpy)))
+    default = camera_parameters(Camera())["camera"]
+    values = {name: node.declare_parameter(prefix + name, default[name]).value for name in CAMERA_KEYS}
+    try:
+        return camera_from_values(values)
+    except (TypeError, ValueError) as error:
+        raise InvalidInputError(f"{prefix}* parameters: {error}") from None
 
 
 class SimNode(Node):

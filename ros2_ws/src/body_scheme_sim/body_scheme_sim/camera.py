@@ -13,12 +13,18 @@ import pathlib
 from dataclasses import dataclass, field
 
 import numpy as np
+import yaml
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.transforms import check_transform, invert_transform
+from body_scheme_core.transforms import (
+    check_transform,
+    invert_transform,
+    transform_from_xyz_rpy,
+    xyz_rpy_from_transform,
+)
 
-__all__ = ["Camera", "look_at", "DEFAULT_EYE", "DEFAULT_TARGET", "DEFAULT_HFOV", "camera_parameters", "write_camera",
-           "read_camera"]
+__all__ = ["Camera", "look_at", "DEFAULT_EYE", "DEFAULT_TARGET", "DEFAULT_HFOV", "CAMERA_KEYS", "camera_parameters",
+           "camera_from_values", "write_camera", "read_camera"]
 
 #: Default camera position (m, world frame): in front of the robot (+x), 1.5 m from its middle, 40 deg above it.
 #: Chosen so that markers facing the camera (3D arms) and facing up (planar arm) are both seen at <= 50 deg and large
@@ -172,24 +178,40 @@ class Camera:
         return tuple(P.flatten(order="F"))
 
 
-_CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "xyz", "rpy")
+#: The keys of a camera's values (sim_node's ``camera.*`` parameters, a ``camera.yaml``'s ``camera:`` mapping).
+CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "xyz", "rpy")
 
 
 def camera_parameters(camera):
     """``{camera: {width, height, fx, fy, cx, cy, xyz, rpy}}``: sim_node's ``camera.*`` parameters of a
     :class:`Camera` (``xyz`` / ``rpy``: the optical frame in the world, m and rad); the content of ``camera.yaml``."""
-    from body_scheme_core.transforms import xyz_rpy_from_transform
-
     xyz, rpy = xyz_rpy_from_transform(camera.world2camera)
     return {"camera": {"width": int(camera.width), "height": int(camera.height), "fx": float(camera.fx),
                        "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy),
                        "xyz": [float(v) for v in xyz], "rpy": [float(v) for v in rpy]}}
 
 
+def camera_from_values(values):
+    """The :class:`Camera` of a mapping with :data:`CAMERA_KEYS` (the inverse of :func:`camera_parameters`).
+
+    Raises
+    ------
+    KeyError, TypeError, ValueError
+        A key missing, a value not a number, ``xyz`` or ``rpy`` not three numbers; InvalidInputError from
+        :class:`Camera` for impossible intrinsics.
+    """
+    missing = [key for key in CAMERA_KEYS if key not in values]
+    if missing:
+        raise KeyError(", ".join(missing))
+    xyz, rpy = ([float(v) for v in values[key]] for key in ("xyz", "rpy"))
+    if len(xyz) != 3 or len(rpy) != 3:
+        raise ValueError("xyz and rpy take three numbers each")
+    return Camera(width=values["width"], height=values["height"], fx=float(values["fx"]), fy=float(values["fy"]),
+                  cx=float(values["cx"]), cy=float(values["cy"]), world2camera=transform_from_xyz_rpy(xyz, rpy))
+
+
 def write_camera(camera, path):
     """Write :func:`camera_parameters` of ``camera`` to ``path`` as YAML; returns ``path``."""
-    import yaml
-
     path = pathlib.Path(path)
     path.write_text(yaml.safe_dump(camera_parameters(camera), sort_keys=False), encoding="utf-8")
     return path
@@ -203,22 +225,9 @@ def read_camera(path):
     InvalidInputError
         One line naming the file: unreadable, not YAML, or a key missing or not a number.
     """
-    import yaml
-
-    from body_scheme_core.transforms import transform_from_xyz_rpy
-
     try:
-        values = yaml.safe_load(pathlib.Path(path).read_text(encoding="utf-8"))["camera"]
-        missing = [key for key in _CAMERA_KEYS if key not in values]
-        if missing:
-            raise KeyError(", ".join(missing))
-        xyz, rpy = ([float(v) for v in values[key]] for key in ("xyz", "rpy"))
-        if len(xyz) != 3 or len(rpy) != 3:
-            raise ValueError("xyz and rpy take three numbers each")
-        return Camera(width=values["width"], height=values["height"], fx=float(values["fx"]),
-                      fy=float(values["fy"]), cx=float(values["cx"]), cy=float(values["cy"]),
-                      world2camera=transform_from_xyz_rpy(xyz, rpy))
-    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as error:
+        return camera_from_values(yaml.safe_load(pathlib.Path(path).read_text(encoding="utf-8"))["camera"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError, InvalidInputError) as error:
         why = " ".join(str(error).split())  # one line, whatever YAML's message spans
         raise InvalidInputError(f"camera file {path}: {type(error).__name__}: {why} (plan_markers writes it: "
-                                f"{{camera: {{{', '.join(_CAMERA_KEYS)}}}}})") from None
+                                f"{{camera: {{{', '.join(CAMERA_KEYS)}}}}})") from None
