@@ -2,19 +2,53 @@
 
 Every test gets its own ROS domain id and localhost-only discovery, so concurrent runs on one machine never see each
 other's topics. Node processes are the files ``ros2 run`` would execute: ``install/<pkg>/lib/<pkg>/<executable>``.
+
+And one guard for the whole suite: a run that leaves files in the repository that were not there before (a test that
+wrote into the working directory, say) fails, naming them (``git status``; ``out/`` and the build are ignored).
 """
 
 from __future__ import annotations
 
 import os
 import random
+import subprocess
+import sys
 import time
 
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from workspace import REPO
 
 from body_scheme_nodes.graph import NodeProcess
+
+
+def _repository_status():
+    """``git status --porcelain`` of the repository as a set of lines, or None without git or outside a clone."""
+    try:
+        done = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=all"],
+                              capture_output=True, text=True, timeout=120, check=False)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return set(done.stdout.splitlines()) if done.returncode == 0 else None
+
+
+def pytest_sessionstart(session):
+    if not hasattr(session.config, "workerinput"):  # the controller of an xdist run, or a plain run
+        session.config.stash[_STATUS] = _repository_status()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    before = session.config.stash.get(_STATUS, None)
+    after = None if before is None else _repository_status()
+    left = sorted((after or set()) - (before or set()))
+    if left:
+        print("\nthe tests left these changes in the repository (write under tmp_path or out/ instead):\n  "
+              + "\n  ".join(left), file=sys.stderr)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+_STATUS = pytest.StashKey()
 
 
 @pytest.fixture
