@@ -95,6 +95,11 @@ def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shippe
     assert done.returncode == (0 if learned == true_edges else 1), (done.returncode, learned, done.stdout[-3000:])
     assert {frozenset(edge) for edge in summary["true_edges"]} == true_edges
 
+    # Step 4's print_markers as written (on the planned file: what a user who edits it runs again).
+    (sheet,) = _documented("python", "-m", "body_scheme_apps.print_markers")
+    (tmp_path / "markers" / "markers.pdf").unlink()
+    assert _run(sheet, env).startswith("wrote markers/markers.pdf") and (tmp_path / "markers" / "markers.pdf").is_file()
+
     # The second command of step 3: learn offline in the simulator, with the plan's camera, and write the report.
     (rehearsal,) = _documented("python", "-m", "body_scheme_apps.calibrate", "--simulate")
     printed = _run(rehearsal, env)
