@@ -154,8 +154,9 @@ class BodySchemeConfig:
     lazy_layers : bool
         Bootstrapping starts with the candidates of complexity <= 1 and instantiates layer ``k + 1`` only for the
         pairs across the parts that layers <= k cannot connect (paper Sec. III-D), trained at once from the history.
-        Off by default (every layer up to ``max_complexity`` from the start): 3.5-4.5x faster on big bodies, but on
-        the robot zoo it found fewer true trees (docs/core/learning-and-adaptation.md, Sec. 4).
+        Off by default (every layer up to ``max_complexity`` from the start). With racing 3.5-4.5x faster on big
+        bodies, but racing loses true trees on the robot zoo; alone, lazy layers are as good as eager up to the paper's
+        noise and worse at the harsh level (docs/core/learning-and-adaptation.md, Sec. 4).
     race_samples, race_ratio, race_min_train : int, float, int
         Racing while bootstrapping: a candidate whose last ``race_samples`` errors all exceed ``race_ratio`` times
         the validity threshold, each predicted after at least ``race_min_train`` training samples, is dropped
