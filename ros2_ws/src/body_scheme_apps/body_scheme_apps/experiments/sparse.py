@@ -16,8 +16,9 @@ seen. The learner is given no noise value.
 - ``<robot>_urdf``: the true arm is its URDF with every joint's origin moved by 2 mm and turned by 0.5 deg (per axis,
   random), as a real arm is off its specification; the learner starts from the URDF's chain with three times that
   as its prior tolerance per joint (:func:`~body_scheme_core.models.chain_spec.chain_from_engineered`) and sees uniform
-  commands: *poses* as above, every step. *Bound*: the same for a joint fit of the same observations started at the
-  true arm and told the noise (:func:`_bound_curve`): what the data allow.
+  commands: *poses* as above, every step. *Bound*: the same for a joint fit of the same observations from the URDF
+  with the same prior, told the noise (:func:`_bound_curve`), every :data:`EVERY` poses: what the data and the prior
+  allow a calibration tool that knows the camera.
 - ``points``: the tool carries three reflectors (not collinear, 10 cm apart) measured with 0.5 mm noise each by a
   laser tracker or motion capture standing where the camera stood, rigid with the base and no base marker (the
   sensor as root, ``sensor_root``); the reflectors' pose (Kabsch) is the observation. The robot by seed in turn;
@@ -79,9 +80,10 @@ FIGURES = {
     **{f"sparse_{r}_poses_urdf": f"{r}, the URDF as prior (the arm 2 mm / 0.5 deg per joint off it): poses until the "
                                  f"held-out error stays within {TARGET_MM:g} mm ({N_URDF_STEPS + 1}: never)"
        for r in ROBOTS},
-    **{f"sparse_{r}_poses_urdf_bound": f"{r}: the same for a joint fit of the same observations started at the true "
-                                       f"arm and told the noise, without a prior: what the data allow (the scene's "
-                                       f"depth is known only to {1e3 * DEPTH:g} mm / sqrt(2 poses))" for r in ROBOTS},
+    **{f"sparse_{r}_poses_urdf_bound": f"{r}: the same for a joint fit of the same observations from the URDF with "
+                                       f"the same prior, told the noise: what the data and the prior allow (the "
+                                       f"scene's depth is known only to {1e3 * DEPTH:g} mm / sqrt(2 poses))"
+       for r in ROBOTS},
     **{f"sparse_{r}_urdf_nominal_mm": f"{r}: the URDF's own held-out error on the perturbed arm (mm)" for r in ROBOTS},
     "sparse_points_heldout_mm": f"three reflectors on the tool (0.5 mm each), from scratch: held-out error after "
                                 f"{N_STEPS} poses (mm)",
@@ -170,20 +172,20 @@ def _learn(tree, A, observations, heldout, every, initial=None, sensor=False):
     return learner, curve, events
 
 
-def _bound_curve(tree, tool, A, observations, commands, world2root):
-    """What the observations allow: the held-out errors (mm) of a joint fit
+def _bound_curve(tree, tool, spec, A, observations, commands, world2root):
+    """What the observations and the prior allow: the held-out errors (mm) of a joint fit
     (:func:`~body_scheme_core.calibration.calibrate`) of the first ``k`` observations, every :data:`EVERY` steps,
-    started at the true arm and base plate pose, told the noise, without a prior. The scene's depth is known only to
-    :data:`DEPTH` / sqrt(2 k) (the two plates' positions along the ray; nothing else tells it), which no learner
+    from the URDF's chain ``spec`` with its prior, told the noise: the maximum a posteriori calibration. The scene's
+    depth is known only to about :data:`DEPTH` / sqrt(2 k) (the two plates' positions along the ray), which no learner
     can beat."""
-    truth = chain_from_engineered(EngineeredModel.from_tree(tree, 1, 2))
     base = world2root @ tree.marker_poses(A[0])[1]
     sigmas = (LATERAL, DEPTH, ROTATION / math.sqrt(3.0))
     true_tool = np.array([(world2root @ tree.marker_poses(a)[tool])[:3, 3] for a in commands])
     curve = []
     for k in range(EVERY, len(A) + 1, EVERY):
-        fit = calibrate(BodyScheme([1, tool], 1, [truth]), base, A[:k], observations[:k], NOISE["sigma_trans"],
-                        NOISE["sigma_rot"], axis_sigmas=lambda part: sigmas)
+        fit = calibrate(BodyScheme([1, tool], 1, [spec]), base, A[:k], observations[:k], NOISE["sigma_trans"],
+                        NOISE["sigma_rot"], priors={0: (spec.params_, spec.param_cov_)},
+                        axis_sigmas=lambda part: sigmas)
         predicted = (fit.world2root @ fit.scheme.models[0].predict(commands))[:, :3, 3]
         curve.append((k, 1e3 * float(np.median(np.linalg.norm(predicted - true_tool, axis=1)))))
     return curve
@@ -295,7 +297,7 @@ def _with_urdf(robot, perception, seed, rng, quick, n_heldout, world2root):
         nominal_error = 1e3 * float(np.median([np.linalg.norm((p[1] @ spec[0].predict(a[None])[0])[:3, 3]
                                                               - p[tool][:3, 3])
                                                for a, p in zip(heldout_commands, poses, strict=True)]))
-        bound = _bound_curve(true, tool, uniform, session.observations, heldout_commands, world2root)
+        bound = _bound_curve(true, tool, spec[0], uniform, session.observations, heldout_commands, world2root)
         return {f"sparse_{robot}_poses_urdf": float(_poses_to(curve, TARGET_MM, n + 1)),
                 f"sparse_{robot}_poses_urdf_bound": float(_poses_to(bound, TARGET_MM, n + 1)),
                 f"sparse_{robot}_urdf_nominal_mm": nominal_error, "curves": {f"{robot}_urdf": curve}, "events": []}
