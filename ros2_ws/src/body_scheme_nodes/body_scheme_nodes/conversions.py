@@ -28,6 +28,7 @@ __all__ = [
     "transform_from_pose_msg",
     "pose_msg_from_transform",
     "observations_from_msg",
+    "covariances_from_msg",
     "marker_poses_msg",
     "actions_from_joint_state",
     "structure_msg",
@@ -123,6 +124,18 @@ def observations_from_msg(msg):
         except InvalidInputError as error:
             rejected.append((marker_id, "invalid_pose", str(error)))
     return seconds_from_stamp(msg.header.stamp), observations, rejected
+
+
+def covariances_from_msg(msg, observations):
+    """The covariances a ``MarkerPoses`` message gives the markers of ``observations`` (:func:`observations_from_msg`),
+    ``{id: (6, 6)}``: each pose's ``covariance`` where it is not all zeros ("not estimated"). The learner checks them
+    (an unusable one is counted as ``bad_covariance`` and its pose weighed by the learned noise)."""
+    covariances = {}
+    for marker_id, item in zip(msg.marker_ids, msg.poses, strict=True):
+        marker_id = int(marker_id)
+        if marker_id in observations and marker_id not in covariances and any(item.covariance):
+            covariances[marker_id] = np.asarray(item.covariance, dtype=float).reshape(6, 6)
+    return covariances
 
 
 def marker_poses_msg(stamp, frame_id, poses, std=None):

@@ -26,7 +26,7 @@ __all__ = ["LearningLoop"]
 class LearningLoop:
     """The loop for one learner's settings (:class:`~body_scheme_nodes.settings.SchemeSettings`).
 
-    ``clock()`` is the node's time in seconds; ``learn(stamp, actions, observations)`` learns one sample and says
+    ``clock()`` is the node's time in seconds; ``learn(stamp, actions, observed)`` learns one sample and says
     whether the learner took it (scheme_node publishes what came of it); ``reject(code, detail)`` counts and reports
     a refused input. Counters: ``received`` (messages put, by kind), ``refused_at_intake`` (too large to read),
     ``restamped``, ``shed`` (``<kind>_messages`` from the inbox, ``samples`` beyond ``max_pending_samples``,

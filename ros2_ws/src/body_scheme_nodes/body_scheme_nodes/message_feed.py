@@ -14,7 +14,7 @@ from body_scheme_core.errors import ActionOutOfRangeError, InvalidInputError, Le
 
 from . import conversions
 
-__all__ = ["MESSAGE_KINDS", "MessageLimits", "DEFAULT_LIMITS", "feed_message", "learn_sample"]
+__all__ = ["MESSAGE_KINDS", "MessageLimits", "DEFAULT_LIMITS", "Observed", "feed_message", "learn_sample"]
 
 #: Kinds of message scheme_node learns from: a ``sensor_msgs/JointState`` command or a ``MarkerPoses`` observation.
 MESSAGE_KINDS = ("command", "observations")
@@ -32,6 +32,14 @@ class MessageLimits(NamedTuple):
 
 #: The defaults of scheme_node's ``max_message_bytes``, ``max_joint_names`` and ``max_markers``.
 DEFAULT_LIMITS = MessageLimits()
+
+
+class Observed(NamedTuple):
+    """What one ``MarkerPoses`` message observed: the poses ``{id: frame2marker}`` and the covariances it gave them
+    ``{id: (6, 6)}`` (:func:`~body_scheme_nodes.conversions.covariances_from_msg`)."""
+
+    poses: dict
+    covariances: dict
 
 
 def _oversize_problem(kind, msg, limits):
@@ -65,8 +73,8 @@ def feed_message(pairer, kind, msg, joint_names, frame_id="", limits=DEFAULT_LIM
 
     Returns
     -------
-    samples : list of (float, ndarray of shape (m,), dict of int to ndarray of shape (4, 4))
-        Learning samples ``(observation stamp, actions, observations)`` this message resolved (commands only).
+    samples : list of (float, ndarray of shape (m,), Observed)
+        Learning samples ``(observation stamp, actions, observed)`` this message resolved (commands only).
     rejections : list of (str, str)
         Reason code and detail of everything dropped: ``invalid_pose`` / ``repeated_id`` per marker, or
         ``bad_command_message`` / ``bad_observations_message`` for a message that is unusable as a whole,
@@ -85,14 +93,15 @@ def feed_message(pairer, kind, msg, joint_names, frame_id="", limits=DEFAULT_LIM
             stamp, actions = conversions.actions_from_joint_state(msg, joint_names)
             return pairer.add_command(stamp, actions), []
         stamp, observations, dropped = conversions.observations_from_msg(msg)
-        pairer.add_observation(stamp, observations)
+        pairer.add_observation(stamp, Observed(observations, conversions.covariances_from_msg(msg, observations)))
         return [], [(code, f"marker {marker_id}: {detail}") for marker_id, code, detail in dropped]
     except InvalidInputError as error:
         return [], [(f"bad_{kind}_message", str(error))]
 
 
-def learn_sample(learner, stamp, actions, observations):
-    """``learner.update`` on one paired sample, with the learner's refusals as reason codes.
+def learn_sample(learner, stamp, actions, observed):
+    """``learner.update`` on one paired sample (``observed``: :class:`Observed`), with the learner's refusals as reason
+    codes.
 
     Returns
     -------
@@ -103,7 +112,7 @@ def learn_sample(learner, stamp, actions, observations):
         learner: the step was undone, the learner goes on).
     """
     try:
-        return learner.update(actions, observations, stamp=stamp), None
+        return learner.update(actions, observed.poses, stamp=stamp, covariances=observed.covariances), None
     except ActionOutOfRangeError as error:
         return None, ("command_out_of_range", str(error))
     except StampOrderError as error:

@@ -177,11 +177,11 @@ def replay_bag(path, settings, progress=None, source_map=None):
                           imported=translation.counts if source_map is not None else None)
 
     def learn(samples):
-        for stamp, actions, observations in samples:
+        for stamp, actions, observed in samples:
             k = bisect.bisect_right(command_stamps, stamp) - 1
             prediction = _prediction_errors(learner, actions, truth[k] if k >= 0 else None)
             step = learner.step
-            events, rejection = learn_sample(learner, stamp, actions, observations)
+            events, rejection = learn_sample(learner, stamp, actions, observed)
             if rejection is not None:  # counted as scheme_node counts it; the learner is unchanged
                 result.rejected[rejection[0]] += 1
                 continue

@@ -278,10 +278,10 @@ class SchemeNode(Node):
             self._last_progress = progress
             self.pub_progress.publish(UInt64(data=progress))
 
-    def _learn(self, stamp, actions, observations):
+    def _learn(self, stamp, actions, observed):
         """Learn one sample and publish what came of it; False if the learner refused it (LearningLoop's ``learn``)."""
         start = time.perf_counter()
-        events, rejection = learn_sample(self.learner, stamp, actions, observations)
+        events, rejection = learn_sample(self.learner, stamp, actions, observed)
         if rejection is not None:
             self._reject(*rejection)
             return False
@@ -298,7 +298,7 @@ class SchemeNode(Node):
         if self.learner.body_scheme is not None:
             poses, std = self.learner.predict(actions, return_std=True)
             self.pub_predicted.publish(conversions.marker_poses_msg(stamp, self.frame_id, poses, std))
-            self._publish_view(stamp, poses, std, observations, edges)
+            self._publish_view(stamp, poses, std, observed.poses, edges)
         self._publish_structure(edges=edges)
         return True
 

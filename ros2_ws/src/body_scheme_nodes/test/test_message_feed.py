@@ -48,3 +48,28 @@ def test_the_uncertainty_sphere_is_the_two_sigma_of_the_reported_covariance():
     covariance = conversions.marker_poses_msg(0.0, "camera", poses, std).poses[0].covariance
     (sphere,) = [m for m in view.markers_msg(0.0, "camera", poses, std, []).markers if m.ns == "uncertainty"]
     assert np.isclose(sphere.scale.x, 2 * 2 * np.sqrt(covariance[0]))
+
+
+def test_a_tag_detectors_covariances_reach_the_learner():
+    """MarkerPoses' covariances (the tracker's, per detection) go with the poses into learner.update: an all-zero
+    one means "not estimated"; with learner.detection_covariances a malformed one is counted by the learner as
+    bad_covariance, its pose kept."""
+    from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
+    from body_scheme_nodes.message_feed import learn_sample
+
+    pose = np.eye(4)
+    pose[:3, 3] = [0.1, 0.0, 1.5]
+    msg = conversions.tracked_poses_msgs(Header(stamp=conversions.stamp_from_seconds(1.1), frame_id="camera"),
+                                         {1: pose, 2: pose, 3: pose}, {1: np.eye(6) * 1e-4, 3: -np.eye(6)})[0]
+    pairer = CommandObservationPairer()
+    command = JointState(header=Header(stamp=conversions.stamp_from_seconds(1.0)), name=["j0"], position=[0.1])
+    feed_message(pairer, "command", command, ["j0"])
+    assert feed_message(pairer, "observations", msg, ["j0"], "camera") == ([], [])
+    ((stamp, actions, observed),) = pairer.flush(10.0)
+    assert sorted(observed.poses) == [1, 2, 3] and sorted(observed.covariances) == [1, 3]
+    assert np.array_equal(observed.covariances[1], np.eye(6) * 1e-4)
+    learner = BodySchemeLearner((1, 2, 3), 1, BodySchemeConfig(detection_covariances=True))
+    events, rejection = learn_sample(learner, stamp, actions, observed)
+    assert rejection is None and learner.rejected == {"bad_covariance": 1}
+    assert [e.child for e in events if e.kind == "input_rejected"] == [3]
+    assert [p for p, _ in learner.to_state()["history"][0]["covariances"]] == [1]

@@ -26,7 +26,7 @@ from .cross_validation import (
     jackknife_std,
     refit_scheme,
 )
-from .joint_fit import Calibration, calibrate, chain_targets, edge_consistency
+from .joint_fit import Calibration, calibrate, chain_targets, covariance_whitening, edge_consistency
 from .noise_model import NoiseModel, ray_components, robust_variance
 
 __all__ = [
@@ -38,6 +38,7 @@ __all__ = [
     "jackknife_std",
     "refit_scheme",
     "calibrate",
+    "covariance_whitening",
     "chain_targets",
     "edge_consistency",
     "CLIP",

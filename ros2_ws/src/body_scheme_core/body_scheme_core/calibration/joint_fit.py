@@ -25,6 +25,12 @@ them); the rigid edges below a GP are fitted last, to those observations, with e
 Observations are used per part only from the step at which every edge on its path from the root became valid
 (``since``, e.g. a replacement's change point). A model can carry a Gaussian prior on its parameters (its earlier
 estimate and covariance), for the knowledge that data no longer in the window (or excluded) brought.
+
+An observation may come with its own covariance (a tag detector's, from its corners through PnP:
+:func:`~body_scheme_core.perception.pose_covariance`, as the learner scales it; ``covariances``): its position is then
+whitened by the inverse square root of that covariance's position block and its rotation by the rotation block's
+(:func:`covariance_whitening`), instead of by its marker's per-axis sigmas; the cross terms between position and
+rotation are left out.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ from ..models import DEFAULT_F_SCALE, GPModel, RigidJointModel, huber_weights, r
 from ..prediction import BodyScheme
 from ..transforms import rotation_log, rotvec_matrix, skew
 
-__all__ = ["Calibration", "calibrate", "chain_targets", "edge_consistency"]
+__all__ = ["Calibration", "calibrate", "chain_targets", "covariance_whitening", "edge_consistency"]
 
 #: Levenberg-Marquardt damping relative to the diagonal and its bounds.
 _DAMPING, _DAMPING_MIN, _DAMPING_MAX = 1e-3, 1e-9, 1e6
@@ -83,6 +89,8 @@ class Calibration:
         Parameters fitted (the root pose's 6 included).
     coupled : ndarray of bool, shape (n_observations,)
         Observations that steered the rigid parameters (not of a part below a GP edge).
+    detected : ndarray of bool, shape (n_observations,)
+        Observations whitened by their own covariance (``covariances``), not by their marker's sigmas.
     """
 
     scheme: BodyScheme
@@ -102,6 +110,7 @@ class Calibration:
     whitened: np.ndarray
     n_params: int
     coupled: np.ndarray
+    detected: np.ndarray
 
     def part_ratios(self, theta_trans, theta_rot, clip):
         """Per part: ``(n, mean clipped e_t / theta_trans, mean clipped e_r / theta_rot)`` of its observations.
@@ -141,7 +150,8 @@ class _Problem:
     transform) and an observed part ``q`` below ``v``; the root pose is an edge from the world.
     """
 
-    def __init__(self, scheme, actions, observations, since, free, axis_sigmas, root_since=0, below_gp=False):
+    def __init__(self, scheme, actions, observations, since, free, axis_sigmas, root_since=0, below_gp=False,
+                 covariances=None):
         self.scheme = scheme
         self.A = actions
         n = actions.shape[0]
@@ -166,6 +176,8 @@ class _Problem:
                     valid[i, t] = True
                     self.Y[i, t] = pose
         self.obs_q, self.obs_t = np.nonzero(valid)
+        given = {(index[part], t): cov for t, covs in enumerate(covariances or ()) if covs
+                 for part, cov in covs.items() if part in index}
         self.n_obs = self.obs_q.size
         # Parts below a GP edge do not steer the rigid parameters above it: a GP is refitted to their targets afterwards
         # and is only as good as its data, and its errors would bend the rigid edges above to make up for them. They
@@ -212,13 +224,23 @@ class _Problem:
             self.blocks_of.append((slice(int(sel[0]), int(sel[-1]) + 1), block_rows, self.offset[k],
                                    scheme.models[k].n_params))
         # Per observation: the position whitening W = (I - v v^T) / s_lateral + v v^T / s_depth (v: the ray) and the
-        # rotation's per-axis sigma, from its marker's (lateral, depth, rotation) sigmas.
+        # rotation's sigma s_rot, from its marker's (lateral, depth, rotation) sigmas; or, when any observation has its
+        # own covariance (the module docstring), every rotation's whitening W_r (I / s_rot without one).
         sig = np.array([axis_sigmas(self.order[q]) for q in range(n_parts)], dtype=float)[self.obs_q]
         Yt = self.Y[self.obs_q, self.obs_t, :3, 3]
         ray = Yt / np.maximum(np.linalg.norm(Yt, axis=1, keepdims=True), 1e-12)
         vv = ray[:, :, None] * ray[:, None, :]
         self.W = (np.eye(3) - vv) / sig[:, 0, None, None] + vv / sig[:, 1, None, None]
         self.sigma_r = sig[:, 2]
+        self.W_r = None
+        rows = ([k for k, key in enumerate(zip(self.obs_q.tolist(), self.obs_t.tolist(), strict=True)) if key in given]
+                if given else [])
+        self.detected = np.zeros(self.n_obs, dtype=bool)
+        if rows:
+            C = np.stack([given[(int(self.obs_q[k]), int(self.obs_t[k]))] for k in rows])
+            self.W_r = np.eye(3) / self.sigma_r[:, None, None]
+            self.W[rows], self.W_r[rows] = covariance_whitening(C, self.Y[self.obs_q[rows], self.obs_t[rows], :3, :3])
+            self.detected[rows] = True
         self._J = None  # the Jacobian's storage, reused: its zero pattern is the same in every evaluation
         # Free models grouped by form, so each group is evaluated and retracted in one vectorised call.
         self.groups = {}
@@ -281,7 +303,8 @@ class _Problem:
         # each whitened like the residuals (W_q on the position rows, 1 / s_rot on the rotation rows).
         M = np.empty((self.n_obs, 6, 3))
         M[:, :3] = self.W @ -skew(pred[:, :3, 3])
-        M[:, 3:] = np.swapaxes(pred[:, :3, :3], 1, 2) / self.sigma_r[:, None, None]
+        M[:, 3:] = (np.swapaxes(pred[:, :3, :3], 1, 2) / self.sigma_r[:, None, None] if self.W_r is None
+                    else self.W_r @ np.swapaxes(pred[:, :3, :3], 1, 2))
         # The root pose: an edge from the world (U = [I 0], V = [0 R_root], t_v = t_root).
         R_root, t_root = world2root[:3, :3], world2root[:3, 3]
         root = M @ R_root  # M V for V = [0 R_root]: the rotation columns
@@ -311,7 +334,8 @@ class _Problem:
 
     def whiten(self, dt, dr):
         """Residuals (n_obs, 6) in units of their noise sigmas."""
-        return np.concatenate([np.einsum("nij,nj->ni", self.W, dt), dr / self.sigma_r[:, None]], axis=1)
+        rotation = dr / self.sigma_r[:, None] if self.W_r is None else np.einsum("nij,nj->ni", self.W_r, dr)
+        return np.concatenate([np.einsum("nij,nj->ni", self.W, dt), rotation], axis=1)
 
     def part_errors(self, dt, dr):
         """Per usable observation: part id, translational (m) and rotational (rad) error, from raw residuals."""
@@ -330,6 +354,19 @@ class _Problem:
         for parent_i, child_i, k, inverted in self.edges:
             P[child_i] = P[parent_i] @ (_inverse(Z_of[k]) if inverted else Z_of[k])
         return P.reshape(-1, 4, 4)[self.obs_flat]
+
+
+def inverse_sqrt(C):
+    """The symmetric inverse square roots of a stack of positive definite matrices ``C`` (k, 3, 3)."""
+    values, vectors = np.linalg.eigh(C)
+    return (vectors / np.sqrt(values)[:, None, :]) @ np.swapaxes(vectors, 1, 2)
+
+
+def covariance_whitening(C, R):
+    """``(W_t, W_r)``, each (k, 3, 3): what whitens the residuals (``t_pred - t_obs`` in the camera frame, the rotation
+    vector of ``R_obs^T R_pred``) of observations with orientations ``R`` (k, 3, 3) and covariances ``C`` (k, 6, 6)
+    over ``(x, y, z, rot_x, rot_y, rot_z)``, rotations about the camera's axes (the residual's are the marker's)."""
+    return inverse_sqrt(C[:, :3, :3]), inverse_sqrt(np.swapaxes(R, 1, 2) @ C[:, 3:, 3:] @ R)
 
 
 def _inverse(Z):
@@ -415,7 +452,8 @@ def edge_consistency(scheme, world2root, actions, observations, theta_trans, the
 
 
 def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot, since=None, priors=None,
-              fixed=(), f_scale=DEFAULT_F_SCALE, max_iterations=20, gp_optimize=True, axis_sigmas=None, root_since=0):
+              fixed=(), f_scale=DEFAULT_F_SCALE, max_iterations=20, gp_optimize=True, axis_sigmas=None, root_since=0,
+              covariances=None):
     """Refine ``world2root`` and every rigid-joint model of ``scheme`` together (see the module docstring).
 
     Parameters
@@ -450,6 +488,10 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
     root_since : int
         First step index at which the root's own observations are used (its marker moved before it); the other
         parts keep theirs.
+    covariances : sequence of (dict of int to ndarray, shape (6, 6)) or None, optional
+        Per step (as ``observations``): the covariance of an observation over ``(x, y, z, rot_x, rot_y, rot_z)``
+        (position in the camera frame, rotation about its axes, as ``geometry_msgs/PoseWithCovariance``), positive
+        definite; observations without one are whitened by ``axis_sigmas``.
 
     Returns
     -------
@@ -478,7 +520,7 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
         def axis_sigmas(part):
             return isotropic
     W = np.array(world2root, dtype=float)
-    problem = _Problem(scheme, A, observations, since, free, axis_sigmas, root_since)
+    problem = _Problem(scheme, A, observations, since, free, axis_sigmas, root_since, covariances=covariances)
     has_gp = any(isinstance(m, GPModel) for m in models)
     iterations = 0
     for round_ in range(2 if has_gp else 1):
@@ -493,7 +535,8 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
     joint = [(problem.free, cov[6:, 6:])]  # without the root pose's 6
     free_below = [k for k, m in enumerate(models) if isinstance(m, RigidJointModel) and k not in fixed and k in below]
     if free_below:
-        below_problem = _Problem(scheme, A, observations, since, free_below, axis_sigmas, root_since, below_gp=True)
+        below_problem = _Problem(scheme, A, observations, since, free_below, axis_sigmas, root_since, below_gp=True,
+                                 covariances=covariances)
         below_problem.set_fixed(models)
         below_priors = {k: v for k, v in priors.items() if k in below_problem.offset}
         params_b, _, info_b, cost_b, it, _ = _solve(below_problem, below_problem.stack(models), W, below_priors,
@@ -510,7 +553,7 @@ def calibrate(scheme, world2root, actions, observations, sigma_trans, sigma_rot,
     positions = problem.Y[problem.obs_q, problem.obs_t, :3, 3]
     return Calibration(refined, W, cov[:6, :6], problem.n_obs, float(cost), rms, iterations, parts, e_t, e_r,
                        problem.obs_t.copy(), dt, dr, positions, problem.whiten(dt, dr), problem.n_params,
-                       problem.coupled.copy())
+                       problem.coupled.copy(), problem.detected.copy())
 
 
 def _parts_below_gp(scheme, order):

@@ -24,6 +24,13 @@ and a marker's own estimate is only used to
 weigh its observations in the joint fit, shrunk towards the pooled one and kept within a factor 2 of it. Whether the
 body scheme explains each marker is a separate test that does not depend on the noise level
 (:mod:`~body_scheme_core.calibration.consistency`).
+
+A detection that comes with its own covariance ``C`` (a tag detector's) is weighed in the joint fit by
+:meth:`NoiseModel.detection_covariance`: ``C`` times a scale the model learns (:attr:`NoiseModel.detection_scale`), plus
+the floor every estimate has (:data:`MIN_SIGMA_TRANS`, :data:`MIN_SIGMA_ROT`). A detector's covariance is right in its
+shape (far, tilted and small markers worse, mostly along the ray) but rests on an assumed corner noise. The scale is
+the robust scale of the residuals whitened by their own covariances, of the markers that moved as for the pooled
+estimate (1 until :data:`MIN_OBSERVATIONS` of them; at least :data:`MIN_DETECTION_SCALE`).
 """
 
 from __future__ import annotations
@@ -60,6 +67,9 @@ STILL_SPREAD = 0.02
 #: Smallest standard deviations (per axis) the thresholds may use: below this a simulator is noise-free, not a camera.
 MIN_SIGMA_TRANS = 2e-4
 MIN_SIGMA_ROT = 2e-4
+#: Smallest scale on the detections' own covariances: a detector that claims ten times its true noise is already far
+#: off, and a scale near 0 (residuals a fit absorbed) would weigh those detections without bound.
+MIN_DETECTION_SCALE = 0.1
 _QUANTILE = 0.99
 _CHANNELS = ("lateral", "depth", "rotation")
 #: Degrees of freedom of one residual's squared norm per channel: lateral 2 axes, depth 1, rotation 3.
@@ -172,6 +182,8 @@ class NoiseModel:
         self.part_n = np.zeros(len(self.part_ids), dtype=np.int64)
         self.pooled = self.prior.copy()
         self.n_observations = 0
+        self.detection = np.ones(2)  # variance factors on detections' own covariances: position, rotation
+        self.n_detected = 0
 
     @classmethod
     def from_config(cls, part_ids, config):
@@ -237,6 +249,21 @@ class NoiseModel:
         own = np.clip(own, pooled / PART_FACTOR**2, pooled * PART_FACTOR**2)
         return tuple(np.sqrt(own))
 
+    @property
+    def detection_scale(self):
+        """``(position, rotation)``: the standard deviation of a residual whitened by its detection's own
+        covariance (1: the detector's covariance as it is)."""
+        return tuple(float(v) for v in np.sqrt(self.detection))
+
+    def detection_covariance(self, C):
+        """The covariance (6, 6) the joint fit weighs a detection of covariance ``C`` (6, 6) by: its blocks times
+        the learned :attr:`detection_scale`, plus the floor of every estimate (a detector can be far surer than the
+        residuals of a model allow)."""
+        s = np.sqrt(self.detection)
+        factor = np.repeat(s, 3)
+        floor = np.repeat([MIN_SIGMA_TRANS**2, MIN_SIGMA_ROT**2], 3)
+        return C * np.outer(factor, factor) + np.diag(floor)
+
     def rms(self):
         """``(sigma_trans, sigma_rot)``: the pooled 3D RMS noise (m, rad)."""
         return self.sigma_trans, self.sigma_rot
@@ -247,7 +274,7 @@ class NoiseModel:
         return {p: (*np.sqrt(self.parts[k]).tolist(), int(self.part_n[k])) for p, k in self._index.items()}
 
     # ------------------------------------------------------------------ estimation
-    def update(self, parts, residual_t, residual_r, positions, dof_fraction=1.0, cap=False):
+    def update(self, parts, residual_t, residual_r, positions, dof_fraction=1.0, cap=False, detected=None):
         """Estimate the noise from the residuals of a joint fit.
 
         Parameters
@@ -265,6 +292,9 @@ class NoiseModel:
         cap : bool
             The pooled estimate may not exceed the prior (a provisional body scheme's residuals can only lower a
             generous prior).
+        detected : tuple of (ndarray of bool, shape (n,), ndarray, shape (n, 6)), optional
+            ``(mask, whitened)``: which residuals came with a detection's own covariance, and those residuals
+            whitened by it alone (position, rotation; other rows ignored); they teach :attr:`detection_scale`.
 
         Returns
         -------
@@ -310,21 +340,34 @@ class NoiseModel:
             pooled = np.minimum(pooled, self.prior)
         self.pooled = pooled
         self.n_observations = n
+        if detected is not None:
+            self._update_detection(detected[0] & moving, detected[1], fraction)
         return float(np.max(np.abs(np.sqrt(self.pooled) / before - 1.0)))
+
+    def _update_detection(self, mask, whitened, fraction):
+        """The detection scale from residuals whitened by their own covariances (:meth:`update`)."""
+        mask = np.asarray(mask, dtype=bool)
+        self.n_detected = int(mask.sum())
+        if self.n_detected < MIN_OBSERVATIONS:
+            return
+        w = np.asarray(whitened, dtype=float)[mask]
+        for c, block in enumerate((w[:, :3], w[:, 3:])):
+            self.detection[c] = max(robust_variance(np.sum(block**2, axis=1), 3) / fraction, MIN_DETECTION_SCALE**2)
 
     # ------------------------------------------------------------------ copies and state
     def copy(self):
         """An independent copy (for the learner's step snapshot)."""
         clone = NoiseModel.__new__(NoiseModel)
         vars(clone).update(vars(self))
-        clone.parts, clone.part_n = self.parts.copy(), self.part_n.copy()
+        clone.parts, clone.part_n, clone.detection = self.parts.copy(), self.part_n.copy(), self.detection.copy()
         return clone
 
     def to_dict(self):
         """JSON-serialisable state: the per-marker and pooled per-axis variances and the residual count."""
         return {"parts": [[p, *(None if not math.isfinite(v) else float(v) for v in self.parts[k]),
                            int(self.part_n[k])] for p, k in self._index.items()],
-                "pooled": self.pooled.tolist(), "n_observations": self.n_observations}
+                "pooled": self.pooled.tolist(), "n_observations": self.n_observations,
+                "detection": self.detection.tolist(), "n_detected": self.n_detected}
 
     def load_dict(self, data):
         """Restore :meth:`to_dict` output into this model (its parts and priors come from the configuration).
@@ -351,4 +394,8 @@ class NoiseModel:
                         for v in values]
             part_n[k] = integer(count, f"noise state count of part {p}")
         self.parts, self.part_n, self.pooled, self.n_observations = parts, part_n, pooled, n
+        # (files written before detections' own covariances were used have neither)
+        self.detection = np.array([number(v, "noise state detection scale", maximum=high, above=0.0)
+                                   for v in listing(data.get("detection", [1.0, 1.0]), "noise state detection", 2)])
+        self.n_detected = integer(data.get("n_detected", 0), "noise state n_detected")
         return self

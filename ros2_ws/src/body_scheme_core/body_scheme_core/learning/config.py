@@ -171,6 +171,13 @@ class BodySchemeConfig:
         The root part (``root``, required) is the camera or tracker itself, rigid with the robot's base: its pose is
         the identity at every step, given to the learner whether or not anything observed it, so no base marker is
         needed. Off: the root is a part the camera observes.
+    detection_covariances : bool
+        Weigh an observation given with its own covariance (``update(..., covariances=...)``; a tag detector's
+        ``MarkerPoses`` covariance) by it, times a learned scale, in the joint fit. Off (the default, and for a
+        driver whose covariances are constants): every observation is weighed by the learned per-marker noise. On
+        helps where each detection's noise is random and its own (the joint fit's effector error 0.55 times as large
+        when it varies one to eight times between detections); on the simulator's rendered images, whose errors
+        are view-dependent biases the covariance does not describe, it made 2 of 3 sessions worse (docs/nodes.md).
     """
 
     sigma_trans: float | str = "auto"
@@ -215,6 +222,7 @@ class BodySchemeConfig:
     race_min_train: int = 5
     max_chain_joints: int = MAX_CHAIN_JOINTS
     sensor_root: bool = False
+    detection_covariances: bool = False
 
     def __post_init__(self):
         for name in ("sigma_trans", "sigma_rot"):
@@ -234,7 +242,7 @@ class BodySchemeConfig:
                 raise InvalidInputError(f"{name} must be below 1, got {getattr(self, name)!r}")
         if not self.cusum_clip > self.cusum_drift:
             raise InvalidInputError(f"cusum_clip ({self.cusum_clip!r}) must exceed cusum_drift ({self.cusum_drift!r})")
-        for name in ("fit_joint_scale", "gp_optimize", "lazy_layers", "sensor_root"):
+        for name in ("fit_joint_scale", "gp_optimize", "lazy_layers", "sensor_root", "detection_covariances"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidInputError(f"{name} must be true or false, got {getattr(self, name)!r}")
         kinds = self.candidate_kinds

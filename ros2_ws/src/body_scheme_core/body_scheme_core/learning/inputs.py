@@ -43,6 +43,7 @@ __all__ = ["mirrored_observations",
     "check_stamp",
     "check_observation_mapping",
     "filter_observations",
+    "filter_covariances",
     "rigidity_problem",
 ]
 
@@ -60,7 +61,8 @@ class Rejection(NamedTuple):
     part : int or None
         The key as given when it is an integer (known or not), else ``None``.
     reason : str
-        ``unknown_id``, ``bad_shape``, ``not_finite`` or ``not_rigid``.
+        ``unknown_id``, ``bad_shape``, ``not_finite``, ``not_rigid``, ``out_of_workspace``, or ``bad_covariance``
+        (:func:`filter_covariances`: the covariance is dropped, not the pose).
     detail : str
         What was wrong, for the ``input_rejected`` event.
     """
@@ -304,6 +306,67 @@ def filter_observations(observations, part_ids, max_distance=math.inf, reach=Non
                                                              f"(deviation {d:.3g} > {OBSERVATION_TOLERANCE:g} or "
                                                              f"det < 0)"))
     return valid, rejected
+
+
+def filter_covariances(covariances, poses):
+    """Split the covariances of accepted ``poses`` into usable ones and rejections.
+
+    Parameters
+    ----------
+    covariances : mapping of int to array-like, shape (6, 6) or (36,), or None
+        Per observed part: its pose's covariance over ``(x, y, z, rot_x, rot_y, rot_z)`` (position in the camera
+        frame, rotation about its axes, as ``geometry_msgs/PoseWithCovariance``). All zeros means "not estimated"
+        (that message's convention): the pose is weighed by the learned noise. A covariance of a part without an
+        accepted pose is dropped with it (the pose's rejection is the one reported).
+    poses : mapping of int to ndarray
+        The accepted poses (:func:`filter_observations`).
+
+    Returns
+    -------
+    usable : dict of int to ndarray, shape (6, 6)
+        Symmetric copies.
+    rejections : list of Rejection
+        ``bad_covariance``: not (6, 6), not finite, not symmetric or not positive definite; the pose is kept and
+        weighed by the learned noise.
+
+    Raises
+    ------
+    InvalidInputError
+        If ``covariances`` is neither None nor a mapping.
+    """
+    if covariances is None:
+        return {}, []
+    if not isinstance(covariances, Mapping):
+        raise InvalidInputError(f"covariances must be a mapping part id -> (6, 6) covariance, got "
+                                f"{type(covariances).__name__}")
+    usable, rejected = {}, []
+    for key, value in covariances.items():
+        if not _is_id(key) or int(key) not in poses:
+            continue
+        part = int(key)
+        try:
+            C = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            C = None
+        if C is not None and C.size == 36:
+            C = C.reshape(6, 6)
+        problem = None
+        if C is None or C.shape != (6, 6):
+            problem = f"must have shape (6, 6) or (36,), got {None if C is None else C.shape}"
+        elif not np.all(np.isfinite(C)):
+            problem = "contains NaN or inf"
+        elif not np.any(C):
+            continue  # not estimated
+        elif np.max(np.abs(C - C.T)) > 1e-9 * max(np.max(np.abs(C)), 1e-300):
+            problem = "is not symmetric"
+        elif min(np.linalg.eigvalsh(C[:3, :3])[0], np.linalg.eigvalsh(C[3:, 3:])[0]) <= 0.0:
+            problem = "is not positive definite (position and rotation blocks)"
+        if problem is None:
+            usable[part] = 0.5 * (C + C.T)
+        else:
+            rejected.append(Rejection(part, "bad_covariance", f"covariance of part {part} {problem}; the pose is "
+                                                              f"weighed by the learned noise"))
+    return usable, rejected
 
 
 def _rigidity(Y):

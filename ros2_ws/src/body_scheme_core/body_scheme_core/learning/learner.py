@@ -65,6 +65,7 @@ from .inputs import (
     check_observation_mapping,
     check_part_ids,
     check_stamp,
+    filter_covariances,
     filter_observations,
     mirrored_observations,
     root_part,
@@ -110,7 +111,8 @@ class BodySchemeLearner(JointFitSteps):
         Number of accepted :meth:`update` calls so far.
     rejected : collections.Counter
         Rejected observations by reason: ``unknown_id``, ``bad_shape``, ``not_finite``, ``not_rigid``,
-        ``out_of_workspace``, ``flipped`` (a mirrored orientation where the scheme does not explain the position).
+        ``out_of_workspace``, ``flipped`` (a mirrored orientation where the scheme does not explain the position);
+        ``bad_covariance`` counts covariances dropped (their poses kept).
     corrected : collections.Counter
         Observations taken in corrected, by kind: ``flipped`` (an orientation mirrored about the camera's ray, taken
         as its mirror image: the one the calibrated scheme predicts, at the position it predicts).
@@ -128,6 +130,7 @@ class BodySchemeLearner(JointFitSteps):
         self.rejected = Counter()
         self.corrected = Counter()
         self._history = deque(maxlen=config.history_length)
+        self._covariances = {}  # step -> {part: (6, 6)}: the detections' own covariances of steps in the history
         self._root_pose = RootPoseEstimator(config.root_window, self.root)
         if initial_models is None:
             check_body_size(len(self.part_ids), self.n_actions, config)
@@ -335,7 +338,7 @@ class BodySchemeLearner(JointFitSteps):
         return out
 
     # ------------------------------------------------------------------ the time step
-    def update(self, actions, observations, stamp=None):
+    def update(self, actions, observations, stamp=None, covariances=None):
         """Process one time step: the action vector and the marker poses observed after executing it.
 
         Parameters
@@ -346,6 +349,12 @@ class BodySchemeLearner(JointFitSteps):
             ``world2part`` per observed part; missing parts are normal. Invalid entries are rejected one by one.
         stamp : float, optional
             Time stamp, kept as :attr:`last_stamp`; not before the previous step's.
+        covariances : mapping of int to array-like, shape (6, 6), optional
+            Per observed part: its detection's own covariance over ``(x, y, z, rot_x, rot_y, rot_z)`` (a tag
+            detector's, as in ``geometry_msgs/PoseWithCovariance``; all zeros: not estimated). The joint fit weighs
+            the pose by it, times a scale it learns (:attr:`NoiseModel.detection_scale
+            <body_scheme_core.calibration.NoiseModel.detection_scale>`); without one, by the learned per-marker noise.
+            An unusable covariance is dropped and counted (``bad_covariance``), its pose kept.
 
         Returns
         -------
@@ -369,11 +378,12 @@ class BodySchemeLearner(JointFitSteps):
         a = check_action_vector(actions, self.n_actions).copy()
         self._check_action_range(a)
         check_observation_mapping(observations)
+        filter_covariances(covariances, {})  # its type, before anything changes
         stamp = check_stamp(stamp, self.last_stamp)
         with Journal() as journal:
             saved = snapshot(self, journal)
             try:
-                return self._step(a, observations, stamp)
+                return self._step(a, observations, stamp, covariances)
             except BaseException as error:
                 restore(self, saved)
                 if not isinstance(error, Exception):
@@ -381,17 +391,24 @@ class BodySchemeLearner(JointFitSteps):
                 raise LearnerStepError(f"step {self.step} failed and was undone: {type(error).__name__}: "
                                        f"{error}") from error
 
-    def _step(self, a, observations, stamp):
+    def _step(self, a, observations, stamp, covariances=None):
         """The time step proper, on checked inputs (:meth:`update`)."""
         step = self.step
         events = []
         obs = self._accept(a, observations, step, events)
+        covs = self._accept_covariances(covariances, obs, step, events)
         if self.config.sensor_root:
             obs[self.root] = np.eye(4)  # the root is the sensor: its own pose in its frame, exactly
+            covs.pop(self.root, None)
         if stamp is not None:
             self.last_stamp = stamp
         self._root_pose.add(a, obs)
         self._history.append((step, a, obs))
+        if covs:
+            self._covariances[step] = covs
+        oldest = self._history[0][0]
+        while self._covariances and next(iter(self._covariances)) < oldest:
+            del self._covariances[next(iter(self._covariances))]
         if self._bootstrapping:
             tree_changed = self._bootstrap_step(a, obs, step, events)
         else:
@@ -432,6 +449,16 @@ class BodySchemeLearner(JointFitSteps):
             self.rejected["flipped"] += 1
             events.append(Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part))
         return valid
+
+    def _accept_covariances(self, covariances, obs, step, events):
+        """The usable covariances of the accepted observations ``obs``; dropped ones are counted and reported."""
+        if not self.config.detection_covariances:
+            return {}
+        usable, rejections = filter_covariances(covariances, obs)
+        for part, reason, detail in rejections:
+            self.rejected[reason] += 1
+            events.append(Event(step, "input_rejected", f"covariance rejected ({reason}): {detail}", child=part))
+        return usable
 
     def _workspace(self):
         """``(root position, reach + workspace_margin)`` once a joint fit exists after bootstrapping, else None (only

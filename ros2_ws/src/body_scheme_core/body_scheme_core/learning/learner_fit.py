@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ..calibration import calibrate, part_consistency
+from ..calibration import calibrate, covariance_whitening, part_consistency
 from ..errors import BodySchemeError, LearnerStepError
 from ..events import Event
 from ..models import RigidJointModel
@@ -154,6 +154,11 @@ class JointFitSteps:
         steps = np.array([s for s, _, _ in history])
         A = np.stack([a for _, a, _ in history])
         observations = [obs for _, _, obs in history]
+        covariances = None
+        if self._covariances:
+            scaled = {s: {p: self.noise.detection_covariance(C) for p, C in covs.items()}
+                      for s, covs in self._covariances.items()}
+            covariances = [scaled.get(s) for s, _, _ in history]
         since = [int(np.searchsorted(steps, e.since)) for e in entries]
         priors = {k: e.prior for k, e in enumerate(entries)
                   if e.prior is not None and isinstance(models[k], RigidJointModel)}
@@ -163,7 +168,8 @@ class JointFitSteps:
             result = calibrate(scheme, world2root, A, observations, noise.sigma_trans, noise.sigma_rot,
                                since=since, priors=priors, f_scale=self.config.f_scale,
                                gp_optimize=self.config.gp_optimize, max_iterations=max_iterations,
-                               axis_sigmas=noise.axis_sigmas, root_since=int(np.searchsorted(steps, self._root_since)))
+                               axis_sigmas=noise.axis_sigmas, root_since=int(np.searchsorted(steps, self._root_since)),
+                               covariances=covariances)
         except (np.linalg.LinAlgError, BodySchemeError):
             return None
         # The parts' predictive std, averaged over (at most 10 of) the window's action vectors: the chain targets'
@@ -214,9 +220,27 @@ class JointFitSteps:
                      and not (self.config.sensor_root and p == self.root)]  # the sensor's own pose is exact
         use = np.isin(result.parts, explained) & result.coupled  # below a GP edge its approximation would count
         fraction = 1.0 - result.n_params / max(6 * int(result.coupled.sum()), 1)
+        # A provisional tree (few samples, maybe a wrong model) says little about the detector.
+        detected = None if self._bootstrapping else self._detection_whitened(result, use)
         self.noise.update(result.parts[use], result.residual_t[use], result.residual_r[use], result.positions[use],
-                          fraction, cap=self._bootstrapping)
+                          fraction, cap=self._bootstrapping, detected=detected)
         self._pool.monitor.set_thresholds(self.noise.theta_trans, self.noise.theta_rot)
+
+    def _detection_whitened(self, result, use):
+        """``(mask, whitened)`` of the joint fit's residuals ``use``: which came with a detection's own covariance,
+        and those whitened by it as given (:meth:`NoiseModel.update`); None without any."""
+        mask = result.detected[use]
+        if not mask.any():
+            return None
+        history = list(self._history)  # the joint fit's rows (result.steps index it)
+        rows = np.flatnonzero(use)[mask]
+        records = [(history[result.steps[k]], int(result.parts[k])) for k in rows]
+        C = np.stack([self._covariances[step][part] for (step, _, _), part in records])
+        W_t, W_r = covariance_whitening(C, np.stack([obs[part][:3, :3] for (_, _, obs), part in records]))
+        whitened = np.zeros((mask.size, 6))
+        whitened[mask] = np.hstack([np.einsum("nij,nj->ni", W_t, result.residual_t[rows]),
+                                    np.einsum("nij,nj->ni", W_r, result.residual_r[rows])])
+        return mask, whitened
 
     def _report_trust(self, cal, step, events):
         """A ``trust_changed`` event when the set of parts whose residuals lack fit changed."""

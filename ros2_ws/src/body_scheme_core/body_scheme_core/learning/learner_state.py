@@ -23,7 +23,7 @@ from ..prediction import BodyScheme
 from ..state_values import boolean, finite_array, integer, listing, mapping, number, optional_number, part_id
 from .adaptation import Adaptation
 from .config import BodySchemeConfig
-from .inputs import check_action_vector, check_n_actions, check_part_ids, rigidity_problem
+from .inputs import check_action_vector, check_n_actions, check_part_ids, filter_covariances, rigidity_problem
 from .pool import ModelPool, check_monitor_settings
 from .root_pose import RootPoseEstimator, RootWatch
 from .validity import ValidityMonitor
@@ -99,7 +99,9 @@ def learner_to_state(self):
         "root_watch": self._root_watch.monitor.to_dict(),
         "root_offset": {"pose": self._root_watch.offset.tolist(), "n": self._root_watch.n_offset},
         "root_since": self._root_since,
-        "history": [{"step": s, "actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
+        "history": [{"step": s, "actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()],
+                     **({"covariances": [[p, C.tolist()] for p, C in self._covariances[s].items()]}
+                        if s in self._covariances else {})}
                     for s, a, obs in self._history],
         "root_samples": [{"actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()]}
                          for a, obs in self._root_pose.samples],
@@ -152,10 +154,13 @@ def learner_from_state(cls, state):
         vetoed = {integer(k, "vetoed id"): integer(v, "vetoed size")
                   for k, v in (listing(item, "vetoed item", 2) for item in listing(state["vetoed"], "vetoed"))}
         self._history = deque(maxlen=config.history_length)
+        self._covariances = {}
         for rec in listing(state["history"], "history"):
             a = _actions(rec["actions"], self.n_actions, "history actions")
-            self._history.append((integer(rec["step"], "history step"), a,
-                                  _observations(rec["observations"], parts, "history")))
+            step, obs = integer(rec["step"], "history step"), _observations(rec["observations"], parts, "history")
+            self._history.append((step, a, obs))
+            if "covariances" in rec:  # (files written before detections' own covariances have none)
+                self._covariances[step] = _covariances(rec["covariances"], obs, "history")
         self._root_pose = RootPoseEstimator(config.root_window, self.root, (
             (_actions(rec["actions"], self.n_actions, "root sample actions"),
              _observations(rec["observations"], parts, "root sample"))
@@ -270,6 +275,22 @@ def _observations(pairs, part_ids, name):
     return out
 
 
+def _covariances(pairs, obs, name):
+    """``{part: (6, 6)}`` from ``[[part, matrix], ...]``: covariances of parts observed at that step, usable as
+    :func:`~body_scheme_core.learning.inputs.filter_covariances` accepts them."""
+    given = {}
+    for item in listing(pairs, f"{name} covariances"):
+        p, C = listing(item, f"{name} covariance", 2)
+        given[part_id(p, obs, f"{name} covariance (of a part observed at that step)")] = C
+    try:
+        usable, rejected = filter_covariances(given, obs)
+    except InvalidInputError as error:
+        raise ModelFileError(str(error)) from None
+    if rejected:
+        raise ModelFileError(f"{name}: {rejected[0].detail.split(';')[0]}")
+    return usable
+
+
 def _bounds_to_json(bounds):
     """Action limits as a JSON list; infinite limits (continuous joints) as the strings "inf" / "-inf"."""
     if bounds is None:
@@ -321,7 +342,8 @@ def snapshot(learner, journal):
         "unexplained": dict(learner._unexplained),
         "lists": {"_tree": None if learner._tree is None else list(learner._tree),
                   "rejected": Counter(learner.rejected), "corrected": Counter(learner.corrected),
-                  "_history": deque(learner._history, maxlen=learner._history.maxlen)},
+                  "_history": deque(learner._history, maxlen=learner._history.maxlen),
+                  "_covariances": dict(learner._covariances)},
         "root_pose": (learner._root_pose, copy.copy(learner._root_pose), deque(learner._root_pose._samples,
                                                                                 maxlen=learner._root_pose._samples.maxlen)),
         "noise": learner.noise.copy(),
@@ -347,6 +369,7 @@ def restore(learner, saved):
     learner.rejected, learner.corrected = saved["lists"]["rejected"], saved["lists"]["corrected"]
     learner._history.clear()
     learner._history.extend(saved["lists"]["_history"])  # the deque is shared with the adaptation object
+    learner._covariances = saved["lists"]["_covariances"]
     estimator, fields, samples = saved["root_pose"]
     vars(estimator).update(vars(fields))
     estimator._samples = samples
@@ -428,4 +451,7 @@ def structural_problems(learner):
     steps = [s for s, _, _ in learner._history]
     if any(b <= a for a, b in zip(steps, steps[1:], strict=False)) or (steps and steps[-1] >= learner.step):
         problems.append("the history's steps do not increase up to the learner's step")
+    if not set(learner._covariances) <= set(steps) or any(
+            not set(covs) <= set(obs) for s, _, obs in learner._history if (covs := learner._covariances.get(s))):
+        problems.append("detection covariances of steps or parts the history does not hold")
     return problems

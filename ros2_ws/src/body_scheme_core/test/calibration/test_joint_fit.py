@@ -216,3 +216,94 @@ def test_bad_arguments_are_refused():
         calibrate(scheme, np.eye(4), np.zeros((2, 2)), [{}], SIGMA_T, SIGMA_R)
     with pytest.raises(InvalidInputError):
         calibrate(scheme, np.eye(4), np.zeros((1, 2)), [{}], SIGMA_T, SIGMA_R, since=[0])
+
+
+def _ray_covariance(Y, sigmas):
+    """The covariance (6, 6) the per-axis sigmas ``(lateral, depth, rotation)`` give a pose ``Y`` (camera frame)."""
+    ray = Y[:3, 3] / np.linalg.norm(Y[:3, 3])
+    C = np.zeros((6, 6))
+    C[:3, :3] = sigmas[0] ** 2 * (np.eye(3) - np.outer(ray, ray)) + sigmas[1] ** 2 * np.outer(ray, ray)
+    C[3:, 3:] = sigmas[2] ** 2 * np.eye(3)
+    return C
+
+
+def test_a_covariance_per_detection_that_is_the_ray_model_gives_the_same_fit():
+    """Detections whose own covariances are what the per-marker ray model says weigh exactly as that model does,
+    whatever the marker sigmas they replace."""
+    robot = arm_4dof()
+    session = make_session(robot, 25, seed=4, depth_ratio=4.0)
+    scheme = _independent_fits(robot, session, 25)
+    covariances = [{p: _ray_covariance(Y, _anisotropic(p)) for p, Y in obs.items()} for obs in session.observations]
+    by_sigmas = calibrate(scheme, session.world2root, session.actions, session.observations, SIGMA_T, SIGMA_R,
+                          axis_sigmas=_anisotropic)
+    by_detection = calibrate(scheme, session.world2root, session.actions, session.observations, SIGMA_T, SIGMA_R,
+                             axis_sigmas=_isotropic, covariances=covariances)
+    assert by_detection.detected.all() and not by_sigmas.detected.any()
+    assert_allclose(by_detection.world2root, by_sigmas.world2root, atol=1e-9)
+    for ours, theirs in zip(by_detection.scheme.models, by_sigmas.scheme.models, strict=True):
+        assert_allclose(ours.params_, theirs.params_, atol=1e-9)
+    assert_allclose(by_detection.whitened, by_sigmas.whitened, atol=1e-7)
+
+
+def test_the_jacobian_matches_finite_differences_with_a_covariance_per_detection():
+    """Full covariances (correlated axes, rotation included) on half the detections: the analytic Jacobian is still
+    the derivative of the residuals it whitens."""
+    robot = arm_4dof()
+    session = make_session(robot, 12, seed=1, sigma_trans=0.002, sigma_rot=0.002)
+    scheme = _independent_fits(robot, session, 12)
+    rng = np.random.default_rng(5)
+    covariances = []
+    for t, obs in enumerate(session.observations):
+        covs = {}
+        for p in list(obs)[t % 2::2]:
+            L = rng.normal(size=(6, 6)) * 0.003
+            covs[p] = L @ L.T + np.eye(6) * 1e-6
+        covariances.append(covs)
+    problem = _Problem(scheme, session.actions, session.observations, [0] * 4, [0, 1, 2, 3], _anisotropic,
+                       covariances=covariances)
+    assert 0 < problem.detected.sum() < problem.n_obs
+    problem.set_fixed(list(scheme.models))
+    params = problem.stack(list(scheme.models))
+    world2root = session.world2root @ robot.marker(robot.root_marker).link2marker
+    r0, J = problem.evaluate(params, world2root)
+    h = 1e-7
+    for col in range(problem.n_params):
+        delta = np.zeros(problem.n_params)
+        delta[col] = h
+        W = world2root.copy()
+        if col < 6:
+            W[:3, 3] += delta[:3]
+            W[:3, :3] = W[:3, :3] @ transform_from_rotvec(delta[3:6], [0, 0, 0])[:3, :3]
+        r1, _ = problem.evaluate(problem.retract(params, delta) if col >= 6 else params, W, jacobian=False)
+        assert_allclose((r1 - r0).ravel() / h, J[:, col], atol=0.01 * max(1.0, np.abs(J[:, col]).max()))
+
+
+def test_detections_weighed_by_their_own_covariances_predict_better():
+    """Each detection's noise its own (one to eight times a base level, four times worse along the ray): the joint
+    fit told each detection's covariance predicts the effector better than one that weighs them all alike by the
+    average noise (mean over 4 seeds; measured: 0.44-0.68 times the error, 0.55 on average)."""
+    robot = arm_4dof()
+    base = (0.004, 0.016, math.radians(2.0))
+    ratios = []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        session = make_session(robot, 40, seed=seed, sigma_trans=1e-9, sigma_rot=1e-9)
+        observations, covariances = [], []
+        for obs in session.observations:
+            noisy, covs = {}, {}
+            for p, Y in obs.items():
+                covs[p] = _ray_covariance(Y, base) * rng.uniform(1.0, 8.0) ** 2
+                e = rng.multivariate_normal(np.zeros(6), covs[p])
+                noisy[p] = Y.copy()
+                noisy[p][:3, 3] += e[:3]
+                noisy[p][:3, :3] = transform_from_rotvec(e[3:], [0, 0, 0])[:3, :3] @ Y[:3, :3]  # about camera axes
+            observations.append(noisy)
+            covariances.append(covs)
+        start = _independent_fits(robot, session, 40)  # the noise-free session: the truth
+        errors = []
+        for covs in (covariances, None):
+            fit = calibrate(start, session.world2root, session.actions, observations, SIGMA_T, SIGMA_R,
+                            axis_sigmas=lambda part: tuple(4.5 * s for s in base), covariances=covs)
+            errors.append(_effector_error(robot, session, fit.scheme, fit.world2root))
+        ratios.append(errors[0] / errors[1])
+    assert np.mean(ratios) < 0.8, ratios

@@ -5,7 +5,14 @@ import math
 import numpy as np
 import pytest
 
-from body_scheme_core.calibration.noise_model import NoiseModel, ray_components, robust_variance
+from body_scheme_core.calibration.noise_model import (
+    MIN_DETECTION_SCALE,
+    MIN_SIGMA_ROT,
+    MIN_SIGMA_TRANS,
+    NoiseModel,
+    ray_components,
+    robust_variance,
+)
 from body_scheme_core.errors import ModelFileError
 
 
@@ -139,3 +146,35 @@ def test_the_noise_state_round_trips_and_bad_states_are_refused():
         NoiseModel((1, 2), 0.05, 0.2).load_dict(dict(state, pooled=[-1.0, 1.0, 1.0]))
     with pytest.raises(ModelFileError):
         NoiseModel((1, 2), 0.05, 0.2).load_dict({"pooled": [1, 1, 1]})
+
+
+def test_a_scale_on_the_detections_own_covariances_is_learned_and_kept():
+    """Residuals whitened by covariances that claim half the true noise in position and the true noise in rotation:
+    the learned scale is 2 and 1 (within 10 %, 200 detections of moving markers) and the joint fit's covariance is
+    the given one scaled, plus the floor; fewer than MIN_OBSERVATIONS detections, or a scale near 0 (residuals a fit
+    absorbed), do not take it below the floor; it round-trips through the state."""
+    rng = np.random.default_rng(8)
+    noise = NoiseModel((1, 2), 0.05, 0.2, auto=(True, True))
+    assert noise.detection_scale == (1.0, 1.0)
+    parts, rt, rr, pos = _camera_residuals(rng, (1, 2), 150, 0.01, 0.02, 0.05)
+    whitened = np.hstack([rng.normal(scale=2.0, size=(300, 3)), rng.normal(scale=1.0, size=(300, 3))])
+    detected = np.arange(300) % 3 > 0  # two thirds came with a covariance
+    noise.update(parts, rt, rr, pos, detected=(detected, whitened))
+    assert noise.n_detected == 200
+    assert noise.detection_scale == pytest.approx((2.0, 1.0), rel=0.1)
+    C = np.diag([1e-4, 1e-4, 4e-4, 1e-3, 1e-3, 1e-3])
+    s_t, s_r = noise.detection_scale
+    expected = np.diag(np.diag(C) * np.repeat([s_t**2, s_r**2], 3) + np.repeat([MIN_SIGMA_TRANS**2,
+                                                                                 MIN_SIGMA_ROT**2], 3))
+    np.testing.assert_allclose(noise.detection_covariance(C), expected)
+    learned = noise.detection_scale
+    few = np.zeros(300, dtype=bool)
+    few[:5] = True
+    noise.update(parts, rt, rr, pos, detected=(few, whitened * 10))
+    assert noise.detection_scale == learned
+    noise.update(parts, rt, rr, pos, detected=(detected, whitened * 1e-6))
+    assert noise.detection_scale == pytest.approx((MIN_DETECTION_SCALE, MIN_DETECTION_SCALE))
+    restored = NoiseModel((1, 2), 0.05, 0.2, auto=(True, True)).load_dict(noise.to_dict())
+    assert restored.detection_scale == noise.detection_scale
+    old = {k: v for k, v in noise.to_dict().items() if k not in ("detection", "n_detected")}
+    assert NoiseModel((1, 2), 0.05, 0.2).load_dict(old).detection_scale == (1.0, 1.0)  # a file from before
