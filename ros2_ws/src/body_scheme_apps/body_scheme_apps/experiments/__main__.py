@@ -86,6 +86,7 @@ def main(argv=None):
              for k in range(run_counts[name]) for variant in tuple(getattr(module, "NOISE_LEVELS", ("noise",)))]
     tasks += [Task(name, args.seed + k, "rendered", args.quick) for name in experiments
               for k in range(rendered_runs[name])]
+    commit = _commit()  # of the code that runs, before this run's plots and figures make the tree dirty
     start = time.monotonic()
     outcomes = run_tasks(tasks, jobs=args.jobs, progress=not args.quiet)
     seconds = time.monotonic() - start
@@ -115,7 +116,7 @@ def main(argv=None):
         if rendered_runs[name]:
             problems += [f"{name} (rendered): {p}" for p in sanity_problems(aggregate(shown), bounds)] if shown \
                 else [f"{name}: no successful rendered run"]
-    meta = {"seed": args.seed, "commit": _commit(), "runs": args.runs,
+    meta = {"seed": args.seed, "commit": commit, "runs": args.runs,
             "runs_per_experiment": {**old_meta.get("runs_per_experiment", {}), **run_counts},
             "rendered_runs": args.rendered_runs,
             "quick": args.quick, "jobs": args.jobs, "seconds": round(seconds + old_meta.get("seconds", 0.0), 1),
