@@ -71,6 +71,20 @@ def _isotropic(part):
     return SIGMA_T / math.sqrt(3), SIGMA_T / math.sqrt(3), SIGMA_R / math.sqrt(3)
 
 
+def _assert_jacobian_is_the_derivative(problem, params, world2root, h=1e-7):
+    """Every column of the analytic Jacobian equals the finite difference of the residuals through the charts."""
+    r0, J = problem.evaluate(params, world2root)
+    for col in range(problem.n_params):
+        delta = np.zeros(problem.n_params)
+        delta[col] = h
+        W = world2root.copy()
+        if col < 6:
+            W[:3, 3] += delta[:3]
+            W[:3, :3] = W[:3, :3] @ transform_from_rotvec(delta[3:6], [0, 0, 0])[:3, :3]
+        r1, _ = problem.evaluate(problem.retract(params, delta) if col >= 6 else params, W, jacobian=False)
+        assert_allclose((r1 - r0).ravel() / h, J[:, col], atol=0.01 * max(1.0, np.abs(J[:, col]).max()))
+
+
 def test_the_jacobian_matches_finite_differences():
     """Every column of the analytic Jacobian (root pose and each model's increments) equals the finite difference
     of the residuals through the models' charts, with noise that differs across and along the camera's ray."""
@@ -82,17 +96,7 @@ def test_the_jacobian_matches_finite_differences():
     problem.set_fixed(list(scheme.models))
     params = problem.stack(list(scheme.models))
     world2root = session.world2root @ robot.marker(robot.root_marker).link2marker
-    r0, J = problem.evaluate(params, world2root)
-    h = 1e-7
-    for col in range(problem.n_params):
-        delta = np.zeros(problem.n_params)
-        delta[col] = h
-        W = world2root.copy()
-        if col < 6:
-            W[:3, 3] += delta[:3]
-            W[:3, :3] = W[:3, :3] @ transform_from_rotvec(delta[3:6], [0, 0, 0])[:3, :3]
-        r1, _ = problem.evaluate(problem.retract(params, delta) if col >= 6 else params, W, jacobian=False)
-        assert_allclose((r1 - r0).ravel() / h, J[:, col], atol=0.01 * max(1.0, np.abs(J[:, col]).max()))
+    _assert_jacobian_is_the_derivative(problem, params, world2root)
 
 
 def test_the_solution_is_scipys_least_squares_optimum():
@@ -265,17 +269,7 @@ def test_the_jacobian_matches_finite_differences_with_a_covariance_per_detection
     problem.set_fixed(list(scheme.models))
     params = problem.stack(list(scheme.models))
     world2root = session.world2root @ robot.marker(robot.root_marker).link2marker
-    r0, J = problem.evaluate(params, world2root)
-    h = 1e-7
-    for col in range(problem.n_params):
-        delta = np.zeros(problem.n_params)
-        delta[col] = h
-        W = world2root.copy()
-        if col < 6:
-            W[:3, 3] += delta[:3]
-            W[:3, :3] = W[:3, :3] @ transform_from_rotvec(delta[3:6], [0, 0, 0])[:3, :3]
-        r1, _ = problem.evaluate(problem.retract(params, delta) if col >= 6 else params, W, jacobian=False)
-        assert_allclose((r1 - r0).ravel() / h, J[:, col], atol=0.01 * max(1.0, np.abs(J[:, col]).max()))
+    _assert_jacobian_is_the_derivative(problem, params, world2root)
 
 
 def test_detections_weighed_by_their_own_covariances_predict_better():
