@@ -119,17 +119,17 @@ def _one_joint(action, A, Z, S, parent, child, fits=None, scale=1.0):
     """The better of the revolute and prismatic fits of one joint's excursions as a :class:`JointScrew`, and the
     pose at the reference (M) it implies, or None when the joint moves nothing. ``fits``: :func:`_joint_fits` made
     with ``S`` divided by ``scale`` (their residuals are rescaled)."""
-    # The dependence test: do the excursions' poses scatter about their mean more than the noise would?
-    still = np.eye(4)
-    still[:3, :3] = chordal_mean(Z[None, :, :3, :3], np.ones((1, len(Z))))[0]
-    still[:3, 3] = Z[:, :3, 3].mean(axis=0)
-    scatter = float(np.mean(pose_residuals(np.broadcast_to(still, Z.shape), Z, S) ** 2))
+    scatter = _scatter(Z, S)
     if scatter < STILL_CHI2:
         return None
     if fits is None:
         fits, scale = _joint_fits(action, A, Z, S, parent, child), 1.0
     rms = {kind: fit.rms_ / scale for kind, fit in fits.items()}
-    if not fits or min(rms.values()) ** 2 > scatter / EXPLAINED:
+    if fits and min(rms.values()) ** 2 > scatter / EXPLAINED:
+        # One sample may be an outlier (the reference posture is in every joint's excursions): both tests again
+        # without the one the better fit explains worst.
+        fits, rms, scatter = _without_worst(action, A, Z, S, parent, child, fits, rms)
+    if not fits or scatter < STILL_CHI2 or min(rms.values()) ** 2 > scatter / EXPLAINED:
         return None  # the scatter is not a joint's motion: no one-joint model explains most of it
     kind = "revolute" if "revolute" in fits else "prismatic"
     if "prismatic" in fits and "revolute" in fits and rms["prismatic"] <= PRISMATIC_MARGIN * max(
@@ -143,6 +143,27 @@ def _one_joint(action, A, Z, S, parent, child, fits=None, scale=1.0):
     else:
         screw = model.params_[6:9] / np.linalg.norm(model.params_[6:9])
     return JointScrew(action, kind, screw, rms[kind]), model
+
+
+def _scatter(Z, S):
+    """The dependence test's statistic: the mean squared normalised residual of the poses ``Z`` about their mean (1
+    for noise alone)."""
+    still = np.eye(4)
+    still[:3, :3] = chordal_mean(Z[None, :, :3, :3], np.ones((1, len(Z))))[0]
+    still[:3, 3] = Z[:, :3, 3].mean(axis=0)
+    return float(np.mean(pose_residuals(np.broadcast_to(still, Z.shape), Z, S) ** 2))
+
+
+def _without_worst(action, A, Z, S, parent, child, fits, rms):
+    """``(fits, rms, scatter)`` of ``action``'s excursions without the sample that the better of ``fits`` explains
+    worst (:func:`_joint_fits`, their normalised rms, :func:`_scatter`); no fits when too few samples would be left."""
+    if len(Z) - 1 < RevoluteModel.unit_form.MIN_SAMPLES + 1:
+        return {}, {}, 0.0
+    best = fits[min(rms, key=rms.get)]
+    keep = np.ones(len(Z), dtype=bool)
+    keep[np.argmax(np.sum(pose_residuals(best.predict(A), Z, S) ** 2, axis=1))] = False
+    fits = _joint_fits(action, A[keep], Z[keep], S[keep], parent, child)
+    return fits, {kind: fit.rms_ for kind, fit in fits.items()}, _scatter(Z[keep], S[keep])
 
 
 def _noise_scale(fits):
