@@ -172,7 +172,7 @@ class ControlNode(Node):
         # Every answer one batch may give (a "busy" for each target taken, a solve for each waiting) is kept until a
         # slow reader took it: with a depth of 10 a flood's answers overwrote each other unread (a CI run under load
         # received 1,051 of 1,465).
-        self.pub_result = self.create_publisher(IKResult, "ik_result", 2 * queue_depth + self.max_pending)
+        self.pub_result = self.create_publisher(IKResult, "ik_result", min(2 * queue_depth + self.max_pending, 1 << 16))
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(0.01, self._solve_pending, callback_group=work)
         self.create_timer(trajectory_period, self._command_next, callback_group=work)

@@ -128,14 +128,13 @@ def observations_from_msg(msg):
 
 def covariances_from_msg(msg, observations):
     """The covariances a ``MarkerPoses`` message gives the markers of ``observations`` (:func:`observations_from_msg`),
-    ``{id: (6, 6)}``: each pose's ``covariance`` where it is not all zeros ("not estimated"). The learner checks them
-    (an unusable one is counted as ``bad_covariance`` and its pose weighed by the learned noise)."""
-    covariances = {}
-    for marker_id, item in zip(msg.marker_ids, msg.poses, strict=True):
-        marker_id = int(marker_id)
-        if marker_id in observations and marker_id not in covariances and any(item.covariance):
-            covariances[marker_id] = np.asarray(item.covariance, dtype=float).reshape(6, 6)
-    return covariances
+    ``{id: (6, 6)}``: each pose's ``covariance`` where it is not all zeros ("not estimated") and its id is not repeated
+    (which entry's pose was kept is then not certain). The learner checks them (an unusable one is counted as
+    ``bad_covariance`` and its pose weighed by the learned noise)."""
+    counts = Counter(int(i) for i in msg.marker_ids)
+    return {int(marker_id): np.asarray(item.covariance, dtype=float).reshape(6, 6)
+            for marker_id, item in zip(msg.marker_ids, msg.poses, strict=True)
+            if int(marker_id) in observations and counts[int(marker_id)] == 1 and any(item.covariance)}
 
 
 def marker_poses_msg(stamp, frame_id, poses, std=None):

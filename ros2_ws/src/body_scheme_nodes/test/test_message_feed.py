@@ -73,3 +73,15 @@ def test_a_tag_detectors_covariances_reach_the_learner():
     assert rejection is None and learner.rejected == {"bad_covariance": 1}
     assert [e.child for e in events if e.kind == "input_rejected"] == [3]
     assert [p for p, _ in learner.to_state()["history"][0]["covariances"]] == [1]
+
+
+def test_a_repeated_marker_id_gives_its_pose_no_covariance():
+    """Which entry's pose is kept for a repeated id is not certain: none of their covariances is taken."""
+    pose = np.eye(4)
+    pose[:3, 3] = [0.1, 0.0, 1.5]
+    msg = conversions.tracked_poses_msgs(Header(frame_id="camera"), {1: pose, 2: pose},
+                                         {1: np.eye(6) * 1e-4, 2: np.eye(6) * 1e-4})[0]
+    msg.marker_ids = [1, 2, 2]
+    msg.poses = [msg.poses[0], msg.poses[1], msg.poses[1]]
+    _, observations, _ = conversions.observations_from_msg(msg)
+    assert sorted(conversions.covariances_from_msg(msg, observations)) == [1]

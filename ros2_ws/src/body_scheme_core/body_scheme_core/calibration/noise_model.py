@@ -30,7 +30,8 @@ A detection that comes with its own covariance ``C`` (a tag detector's) is weigh
 the floor every estimate has (:data:`MIN_SIGMA_TRANS`, :data:`MIN_SIGMA_ROT`). A detector's covariance is right in its
 shape (far, tilted and small markers worse, mostly along the ray) but rests on an assumed corner noise. The scale is
 the robust scale of the residuals whitened by their own covariances, of the markers that moved as for the pooled
-estimate (1 until :data:`MIN_OBSERVATIONS` of them; at least :data:`MIN_DETECTION_SCALE`).
+estimate (1 until :data:`MIN_OBSERVATIONS` of them; within :data:`MIN_DETECTION_SCALE` and
+:data:`MAX_DETECTION_SCALE`).
 """
 
 from __future__ import annotations
@@ -70,6 +71,9 @@ MIN_SIGMA_ROT = 2e-4
 #: Smallest scale on the detections' own covariances: a detector that claims ten times its true noise is already far
 #: off, and a scale near 0 (residuals a fit absorbed) would weigh those detections without bound.
 MIN_DETECTION_SCALE = 0.1
+#: Largest scale: residuals beyond ten times what the detector claims say its covariances are no use (and the state
+#: file holds variances up to ``MAX_NOISE**2``).
+MAX_DETECTION_SCALE = 10.0
 _QUANTILE = 0.99
 _CHANNELS = ("lateral", "depth", "rotation")
 #: Degrees of freedom of one residual's squared norm per channel: lateral 2 axes, depth 1, rotation 3.
@@ -352,7 +356,8 @@ class NoiseModel:
             return
         w = np.asarray(whitened, dtype=float)[mask]
         for c, block in enumerate((w[:, :3], w[:, 3:])):
-            self.detection[c] = max(robust_variance(np.sum(block**2, axis=1), 3) / fraction, MIN_DETECTION_SCALE**2)
+            variance = robust_variance(np.sum(block**2, axis=1), 3) / fraction
+            self.detection[c] = min(max(variance, MIN_DETECTION_SCALE**2), MAX_DETECTION_SCALE**2)
 
     # ------------------------------------------------------------------ copies and state
     def copy(self):
@@ -395,7 +400,7 @@ class NoiseModel:
             part_n[k] = integer(count, f"noise state count of part {p}")
         self.parts, self.part_n, self.pooled, self.n_observations = parts, part_n, pooled, n
         # (files written before detections' own covariances were used have neither)
-        self.detection = np.array([number(v, "noise state detection scale", maximum=high, above=0.0)
+        self.detection = np.array([number(v, "noise state detection scale", maximum=MAX_DETECTION_SCALE**2, above=0.0)
                                    for v in listing(data.get("detection", [1.0, 1.0]), "noise state detection", 2)])
         self.n_detected = integer(data.get("n_detected", 0), "noise state n_detected")
         return self

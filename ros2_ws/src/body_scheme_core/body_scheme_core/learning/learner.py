@@ -395,8 +395,10 @@ class BodySchemeLearner(JointFitSteps):
         """The time step proper, on checked inputs (:meth:`update`)."""
         step = self.step
         events = []
-        obs = self._accept(a, observations, step, events)
+        obs, mirrored = self._accept(a, observations, step, events)
         covs = self._accept_covariances(covariances, obs, step, events)
+        for part in mirrored:  # its detection's covariance is the other solution's
+            covs.pop(part, None)
         if self.config.sensor_root:
             obs[self.root] = np.eye(4)  # the root is the sensor: its own pose in its frame, exactly
             covs.pop(self.root, None)
@@ -431,7 +433,8 @@ class BodySchemeLearner(JointFitSteps):
                                     f"[{self.action_lower.tolist()}, {self.action_upper.tolist()}]: {a.tolist()}")
 
     def _accept(self, a, observations, step, events):
-        """The valid observations ``{part: world2part}``; rejected ones are counted and reported."""
+        """The valid observations ``{part: world2part}`` and the parts taken in as their mirror image; rejected ones
+        are counted and reported."""
         valid, rejections = filter_observations(observations, self.part_ids, self.config.max_distance,
                                                 self._workspace())
         for part, reason, detail in rejections:
@@ -440,15 +443,17 @@ class BodySchemeLearner(JointFitSteps):
         cal = self._calibrated
         flipped = [] if cal is None else mirrored_observations(cal.scheme, cal.world2root, a, valid,
                                                                self.noise.theta_rot, self.noise.theta_trans)
+        mirrored = []
         for part, detail, placed in flipped:
             if placed:  # the scheme explains where the part is: its mirrored orientation is the true one
                 valid[part] = mirror_about_ray(valid[part])
                 self.corrected["flipped"] += 1
+                mirrored.append(part)
                 continue
             del valid[part]  # the scheme does not know where the part is (a change?): neither orientation is trusted
             self.rejected["flipped"] += 1
             events.append(Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part))
-        return valid
+        return valid, mirrored
 
     def _accept_covariances(self, covariances, obs, step, events):
         """The usable covariances of the accepted observations ``obs``; dropped ones are counted and reported."""

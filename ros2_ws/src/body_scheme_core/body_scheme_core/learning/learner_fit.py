@@ -155,7 +155,7 @@ class JointFitSteps:
         A = np.stack([a for _, a, _ in history])
         observations = [obs for _, _, obs in history]
         covariances = None
-        if self._covariances:
+        if self._covariances and self.config.detection_covariances:
             scaled = {s: {p: self.noise.detection_covariance(C) for p, C in covs.items()}
                       for s, covs in self._covariances.items()}
             covariances = [scaled.get(s) for s, _, _ in history]

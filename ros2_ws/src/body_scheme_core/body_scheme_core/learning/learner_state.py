@@ -161,6 +161,8 @@ def learner_from_state(cls, state):
             self._history.append((step, a, obs))
             if "covariances" in rec:  # (files written before detections' own covariances have none)
                 self._covariances[step] = _covariances(rec["covariances"], obs, "history")
+        kept = {s for s, _, _ in self._history}  # (a history longer than history_length loses its oldest steps)
+        self._covariances = {s: covs for s, covs in self._covariances.items() if s in kept}
         self._root_pose = RootPoseEstimator(config.root_window, self.root, (
             (_actions(rec["actions"], self.n_actions, "root sample actions"),
              _observations(rec["observations"], parts, "root sample"))

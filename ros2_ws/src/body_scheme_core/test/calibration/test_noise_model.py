@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from body_scheme_core.calibration.noise_model import (
+    MAX_DETECTION_SCALE,
     MIN_DETECTION_SCALE,
     MIN_SIGMA_ROT,
     MIN_SIGMA_TRANS,
@@ -174,6 +175,9 @@ def test_a_scale_on_the_detections_own_covariances_is_learned_and_kept():
     assert noise.detection_scale == learned
     noise.update(parts, rt, rr, pos, detected=(detected, whitened * 1e-6))
     assert noise.detection_scale == pytest.approx((MIN_DETECTION_SCALE, MIN_DETECTION_SCALE))
+    noise.update(parts, rt, rr, pos, detected=(detected, whitened * 1e6))  # a detector far off: capped, still saved
+    assert noise.detection_scale == pytest.approx((MAX_DETECTION_SCALE, MAX_DETECTION_SCALE))
+    assert NoiseModel((1, 2), 0.05, 0.2).load_dict(noise.to_dict()).detection_scale == noise.detection_scale
     restored = NoiseModel((1, 2), 0.05, 0.2, auto=(True, True)).load_dict(noise.to_dict())
     assert restored.detection_scale == noise.detection_scale
     old = {k: v for k, v in noise.to_dict().items() if k not in ("detection", "n_detected")}

@@ -118,3 +118,21 @@ def test_by_default_the_covariances_are_not_used():
     learner.update(session.actions[0], session.observations[0],
                    covariances={p: np.full((6, 6), np.nan) for p in robot.marker_ids})
     assert not learner.rejected and "covariances" not in learner.to_state()["history"][0]
+
+
+def test_a_pose_taken_in_as_its_mirror_image_loses_its_detections_covariance():
+    """The detector's covariance belongs to the solution it gave, not to its mirror image: a flipped orientation the
+    scheme corrects is kept without one, the other parts keep theirs."""
+    from body_scheme_core.transforms import mirror_about_ray
+
+    robot = planar_2dof()
+    session = make_session(robot, 60, seed=4, sigma_trans=0.005, sigma_rot=math.radians(1.0))
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, BodySchemeConfig(detection_covariances=True))
+    for k in range(59):
+        learner.update(session.actions[k], session.observations[k])
+    observations = dict(session.observations[59])
+    observations[3] = mirror_about_ray(observations[3])
+    learner.update(session.actions[59], observations, covariances={p: np.eye(6) * 1e-4 for p in observations})
+    assert learner.corrected["flipped"] == 1
+    kept = [p for p, _ in learner.to_state()["history"][-1]["covariances"]]
+    assert 3 not in kept and sorted(kept) == sorted(p for p in observations if p != 3)
