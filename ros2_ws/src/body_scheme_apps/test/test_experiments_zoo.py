@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 
 from body_scheme_apps.experiments import zoo
@@ -70,3 +71,44 @@ def test_the_plot_writes_every_runs_fields_beside_it(tmp_path):
     table = json.loads((tmp_path / "zoo_runs.json").read_text())
     assert [(r["seed"], r["variant"]) for r in table] == [(0, "camera"), (0, "paper"), (1, "camera"), (1, "paper")]
     assert all(set(r) == set(zoo.RUN_FIELDS) for r in table)
+
+
+def _tilted(deg):
+    """A marker 2 m in front of the camera, tilted ``deg`` about the camera's x axis."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("x", deg, degrees=True).as_matrix()
+    T[2, 3] = 2.0
+    return T
+
+
+def test_the_flip_tally_judges_each_decision_against_the_truth():
+    """A flip taken in corrected is used; a correction or refusal of a true pose is wrong; an observation whose
+    mirror image is within the threshold of it (a face-on marker) is neither, whatever the learner does."""
+    from body_scheme_core.transforms import mirror_about_ray
+
+    truth = np.stack([_tilted(40.0), _tilted(40.0), _tilted(0.5)])
+    flipped = mirror_about_ray(truth[0])
+    observed = {1: flipped, 2: truth[1], 3: mirror_about_ray(truth[2])}
+    tally = zoo.FlipTally(math.radians(9.0))
+    tally.add(truth, [1, 2, 3], observed, {1: truth[0], 2: mirror_about_ray(truth[1]), 3: truth[2]}, set(), True)
+    assert tally.counts() == {"flips": 1, "flips_used": 1, "wrong_flip_corrections": 1, "false_flip_rejections": 0}
+    tally.add(truth, [1, 2, 3], observed, {}, {1, 2, 3}, True)  # a flip refused (not used), a true pose refused
+    assert tally.counts() == {"flips": 2, "flips_used": 1, "wrong_flip_corrections": 1, "false_flip_rejections": 1}
+    tally.add(truth, [1, 2, 3], observed, {}, set(), False)  # not counted: bootstrapping or after the change
+    assert tally.counts()["flips"] == 2
+
+
+def test_the_summary_counts_flip_decisions_and_collateral_replacements():
+    runs = [{**_run("flips30"), "flips": 10, "flips_used": 9, "wrong_flip_corrections": 1, "false_flip_rejections": 0,
+             "collateral": 0},
+            {**_run("paper"), "fault_kind": "move_marker", "flips": 0, "flips_used": 0, "wrong_flip_corrections": 0,
+             "false_flip_rejections": 2, "collateral": 3},
+            {**_run("harsh"), "fault_kind": "move_marker", "flips": 0, "flips_used": 0, "wrong_flip_corrections": 0,
+             "false_flip_rejections": 0, "collateral": 5}]
+    summary = zoo.summarize(runs)
+    assert summary["zoo_flips_used_fraction_flips30"] == 0.9
+    assert "zoo_flips_used_fraction_realcam" not in summary
+    assert summary["zoo_wrong_flip_corrections"] == 1.0 and summary["zoo_false_flip_rejections"] == 2.0
+    assert summary["zoo_collateral_replacements"] == 3.0  # harsh is not a detecting level
