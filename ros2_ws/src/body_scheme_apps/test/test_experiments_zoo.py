@@ -1,5 +1,6 @@
 """Tests of the robot zoo experiment: its protocol's pieces, a quick run and the summary of its figures."""
 
+import json
 import math
 
 import numpy as np
@@ -32,6 +33,15 @@ def test_a_quick_run_reports_its_judgements():
         assert math.isfinite(result[f"{phase}_pred_err_over_noise"])
     assert result["healthy_noise_rel_err"] >= 0.0
     assert result["detected_at"] is None or 1 <= result["detected_at"] <= zoo.QUICK_CHANGED
+    json.dumps({k: result[k] for k in zoo.RUN_FIELDS})  # plain numbers: zoo_runs.json is written from them
+
+
+def test_a_run_with_flips_judges_the_learners_flip_decisions():
+    """30 % mirrored orientations: the run counts flips after bootstrapping, and the judged decisions, as ints."""
+    result = zoo.run(3, "flips30", quick=True)
+    assert result["flips"] > 0 and 0 <= result["flips_used"] <= result["flips"]
+    assert all(type(result[k]) is int for k in ("flips", "flips_used", "wrong_flip_corrections",
+                                                "false_flip_rejections", "collateral"))
 
 
 def _run(variant, true=True, trusted=True, end_true=True, end_trusted=True, detected_at=3, false_alarms=0):
@@ -63,8 +73,6 @@ def test_the_summary_of_runs_without_any_detection_is_nan_not_an_error():
 
 def test_the_plot_writes_every_runs_fields_beside_it(tmp_path):
     """``zoo_runs.json`` lists each run's :data:`zoo.RUN_FIELDS` (which seeds and levels went wrong), sorted."""
-    import json
-
     runs = [{**_run(level), "seed": seed, "n_actions": 3, "n_markers": 4, "repairs": 0, "cpu_seconds": 1.0}
             for seed in (1, 0) for level in ("paper", "camera")]
     assert zoo.plot(runs, tmp_path / "zoo")

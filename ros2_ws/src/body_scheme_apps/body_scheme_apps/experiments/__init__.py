@@ -8,7 +8,7 @@ One module per experiment, each with ``run(seed, perception, quick) -> dict`` (o
 - :mod:`.control`: Sec. IV-D, the 4-DOF arm following a trajectory by IK with a deformed middle limb.
 - :mod:`.branching`: not in the paper: a branching body learned from scratch (true tree found, no false alarm).
 - :mod:`.transmission`: not in the paper: a nonlinear gear learned from scratch (GP edge, its hyperparameters).
-- :mod:`.zoo`: not in the paper: random bodies at five noise levels (one with 30 % flips), learned from scratch and changed once.
+- :mod:`.zoo`: not in the paper: random bodies at five noise levels (one with 30 % flips), learned and changed once.
 - :mod:`.yourrobot`: not in the paper: real arms' URDFs, markers planned, learned from rendered images, calibrated.
 - :mod:`.iksure`: not in the paper: IK's reported uncertainty against where the true arm goes.
 - :mod:`.explore`: the paper's future work: active exploration against random babbling.

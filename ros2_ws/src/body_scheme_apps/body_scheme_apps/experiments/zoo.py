@@ -186,7 +186,7 @@ def run(seed, perception="camera", quick=False):
                   {e.child for e in events if e.kind == "input_rejected" and "(flipped)" in e.reason}, counted)
         for event in events:
             if event.kind == "model_replaced" and t >= n_healthy and kind == "move_marker":
-                collateral += not {event.parent, event.child} & affected
+                collateral += int(not {event.parent, event.child} & affected)
             if event.kind != "mismatch_detected":
                 continue
             model = next((m for m in scheme.models if {m.parent, m.child} == {event.parent, event.child}), None)
@@ -229,11 +229,11 @@ class FlipTally:
         for p, g, obs in zip(parts, gain, seen, strict=True):
             flip, true = g > self.threshold, g < -self.threshold
             corrected = p in taken and not np.array_equal(taken[p], obs)
-            self.wrong_corrections += corrected and true
-            self.false_rejections += p in refused and true
+            self.wrong_corrections += int(corrected and true)
+            self.false_rejections += int(p in refused and true)
             if counted and flip:
                 self.flips += 1
-                self.flips_used += corrected
+                self.flips_used += int(corrected)
 
     def counts(self):
         """The tallies, for a run's result."""

@@ -56,14 +56,17 @@ class ChainTargets:
         Per-axis std ``[trans m, rot rad]`` of each part's predicted pose; default: propagated at ``a``
         (:meth:`BodyScheme.predict`), which costs every model's uncertainty at every step, so the learner passes the
         joint fit's average instead.
+    world2part : dict of int to array-like, shape (4, 4), optional
+        ``scheme``'s prediction at ``a`` placed at ``world2root``, if the caller has it (with ``std`` given).
     """
 
-    def __init__(self, scheme, world2root, a, observations, noise, untrusted=(), std=None):
+    def __init__(self, scheme, world2root, a, observations, noise, untrusted=(), std=None, world2part=None):
         if std is None:
             root2part, std = scheme.predict(a, return_std=True)
-        else:
-            root2part = scheme.predict(a)
-        self.world2part = {p: world2root @ T for p, T in root2part.items()}
+            world2part = {p: world2root @ T for p, T in root2part.items()}
+        elif world2part is None:
+            world2part = {p: world2root @ T for p, T in scheme.predict(a).items()}
+        self.world2part = world2part
         self.std = std
         self.scheme = scheme
         self.observations = observations

@@ -384,19 +384,18 @@ def rigidity_problem(pose):
     return f"deviation {dev[0]:.3g} or det < 0" if bad[0] else None
 
 
-def mirrored_observations(scheme, world2root, a, observations, theta_rot, theta_trans=math.inf):
+def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.inf):
     """``[(part, detail, placed)]``: observations whose orientation is the mirror image about the camera's ray of what
-    the calibrated body scheme (``scheme`` placed at ``world2root``) predicts at actions ``a`` (the planar ambiguity
-    a marker tracker falls into): off by more than ``theta_rot`` while the mirror is within it and less than half as
+    the calibrated body scheme predicts (``world2part``, per part, at this step's actions; the planar ambiguity a
+    marker tracker falls into): off by more than ``theta_rot`` while the mirror is within it and less than half as
     far off. ``placed``: the observed position is within ``theta_trans`` of the predicted one (a flip keeps the
     position, so the prediction is then trusted to tell which orientation is the true one). Every predicted part is
     judged, also one the scheme does not explain yet: a prediction that is wrong by a change or a poor fit makes a
     true observation look neither near nor mirrored, and a flip let through would look like a lack of fit itself."""
-    parts = [p for p in observations if p in scheme.parts]
+    parts = [p for p in observations if p in world2part]
     if not parts:
         return []
-    root2part = scheme.predict(a)
-    predicted = np.stack([world2root @ root2part[p] for p in parts])
+    predicted = np.stack([world2part[p] for p in parts])
     observed = np.stack([observations[p] for p in parts])
     error = rotational_error(predicted, observed)
     mirrored = rotational_error(predicted, mirror_about_ray(observed))

@@ -172,6 +172,7 @@ class BodySchemeLearner(JointFitSteps):
                                       failed)
         self._calibrated = calibrated
         self._reach = None  # (the Calibrated it belongs to, reach in m) cache: see _workspace
+        self._prediction = None  # (the Calibrated it belongs to, world2part at this step) cache: see _predicted
         self._just_finished = False
         self._unexplained = {} if unexplained is None else dict(unexplained)  # part -> step it was last flagged
         self._lack_of_fit = tuple(lack_of_fit)  # parts of the last joint fit whose residuals depend on the commands
@@ -395,6 +396,7 @@ class BodySchemeLearner(JointFitSteps):
         """The time step proper, on checked inputs (:meth:`update`)."""
         step = self.step
         events = []
+        self._prediction = None
         obs, mirrored = self._accept(a, observations, step, events)
         covs = self._accept_covariances(covariances, obs, step, events)
         for part in mirrored:  # its detection's covariance is the other solution's
@@ -441,7 +443,7 @@ class BodySchemeLearner(JointFitSteps):
             self.rejected[reason] += 1
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))
         cal = self._calibrated
-        flipped = [] if cal is None else mirrored_observations(cal.scheme, cal.world2root, a, valid,
+        flipped = [] if cal is None else mirrored_observations(self._predicted(cal, a), valid,
                                                                self.noise.theta_rot, self.noise.theta_trans)
         mirrored = []
         for part, detail, placed in flipped:
@@ -464,6 +466,13 @@ class BodySchemeLearner(JointFitSteps):
             self.rejected[reason] += 1
             events.append(Event(step, "input_rejected", f"covariance rejected ({reason}): {detail}", child=part))
         return usable
+
+    def _predicted(self, cal, a):
+        """``{part: world2part}`` the joint fit ``cal`` predicts at this step's actions ``a``, computed once per step
+        and fit (the flip check and the chain targets both need it; :meth:`_step` forgets it first)."""
+        if self._prediction is None or self._prediction[0] is not cal:
+            self._prediction = (cal, {p: cal.world2root @ T for p, T in cal.scheme.predict(a).items()})
+        return self._prediction[1]
 
     def _workspace(self):
         """``(root position, reach + workspace_margin)`` once a joint fit exists after bootstrapping, else None (only
@@ -522,7 +531,8 @@ class BodySchemeLearner(JointFitSteps):
         def chain_at(a_past, obs_past):
             return ChainTargets(scheme, world2root, a_past, obs_past, noise, untrusted, part_std)
 
-        targets = chain_at(a, obs)
+        targets = ChainTargets(scheme, world2root, a, obs, noise, untrusted, part_std,
+                               self._predicted(self._calibrated, a))
         changes = self._adaptation.step(self._tree, a, targets, chain_at, step, events)
         for change in changes:
             self._after_change(change)
