@@ -128,3 +128,18 @@ def test_a_run_into_another_directory_writes_its_report_there(tmp_path, monkeypa
     assert main(["--only", "transmission", "--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1",
                  "--quiet", "--out", "elsewhere"]) == 0
     assert (tmp_path / "elsewhere" / "RESULTS.md").is_file() and not (tmp_path / "docs").exists()
+
+
+def test_a_failing_plot_keeps_the_figures_and_fails_the_command(tmp_path, monkeypatch, capsys):
+    """A plot that raises after a long run: results.json still has the experiment's figures, the error is printed
+    and the command exits 1."""
+    from body_scheme_apps.experiments import transmission
+
+    def broken(runs, path_prefix):
+        raise TypeError("Object of type int64 is not JSON serializable")
+
+    monkeypatch.setattr(transmission, "plot", broken)
+    assert main(["--only", "transmission", "--runs", "1", "--rendered-runs", "0", "--quick", "--jobs", "1",
+                 "--quiet", "--out", str(tmp_path), "--md", str(tmp_path / "RESULTS.md")]) == 1
+    assert math.isfinite(json.loads((tmp_path / "results.json").read_text())["transmission_ee_err_mm"])
+    assert "transmission's plot: TypeError" in capsys.readouterr().err

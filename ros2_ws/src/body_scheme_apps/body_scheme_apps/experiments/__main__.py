@@ -107,7 +107,11 @@ def main(argv=None):
         summarize = getattr(module, "summarize", aggregate)
         if runs:
             noise.update(summarize(runs))
-            plots[name] = module.plot(runs, out / name)
+            try:
+                plots[name] = module.plot(runs, out / name)
+            except Exception as error:  # the figures of a long run are still written
+                problems.append(f"{name}: the plot failed: {type(error).__name__}: {error}")
+                print(f"FAILED {name}'s plot: {type(error).__name__}: {error}", file=sys.stderr)
         if shown:
             rendered.update(aggregate(shown))
         bounds = getattr(module, "SANITY", {})
@@ -140,7 +144,7 @@ def main(argv=None):
         print("sanity check FAILED:\n  " + "\n  ".join(problems + [f"{o.task}: {o.error}" for o in failed]),
               file=sys.stderr)
         return 1
-    return 0
+    return 1 if any("the plot failed" in p for p in problems) else 0
 
 
 if __name__ == "__main__":
