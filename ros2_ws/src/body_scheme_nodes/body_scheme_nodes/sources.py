@@ -29,13 +29,7 @@ point is reached until the next message. Points of a body are registered into it
 three are seen. The observation message is stamped with its latest pose; the command at the period's start, or one
 second before the observation if the period is longer (inside scheme_node's default pairing window of 2 s).
 
-**Tables** (``.csv``, ``.jsonl``): one pose per row, already still. CSV columns: an optional ``stamp`` (s), the
-joint names, and per body ``<id>.x <id>.y <id>.z <id>.qx <id>.qy <id>.qz <id>.qw`` (a pose) or ``<id>.<point>.x
-<id>.<point>.y <id>.<point>.z`` (the points of the map's ``points`` by label); an empty cell is not observed. JSON
-lines: ``{"stamp": s, "joints": {name: value}, "poses": {"<id>": [x, y, z, qx, qy, qz, qw]}, "points": {"<id>":
-{"<point>": [x, y, z]}}}``. Without stamps, row ``k`` is commanded at ``k`` s; stamps must increase. A row's
-observation follows its command by 0.1 s, or half the time to the next row if that is shorter: a row's poses are its
-own, whatever the spacing.
+**Tables** (``.csv``, ``.jsonl``, one pose per row): :mod:`.source_tables`.
 
 Everything that is dropped is counted by reason in :attr:`Translation.counts` (never silently).
 """
@@ -43,8 +37,6 @@ Everything that is dropped is counted by reason in :attr:`Translation.counts` (n
 from __future__ import annotations
 
 import bisect
-import csv
-import json
 import math
 import pathlib
 from collections import Counter, defaultdict
@@ -61,6 +53,7 @@ from body_scheme_core.transforms import transform_from_pose
 
 from . import conversions
 from .bag_io import BagMessage, bag_topics, read_messages
+from .source_tables import TABLE_SUFFIXES, append_sample, table_samples
 
 __all__ = ["BodySource", "SourceMap", "Translation", "translate", "TABLE_SUFFIXES", "POSE_TYPES", "JOINT_TYPES"]
 
@@ -70,13 +63,9 @@ JOINT_TYPES = ("sensor_msgs/msg/JointState", "trajectory_msgs/msg/JointTrajector
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
               "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/PoseArray")
 TF_TOPICS = ("/tf", "/tf_static")
-TABLE_SUFFIXES = (".csv", ".jsonl")
 #: Longest time between a command and its observation in the translated streams, s (scheme_node's default
 #: ``max_delay`` is 2 s).
 MAX_OBSERVATION_DELAY = 1.0
-#: Tables: seconds between a row's command and its observation, and between rows without stamps.
-TABLE_DELAY, TABLE_PERIOD = 0.1, 1.0
-_POSE_FIELDS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
 
 @dataclass(frozen=True)
@@ -204,7 +193,7 @@ def translate(path, source_map):
     """
     path = pathlib.Path(path)
     counts = Counter()
-    rows = _table(path, source_map, counts) if path.suffix in TABLE_SUFFIXES else _bag(path, source_map, counts)
+    rows = table_samples(path, source_map, counts) if path.suffix in TABLE_SUFFIXES else _bag(path, source_map, counts)
     return _messages(rows, counts, source_map)
 
 
@@ -303,14 +292,7 @@ def _keep(seen, counts, source_map, key, header, log_time, value):
     if source_map.frame and header.frame_id.lstrip("/") != source_map.frame:
         counts["wrong_frame"] += 1
         return
-    _append(seen, counts, key, _stamp(header.stamp, log_time), value)
-
-
-def _append(seen, counts, key, stamp, value):
-    try:
-        seen[key].append((stamp, value()))
-    except (InvalidInputError, IndexError, TypeError, ValueError):
-        counts["invalid_pose"] += 1
+    append_sample(seen, counts, key, _stamp(header.stamp, log_time), value)
 
 
 def _transform(transform):
@@ -325,133 +307,6 @@ def _pose_of(msg, body):
         return conversions.transform_from_pose_msg(msg.poses[body.index or 0])
     pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
     return conversions.transform_from_pose_msg(pose)
-
-
-# ---------------------------------------------------------------------- tables
-def _table(path, source_map, counts):
-    """The table's rows as samples (each row one pose; its stamps must increase)."""
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as error:
-        raise InvalidInputError(f"cannot read the table {path}: {error}") from error
-    rows = _csv_rows(path, text, source_map, counts) if path.suffix == ".csv" else _jsonl_rows(path, text)
-    points_of = {body.marker_id: body for body in source_map.bodies if body.points}
-    samples, last = [], -math.inf
-    for k, row in enumerate(rows):
-        try:
-            stamp = float(row["stamp"]) if row.get("stamp") not in (None, "") else k * TABLE_PERIOD
-            values = np.array([float(row["joints"][name]) for name in source_map.joint_names])
-            if not (math.isfinite(stamp) and np.all(np.isfinite(values)) and stamp > last):
-                raise ValueError("not finite, or not after the row before")
-            poses, points = row.get("poses") or {}, row.get("points") or {}
-            if not (isinstance(poses, dict) and isinstance(points, dict)):
-                raise TypeError("poses and points must be objects keyed by marker id")
-        except (KeyError, TypeError, ValueError, AttributeError):
-            counts["invalid_row"] += 1
-            continue
-        last = stamp
-        found = defaultdict(list)
-        for marker_id, numbers in poses.items():
-            _append(found, counts, _marker_id(marker_id), stamp + TABLE_DELAY,
-                    lambda n=numbers: transform_from_pose(_floats(n[:3]), _floats(n[3:7])))
-        for marker_id, labelled in points.items():
-            body = points_of.get(_marker_id(marker_id))
-            if body is None or not isinstance(labelled, dict):
-                counts["invalid_pose"] += 1
-                continue
-            for label, xyz in labelled.items():
-                if label in body.points:
-                    _append(found, counts, (body.marker_id, label), stamp + TABLE_DELAY, lambda v=xyz: _floats(v))
-                else:
-                    counts["invalid_pose"] += 1
-        samples.append((stamp, values, {key: items[0] for key, items in found.items() if items and key[0] is not None}))
-        if found.get((None, "")):
-            counts["invalid_pose"] += len(found[(None, "")])
-    if not samples and not counts["invalid_row"]:
-        raise InvalidInputError(f"table {path}: no row with values of the joints {list(source_map.joint_names)}")
-    # A row's observation follows its command by TABLE_DELAY, or half the time to the next row if that is shorter:
-    # always before the next row's command, so the pairing cannot give a row another row's poses.
-    for k, (stamp, values, found) in enumerate(samples):
-        gap = samples[k + 1][0] - stamp if k + 1 < len(samples) else math.inf
-        delay = min(TABLE_DELAY, gap / 2)
-        samples[k] = (stamp, values, {key: (stamp + delay, item) for key, (_, item) in found.items()})
-    return samples
-
-
-def _marker_id(key):
-    """``(id, "")`` of a table's marker key ("7" or 7); ``(None, "")`` for anything else."""
-    try:
-        marker_id = int(key)
-    except (TypeError, ValueError):
-        return (None, "")
-    return (marker_id, "") if str(marker_id) == str(key).strip() and marker_id >= 0 else (None, "")
-
-
-def _floats(values):
-    array = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(array)):
-        raise InvalidInputError("not finite")
-    return array
-
-
-def _csv_rows(path, text, source_map, counts):
-    reader = csv.DictReader(text.splitlines())
-    header = reader.fieldnames or []
-    missing = [name for name in source_map.joint_names if name not in header]
-    if missing:
-        raise InvalidInputError(f"table {path}: no column for the joints {missing} (header: {header})")
-    known = {"stamp", *source_map.joint_names}
-    ignored = [c for c in header if c not in known and not _body_column(c)]
-    if ignored:
-        counts["ignored_columns"] += len(ignored)
-    rows = []
-    for line in reader:
-        row = {"joints": {name: line[name] for name in source_map.joint_names}, "poses": {}, "points": {}}
-        if line.get("stamp"):
-            row["stamp"] = line["stamp"]
-        for column, cell in line.items():
-            if column is None or "." not in column or cell in (None, ""):
-                continue
-            marker, _, rest = column.partition(".")
-            if not marker.isdigit():
-                continue
-            label, _, axis = rest.rpartition(".")
-            if not label and axis in _POSE_FIELDS:
-                row["poses"].setdefault(marker, [math.nan] * 7)[_POSE_FIELDS.index(axis)] = _number(cell)
-            elif label and axis in ("x", "y", "z"):
-                row["points"].setdefault(marker, {}).setdefault(label, [math.nan] * 3)["xyz".index(axis)] = \
-                    _number(cell)
-        rows.append(row)
-    return rows
-
-
-def _body_column(column):
-    """Whether a CSV column is ``<id>.<field>`` of a pose or ``<id>.<point>.<axis>`` of a point."""
-    marker, _, rest = column.partition(".")
-    label, _, axis = rest.rpartition(".")
-    return marker.isdigit() and ((not label and axis in _POSE_FIELDS) or (bool(label) and axis in ("x", "y", "z")))
-
-
-def _number(cell):
-    try:
-        return float(cell)
-    except ValueError:
-        return math.nan
-
-
-def _jsonl_rows(path, text):
-    rows = []
-    for number, line in enumerate(text.splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError as error:
-            raise InvalidInputError(f"table {path}, line {number}: not JSON: {error}") from error
-        if not isinstance(row, dict):
-            raise InvalidInputError(f"table {path}, line {number}: expected an object with joints and poses")
-        rows.append(row)
-    return rows
 
 
 # ---------------------------------------------------------------------- periods and observations -> messages
