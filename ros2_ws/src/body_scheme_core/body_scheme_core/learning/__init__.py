@@ -22,7 +22,8 @@ is imported from the module that defines it (a test imports the module it tests)
 
 from __future__ import annotations
 
-from .chain_search import register_chain, same_chain
+from .chain_refit import register_chain
+from .chain_search import same_chain
 from .config import BodySchemeConfig
 from .learner import BodySchemeLearner
 from .persistence import STATE_FORMAT, encode_state, load_state, save_state, write_state_text

@@ -21,7 +21,8 @@ import numpy as np
 from ..errors import ModelFileError
 from ..events import Event, format_errors
 from ..state_values import integer, listing, part_id
-from .chain_search import ChainNotIdentified, chain_replacements, identify_chain, order_decided
+from .chain_refit import chain_replacements
+from .chain_search import ChainNotIdentified, identify_chain, order_decided
 from .quality import model_cost, nests, relative_complexity
 from .structure import action_subsets, kinds_for, replacement_candidates
 from .tracked import CANDIDATE, MEMORY, TREE, TrackedModel, nested_models

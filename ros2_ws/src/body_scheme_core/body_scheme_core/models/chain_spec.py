@@ -9,7 +9,7 @@ make the distal parameters far less certain than any one joint (seven joints 2 m
 
 The covariances are first-order, from numerical Jacobians of the stored parameters, mapped to a local increment by the
 retraction's Jacobian (:func:`increment_jacobian`). :func:`increment_jacobian` also carries a chain's covariance
-through any map of its parameters (:func:`~body_scheme_core.learning.chain_search.register_chain` moving it onto the
+through any map of its parameters (:func:`~body_scheme_core.learning.chain_refit.register_chain` moving it onto the
 markers' places).
 """
 

@@ -10,14 +10,8 @@ import pytest
 
 from body_scheme_core.control import excursion_plan
 from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
-from body_scheme_core.learning.chain_search import (
-    ChainNotIdentified,
-    chain_replacements,
-    find_excursions,
-    identify_chain,
-    register_chain,
-    same_chain,
-)
+from body_scheme_core.learning.chain_refit import chain_replacements, register_chain
+from body_scheme_core.learning.chain_search import ChainNotIdentified, find_excursions, identify_chain, same_chain
 from body_scheme_core.learning.persistence import encode_state
 from body_scheme_core.models import EngineeredModel, chain_from_engineered
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec, transform_from_xyz_rpy
