@@ -34,6 +34,7 @@ from .faults import (
     protocol_schedule,
     random_fault,
 )
+from .joints import JOINT_TYPES, MOVABLE_JOINT_TYPES, Joint, Marker
 from .noise import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS, ObservationModel
 from .robot_files import load_markers_yaml, markers_to_yaml, resolve_meshes, tree_from_urdf, tree_to_urdf
 from .robots import (
@@ -57,7 +58,7 @@ from .sessions import (
     limb_deformed_protocol,
     make_session,
 )
-from .tree import JOINT_TYPES, MOVABLE_JOINT_TYPES, Joint, KinematicTree, Marker
+from .tree import KinematicTree
 from .truth import is_correct_model, is_true_tree, least_actions, wrong_models
 
 __all__ = [

@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InvalidInputError
 from ..transforms import transform_from_xyz_rpy, xyz_rpy_from_transform
-from .tree import CONTINUOUS_RANGE, JOINT_TYPES, MOVABLE_JOINT_TYPES, Joint, KinematicTree, Marker
+from .joints import CONTINUOUS_RANGE, JOINT_TYPES, MOVABLE_JOINT_TYPES, Joint, Marker
+from .tree import KinematicTree
 
 __all__ = ["tree_from_urdf", "tree_to_urdf", "load_markers_yaml", "markers_to_yaml", "resolve_resource",
            "resolve_meshes"]

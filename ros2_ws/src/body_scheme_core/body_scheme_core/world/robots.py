@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InvalidInputError
 from ..transforms import transform_from_xyz_rpy
-from .tree import Joint, KinematicTree, Marker
+from .joints import Joint, Marker
+from .tree import KinematicTree
 
 __all__ = ["planar_2dof", "arm_4dof", "powercube_6dof", "arm_7dof", "upper_body", "branching_tree", "random_tree",
            "zoo_robot",
