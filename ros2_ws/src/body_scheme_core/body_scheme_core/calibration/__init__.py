@@ -26,7 +26,8 @@ from .cross_validation import (
     jackknife_std,
     refit_scheme,
 )
-from .joint_fit import Calibration, calibrate, chain_targets, covariance_whitening, edge_consistency
+from .fit_problem import covariance_whitening
+from .joint_fit import Calibration, calibrate, chain_targets, edge_consistency
 from .noise_model import NoiseModel, ray_components, robust_variance
 
 __all__ = [

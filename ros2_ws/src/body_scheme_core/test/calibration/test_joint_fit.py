@@ -7,7 +7,8 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.optimize import least_squares
 
-from body_scheme_core.calibration.joint_fit import _Problem, calibrate, chain_targets
+from body_scheme_core.calibration.fit_problem import FitProblem
+from body_scheme_core.calibration.joint_fit import calibrate, chain_targets
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.learning.root_pose import RootPoseEstimator
 from body_scheme_core.models import GPModel, RevoluteModel
@@ -92,7 +93,7 @@ def test_the_jacobian_matches_finite_differences():
     # Low noise: the rotational residual's derivative uses d log(R) ~ dw, exact to first order in the residual.
     session = make_session(robot, 12, seed=1, sigma_trans=0.002, sigma_rot=0.002)
     scheme = _independent_fits(robot, session, 12)
-    problem = _Problem(scheme, session.actions, session.observations, [0] * 4, [0, 1, 2, 3], _anisotropic)
+    problem = FitProblem(scheme, session.actions, session.observations, [0] * 4, [0, 1, 2, 3], _anisotropic)
     problem.set_fixed(list(scheme.models))
     params = problem.stack(list(scheme.models))
     world2root = session.world2root @ robot.marker(robot.root_marker).link2marker
@@ -106,7 +107,7 @@ def test_the_solution_is_scipys_least_squares_optimum():
     scheme = _independent_fits(robot, session, 20)
     joint = calibrate(scheme, session.world2root, session.actions, session.observations, SIGMA_T, SIGMA_R,
                       max_iterations=50)
-    problem = _Problem(joint.scheme, session.actions, session.observations, [0, 0], [0, 1], _isotropic)
+    problem = FitProblem(joint.scheme, session.actions, session.observations, [0, 0], [0, 1], _isotropic)
     problem.set_fixed(list(joint.scheme.models))
     params = problem.stack(list(joint.scheme.models))
 
@@ -263,7 +264,7 @@ def test_the_jacobian_matches_finite_differences_with_a_covariance_per_detection
             L = rng.normal(size=(6, 6)) * 0.003
             covs[p] = L @ L.T + np.eye(6) * 1e-6
         covariances.append(covs)
-    problem = _Problem(scheme, session.actions, session.observations, [0] * 4, [0, 1, 2, 3], _anisotropic,
+    problem = FitProblem(scheme, session.actions, session.observations, [0] * 4, [0, 1, 2, 3], _anisotropic,
                        covariances=covariances)
     assert 0 < problem.detected.sum() < problem.n_obs
     problem.set_fixed(list(scheme.models))
