@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..models import GPModel
-from ..transforms import rotation_log, skew
+from ..transforms import invert_transform, rotation_log, skew
 
-__all__ = ["FitProblem", "covariance_whitening", "inverse_sqrt", "invert_transforms", "parts_below_gp",
+__all__ = ["FitProblem", "covariance_whitening", "inverse_sqrt", "parts_below_gp",
            "models_below_gp"]
 
 
@@ -174,7 +174,7 @@ class FitProblem:
         P[0] = world2root
         for parent_i, child_i, k, inverted in self.edges:
             Z = Z_of[k]
-            P[child_i] = P[parent_i] @ (invert_transforms(Z) if inverted else Z)
+            P[child_i] = P[parent_i] @ (invert_transform(Z) if inverted else Z)
         P_flat = P.reshape(-1, 4, 4)
         pred = P_flat[self.obs_flat]
         r = self.whiten(*self.raw_residuals(pred)) * self.coupled[:, None]
@@ -239,7 +239,7 @@ class FitProblem:
         P = np.empty((len(self.order), n, 4, 4))
         P[0] = world2root
         for parent_i, child_i, k, inverted in self.edges:
-            P[child_i] = P[parent_i] @ (invert_transforms(Z_of[k]) if inverted else Z_of[k])
+            P[child_i] = P[parent_i] @ (invert_transform(Z_of[k]) if inverted else Z_of[k])
         return P.reshape(-1, 4, 4)[self.obs_flat]
 
 
@@ -254,16 +254,6 @@ def covariance_whitening(C, R):
     vector of ``R_obs^T R_pred``) of observations with orientations ``R`` (k, 3, 3) and covariances ``C`` (k, 6, 6)
     over ``(x, y, z, rot_x, rot_y, rot_z)``, rotations about the camera's axes (the residual's are the marker's)."""
     return inverse_sqrt(C[:, :3, :3]), inverse_sqrt(np.swapaxes(R, 1, 2) @ C[:, 3:, 3:] @ R)
-
-
-def invert_transforms(Z):
-    """The inverses of a stack of rigid transforms ``Z`` (..., 4, 4)."""
-    out = np.zeros_like(Z)
-    Rt = np.swapaxes(Z[..., :3, :3], -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, Z[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def parts_below_gp(scheme, order):

@@ -43,8 +43,8 @@ import numpy as np
 from ..errors import InvalidInputError
 from ..models import DEFAULT_F_SCALE, GPModel, RigidJointModel, huber_weights, robust_cost
 from ..prediction import BodyScheme
-from ..transforms import rotvec_matrix
-from .fit_problem import FitProblem, invert_transforms, models_below_gp
+from ..transforms import invert_transform, rotvec_matrix
+from .fit_problem import FitProblem, models_below_gp
 
 __all__ = ["Calibration", "calibrate", "chain_targets", "edge_consistency"]
 
@@ -159,7 +159,7 @@ def chain_targets(scheme, world2root, actions, observations, parent, child):
     root2parent = scheme.predict_batch(actions[steps])[:, scheme.parts.index(parent)]
     world2parent = world2root @ root2parent
     Y = np.stack([observations[t][child] for t in steps])
-    return steps, invert_transforms(world2parent) @ Y
+    return steps, invert_transform(world2parent) @ Y
 
 
 def edge_consistency(scheme, world2root, actions, observations, theta_trans, theta_rot, clip, since=None):
@@ -191,7 +191,7 @@ def edge_consistency(scheme, world2root, actions, observations, theta_trans, the
         if steps.size == 0:
             continue
         P = model.predict(A[steps])
-        P = invert_transforms(P) if inverted else P
+        P = invert_transform(P) if inverted else P
         e_t = np.linalg.norm(P[:, :3, 3] - Z[:, :3, 3], axis=1)
         cos = np.clip((np.einsum("nij,nij->n", P[:, :3, :3], Z[:, :3, :3]) - 1.0) / 2.0, -1.0, 1.0)
         e_r = np.arccos(cos)
@@ -428,7 +428,7 @@ def _refit_gp_edges(scheme, models, W, A, observations, since, optimize=True):
         steps, Z = steps[keep], Z[keep]
         if steps.size < MIN_GP_TARGETS:
             continue
-        targets = invert_transforms(Z) if inverted else Z
+        targets = invert_transform(Z) if inverted else Z
         models[k] = GPModel(models[k].parent, models[k].child, models[k].actions,
                             **models[k].hyperparameters.to_dict()).fit(A[steps], targets, optimize=optimize)
     return models
