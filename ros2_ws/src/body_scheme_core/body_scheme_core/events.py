@@ -20,6 +20,7 @@ EVENT_KINDS = (
     "input_rejected",       # an observation or action was rejected (bad value, unknown id, ...)
     "bootstrap_finished",   # learning from scratch ended: the tree's models are frozen, other candidates dropped
     "trust_changed",        # the joint fit's residuals of some part depend on the commands (not trusted), or no more
+    "mirror_undone",        # the body scheme held a part's mirror image (its true poses looked flipped): refitted
 )
 
 

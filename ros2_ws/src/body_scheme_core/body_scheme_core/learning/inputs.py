@@ -21,11 +21,10 @@ import numpy as np
 from ..errors import ActionOutOfRangeError, InvalidInputError, StampOrderError
 from ..limits import MAX_ACTION, MAX_ACTIONS, MAX_PARTS
 from ..prediction import BodyScheme
-from ..transforms import mirror_about_ray, rotational_error
 from .config import BodySchemeConfig
 from .structure import n_candidates
 
-__all__ = ["mirrored_observations",
+__all__ = [
     "OBSERVATION_TOLERANCE",
     "MAX_ACTION",
     "MAX_PARTS",
@@ -382,26 +381,3 @@ def rigidity_problem(pose):
     """None for a rigid (4, 4) pose (within :data:`OBSERVATION_TOLERANCE`), else what is wrong with it."""
     dev, bad = _rigidity(np.asarray(pose, dtype=float)[None])
     return f"deviation {dev[0]:.3g} or det < 0" if bad[0] else None
-
-
-def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.inf):
-    """``[(part, detail, placed)]``: observations whose orientation is the mirror image about the camera's ray of what
-    the calibrated body scheme predicts (``world2part``, per part, at this step's actions; the planar ambiguity a
-    marker tracker falls into): off by more than ``theta_rot`` while the mirror is within it and less than half as
-    far off. ``placed``: the observed position is within ``theta_trans`` of the predicted one (a flip keeps the
-    position, so the prediction is then trusted to tell which orientation is the true one). Every predicted part is
-    judged, also one the scheme does not explain yet: a prediction that is wrong by a change or a poor fit makes a
-    true observation look neither near nor mirrored, and a flip let through would look like a lack of fit itself."""
-    parts = [p for p in observations if p in world2part]
-    if not parts:
-        return []
-    predicted = np.stack([world2part[p] for p in parts])
-    observed = np.stack([observations[p] for p in parts])
-    error = rotational_error(predicted, observed)
-    mirrored = rotational_error(predicted, mirror_about_ray(observed))
-    flipped = (error > theta_rot) & (mirrored <= theta_rot) & (mirrored < 0.5 * error)
-    placed = np.linalg.norm(predicted[:, :3, 3] - observed[:, :3, 3], axis=1) <= theta_trans
-    return [(p, f"the orientation of part {p} is {math.degrees(e):.0f} deg from the body scheme's prediction, "
-                f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
-                f"{math.degrees(theta_rot):.1f} deg)", bool(c))
-            for p, e, m, f, c in zip(parts, error, mirrored, flipped, placed, strict=True) if f]

@@ -67,11 +67,11 @@ from .inputs import (
     check_stamp,
     filter_covariances,
     filter_observations,
-    mirrored_observations,
     root_part,
 )
 from .learner_fit import JointFitSteps
 from .learner_state import learner_from_state, learner_to_state, restore, snapshot
+from .mirrors import MIRROR_BLOCK, MirrorWatch, mirrored_observations, rechosen_poses
 from .pool import ModelPool
 from .relative import PartPairs
 from .root_pose import RootPoseEstimator, RootWatch, still_part
@@ -162,7 +162,8 @@ class BodySchemeLearner(JointFitSteps):
         self._pairs = PartPairs(parts, self.noise, exact=(self.root,) if config.sensor_root else ())
 
     def _set_models(self, pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed=None,
-                    refining=None, unexplained=None, lack_of_fit=(), failed=None, root_watch=None, root_since=0):
+                    refining=None, unexplained=None, lack_of_fit=(), failed=None, root_watch=None, root_since=0,
+                    mirror_watch=None):
         """Install the tracked models and the phase objects working on them (shared by construction and restore)."""
         self._pool = pool
         self._tree = tree
@@ -178,6 +179,7 @@ class BodySchemeLearner(JointFitSteps):
         self._lack_of_fit = tuple(lack_of_fit)  # parts of the last joint fit whose residuals depend on the commands
         self._root_watch = RootWatch(self.config) if root_watch is None else root_watch
         self._root_since = int(root_since)  # first step of the root's own observations in the joint fit
+        self._mirror_watch = MirrorWatch() if mirror_watch is None else mirror_watch  # see learning/mirrors.py
         pool.monitor.set_thresholds(self.noise.theta_trans, self.noise.theta_rot)
 
     # ------------------------------------------------------------------ queries
@@ -397,7 +399,7 @@ class BodySchemeLearner(JointFitSteps):
         step = self.step
         events = []
         self._prediction = None
-        obs, mirrored = self._accept(a, observations, step, events)
+        obs, mirrored, mirror_learned = self._accept(a, observations, step, events)
         covs = self._accept_covariances(covariances, obs, step, events)
         for part in mirrored:  # its detection's covariance is the other solution's
             covs.pop(part, None)
@@ -417,7 +419,9 @@ class BodySchemeLearner(JointFitSteps):
             tree_changed = self._bootstrap_step(a, obs, step, events)
         else:
             tree_changed = self._adapt_step(a, obs, step, events)
-        if self._tree is not None and (tree_changed or self._calibration_due(step)):
+        if mirror_learned:
+            self._undo_mirror(mirror_learned, step, events)
+        if self._tree is not None and (tree_changed or mirror_learned or self._calibration_due(step)):
             self._fit_and_check(step, events)
         self._just_finished = False
         self.step = step + 1
@@ -435,7 +439,8 @@ class BodySchemeLearner(JointFitSteps):
                                     f"[{self.action_lower.tolist()}, {self.action_upper.tolist()}]: {a.tolist()}")
 
     def _accept(self, a, observations, step, events):
-        """The valid observations ``{part: world2part}`` and the parts taken in as their mirror image; rejected ones
+        """The valid observations ``{part: world2part}``, the parts taken in as their mirror image and the parts whose
+        mirror image the body scheme holds (:class:`~body_scheme_core.learning.mirrors.MirrorWatch`); rejected ones
         are counted and reported."""
         valid, rejections = filter_observations(observations, self.part_ids, self.config.max_distance,
                                                 self._workspace())
@@ -443,8 +448,11 @@ class BodySchemeLearner(JointFitSteps):
             self.rejected[reason] += 1
             events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))
         cal = self._calibrated
-        flipped = [] if cal is None else mirrored_observations(self._predicted(cal, a), valid,
-                                                               self.noise.theta_rot, self.noise.theta_trans)
+        if cal is None:
+            return valid, [], []
+        predicted = self._predicted(cal, a)
+        judged = [p for p in valid if p in predicted]
+        flipped = mirrored_observations(predicted, valid, self.noise.theta_rot, self.noise.theta_trans)
         mirrored = []
         for part, detail, placed in flipped:
             if placed:  # the scheme explains where the part is: its mirrored orientation is the true one
@@ -455,7 +463,30 @@ class BodySchemeLearner(JointFitSteps):
             del valid[part]  # the scheme does not know where the part is (a change?): neither orientation is trusted
             self.rejected["flipped"] += 1
             events.append(Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part))
-        return valid, mirrored
+        return valid, mirrored, self._mirror_watch.record(judged, mirrored)
+
+    def _undo_mirror(self, parts, step, events):
+        """The body scheme holds the mirror image of ``parts``: every stored pose of each is chosen again against the
+        mirror of the prediction (:func:`~body_scheme_core.learning.mirrors.rechosen_poses`), its detection
+        covariance dropped where the pose changed (it is the other solution's), and a ``mirror_undone`` event is
+        reported; the caller fits again."""
+        cal = self._calibrated
+        records = list(self._history)
+        for part in parts:
+            at = [k for k, (_, _, obs) in enumerate(records) if part in obs]
+            A = np.stack([records[k][1] for k in at])
+            predicted = cal.world2root @ cal.scheme.predict_batch(A)[:, cal.scheme.parts.index(part)]
+            poses, changed = rechosen_poses(predicted, [records[k][2][part] for k in at])
+            for k in np.flatnonzero(changed):
+                s, a, obs = records[at[k]]
+                records[at[k]] = (s, a, {**obs, part: poses[k]})  # stored observations are never changed in place
+                if part in self._covariances.get(s, {}):
+                    self._covariances[s] = {p: C for p, C in self._covariances[s].items() if p != part}
+            events.append(Event(step, "mirror_undone", f"part {part} was taken in mirrored in more than half of its "
+                                f"last {MIRROR_BLOCK} observations: the body scheme held its mirror image; "
+                                f"{int(changed.sum())} of its {len(at)} stored poses chosen again", child=part))
+        self._history.clear()
+        self._history.extend(records)
 
     def _accept_covariances(self, covariances, obs, step, events):
         """The usable covariances of the accepted observations ``obs``; dropped ones are counted and reported."""

@@ -24,6 +24,7 @@ from ..state_values import boolean, finite_array, integer, listing, mapping, num
 from .adaptation import Adaptation
 from .config import BodySchemeConfig
 from .inputs import check_action_vector, check_n_actions, check_part_ids, filter_covariances, rigidity_problem
+from .mirrors import MirrorWatch
 from .pool import ModelPool, check_monitor_settings
 from .root_pose import RootPoseEstimator, RootWatch
 from .validity import ValidityMonitor
@@ -95,6 +96,7 @@ def learner_to_state(self):
                             for p, t in cal.consistency.items()]},
         "noise": self.noise.to_dict(),
         "unexplained": [[p, s] for p, s in self._unexplained.items()],
+        "mirror_watch": self._mirror_watch.to_list(),
         "lack_of_fit": list(self._lack_of_fit),
         "root_watch": self._root_watch.monitor.to_dict(),
         "root_offset": {"pose": self._root_watch.offset.tolist(), "n": self._root_watch.n_offset},
@@ -182,7 +184,8 @@ def learner_from_state(cls, state):
         n_offset = integer(offset["n"], "root_offset n")
         self._set_models(pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed, refining,
                          unexplained, lack_of_fit, failed, RootWatch(config, watch, offset_pose, n_offset),
-                         integer(state["root_since"], "root_since"))
+                         integer(state["root_since"], "root_since"),
+                         MirrorWatch.from_list(state.get("mirror_watch", []), parts))  # (older files: none)
         if self._tree is not None:
             self.body_scheme  # noqa: B018 - validates that the stored tree is a spanning tree of fitted models
         problems = structural_problems(self)
@@ -342,6 +345,7 @@ def snapshot(learner, journal):
             "step", "last_stamp", "root", "_bootstrapping", "_calibrated", "_reach", "_just_finished", "_lack_of_fit",
             "_root_since")},
         "unexplained": dict(learner._unexplained),
+        "mirror_watch": learner._mirror_watch.copy(),
         "lists": {"_tree": None if learner._tree is None else list(learner._tree),
                   "rejected": Counter(learner.rejected), "corrected": Counter(learner.corrected),
                   "_history": deque(learner._history, maxlen=learner._history.maxlen),
@@ -367,6 +371,7 @@ def restore(learner, saved):
         setattr(learner, name, value)
     learner._tree = saved["lists"]["_tree"]
     learner._unexplained = saved["unexplained"]
+    learner._mirror_watch = saved["mirror_watch"]
     learner._adaptation.root = learner.root
     learner.rejected, learner.corrected = saved["lists"]["rejected"], saved["lists"]["corrected"]
     learner._history.clear()

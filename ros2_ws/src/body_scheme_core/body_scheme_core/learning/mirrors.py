@@ -1,0 +1,117 @@
+"""Flipped orientations: a marker's pose mirrored about the camera's ray, found, used, and a learned mirror undone.
+
+A planar marker seen from the camera has two poses that look alike, its orientation mirrored about the ray
+(:func:`~body_scheme_core.transforms.mirror_about_ray`), and a tracker sometimes reports the wrong one. Once a joint
+fit exists, :func:`mirrored_observations` compares each observation with the calibrated body scheme's prediction and
+the learner takes a flipped one in mirrored (``corrected["flipped"]``).
+
+That check trusts the prediction. A scheme fitted while a part's flips were still let through can hold the part's
+*mirror image* (traced on the robot zoo's ``flips30`` level, seed 19): every true pose then looks flipped and is
+"corrected" into agreement with the wrong scheme, every real flip agrees with it, and the fit never leaves. Flips are
+the minority of a tracker's solutions (a few % to 30 % at 2 m), so :class:`MirrorWatch` counts, per part, the
+observations the check judged in blocks of :data:`MIRROR_BLOCK`; a part that was taken in mirrored in more than half
+of a block has its mirror image in the scheme. The learner then chooses every stored pose of that part again against
+the mirror of the prediction (:func:`rechosen_poses`) and fits again.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..errors import ModelFileError
+from ..state_values import integer, listing
+from ..transforms import mirror_about_ray, rotational_error
+
+__all__ = ["MIRROR_BLOCK", "mirrored_observations", "MirrorWatch", "rechosen_poses"]
+
+#: Observations of a part per decision of :class:`MirrorWatch`. At a 30 % flip rate more than half of 60 are taken
+#: in mirrored with probability about 1e-4 while the scheme is right; about 70 % are while it holds the mirror.
+MIRROR_BLOCK = 60
+
+
+def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.inf):
+    """``[(part, detail, placed)]``: observations whose orientation is the mirror image about the camera's ray of what
+    the calibrated body scheme predicts (``world2part``, per part, at this step's actions; the planar ambiguity a
+    marker tracker falls into): off by more than ``theta_rot`` while the mirror is within it and less than half as
+    far off. ``placed``: the observed position is within ``theta_trans`` of the predicted one (a flip keeps the
+    position, so the prediction is then trusted to tell which orientation is the true one). Every predicted part is
+    judged, also one the scheme does not explain yet: a prediction that is wrong by a change or a poor fit makes a
+    true observation look neither near nor mirrored, and a flip let through would look like a lack of fit itself."""
+    parts = [p for p in observations if p in world2part]
+    if not parts:
+        return []
+    predicted = np.stack([world2part[p] for p in parts])
+    observed = np.stack([observations[p] for p in parts])
+    error = rotational_error(predicted, observed)
+    mirrored = rotational_error(predicted, mirror_about_ray(observed))
+    flipped = (error > theta_rot) & (mirrored <= theta_rot) & (mirrored < 0.5 * error)
+    placed = np.linalg.norm(predicted[:, :3, 3] - observed[:, :3, 3], axis=1) <= theta_trans
+    return [(p, f"the orientation of part {p} is {math.degrees(e):.0f} deg from the body scheme's prediction, "
+                f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
+                f"{math.degrees(theta_rot):.1f} deg)", bool(c))
+            for p, e, m, f, c in zip(parts, error, mirrored, flipped, placed, strict=True) if f]
+
+
+class MirrorWatch:
+    """Per part, ``[judged, mirrored]``: of the observations the flip check judged in the current block, how many it
+    took in mirrored. A block ends after :data:`MIRROR_BLOCK` judged observations of the part."""
+
+    def __init__(self, counts=None):
+        self.counts = {} if counts is None else {p: list(c) for p, c in counts.items()}
+
+    def record(self, judged, mirrored):
+        """Count one step: ``judged`` parts were compared with the prediction, ``mirrored`` of them taken in
+        mirrored. Returns the parts whose block ended with more than half taken in mirrored (their mirror image is
+        in the body scheme)."""
+        mirrored = set(mirrored)
+        learned = []
+        for part in judged:
+            count = self.counts.setdefault(part, [0, 0])
+            count[0] += 1
+            count[1] += part in mirrored
+            if count[0] >= MIRROR_BLOCK:
+                if 2 * count[1] > count[0]:
+                    learned.append(part)
+                del self.counts[part]
+        return learned
+
+    def copy(self):
+        return MirrorWatch(self.counts)
+
+    def to_list(self):
+        return [[p, n, m] for p, (n, m) in self.counts.items()]
+
+    @classmethod
+    def from_list(cls, items, parts):
+        """From :meth:`to_list` output; parts must be in ``parts`` and counts within a block."""
+        counts = {}
+        for item in listing(items, "mirror_watch"):
+            p, n, m = (integer(v, "mirror_watch item") for v in listing(item, "mirror_watch item", 3))
+            if p not in parts or not 0 <= m <= n < MIRROR_BLOCK:
+                raise ModelFileError(f"mirror_watch item {item!r}: unknown part or counts beyond a block")
+            counts[p] = [n, m]
+        return cls(counts)
+
+
+def rechosen_poses(predicted, observed):
+    """Each observed pose or its mirror about the camera's ray, whichever is nearer the *mirror* of the predicted
+    pose: the stored poses of a part whose mirror image the body scheme learned, chosen again as if the scheme were
+    its mirror. Returns ``(poses, changed)``.
+
+    Parameters
+    ----------
+    predicted, observed : ndarray, shape (k, 4, 4)
+        ``world2part`` the scheme predicts and the stored observations, at the same steps.
+
+    Returns
+    -------
+    poses : ndarray, shape (k, 4, 4)
+    changed : ndarray of bool, shape (k,)
+    """
+    observed = np.asarray(observed, dtype=float)
+    target = mirror_about_ray(predicted)
+    flipped = mirror_about_ray(observed)
+    changed = rotational_error(target, flipped) < rotational_error(target, observed)
+    return np.where(changed[:, None, None], flipped, observed), changed

@@ -1,0 +1,75 @@
+"""A learned mirror image undone: the watch over the flip check's corrections, the poses chosen again, the learner."""
+
+import math
+
+import numpy as np
+import pytest
+
+from body_scheme_core.errors import ModelFileError
+from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.mirrors import MIRROR_BLOCK, MirrorWatch, rechosen_poses
+from body_scheme_core.transforms import mirror_about_ray, rotational_error, transform_from_rotvec
+from body_scheme_core.world import make_session, planar_2dof
+
+
+def test_a_part_mirrored_in_more_than_half_of_a_block_is_reported_once_per_block():
+    watch = MirrorWatch()
+    reported = []
+    for k in range(MIRROR_BLOCK):
+        reported += watch.record([1, 2], [1] if k <= MIRROR_BLOCK // 2 else [2] if k < MIRROR_BLOCK // 2 - 1 else [])
+    assert reported == [1]  # part 1: 31 of 60; part 2: none
+    assert watch.counts == {}  # both blocks ended
+    for _ in range(MIRROR_BLOCK // 2):
+        assert watch.record([1], [1]) == []  # a new block: half of it is not more than half
+    for _ in range(MIRROR_BLOCK // 2):
+        assert watch.record([1], []) == []
+    assert watch.counts == {}
+
+
+def test_the_watch_round_trips_and_refuses_impossible_counts():
+    watch = MirrorWatch()
+    watch.record([3, 5], [5])
+    again = MirrorWatch.from_list(watch.to_list(), {3, 5})
+    assert again.counts == {3: [1, 0], 5: [1, 1]}
+    for bad in ([[9, 1, 0]], [[3, 2, 3]], [[3, MIRROR_BLOCK, 0]], [[3, 1]], "x"):
+        with pytest.raises(ModelFileError):
+            MirrorWatch.from_list(bad, {3, 5})
+
+
+def test_poses_are_chosen_again_against_the_mirror_of_the_prediction():
+    """The scheme predicts each part's mirror image: true poses (corrected into agreement with it before) and flips
+    alike are chosen again, the stored pose nearer the mirror of the prediction wins."""
+    rng = np.random.default_rng(3)
+    true = np.stack([transform_from_rotvec(rng.normal(size=3), [0.3, -0.2, 1.5] + 0.1 * rng.normal(size=3))
+                     for _ in range(20)])
+    predicted = mirror_about_ray(true)  # the learned mirror
+    flipped = rng.random(20) < 0.3
+    stored = np.where(flipped[:, None, None], mirror_about_ray(true), true)
+    poses, changed = rechosen_poses(predicted, stored)
+    assert np.allclose(poses, true) and np.array_equal(changed, flipped)
+
+
+def test_a_learner_whose_scheme_holds_a_parts_mirror_chooses_its_stored_poses_again():
+    """A calibrated learner is shown one part mirrored about the ray on every step (as a scheme holding the part's
+    mirror sees its true poses): the flip check takes each in corrected until a block of them is over half corrected;
+    then a ``mirror_undone`` event names the part and every stored pose of it is the one observed again."""
+    robot = planar_2dof()
+    session = make_session(robot, 160, seed=4, sigma_trans=0.005, sigma_rot=math.radians(1.0))
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions)
+    for t in range(80):
+        learner.update(session.actions[t], session.observations[t])
+    assert learner.phase == "steady"
+    part, events, given = 3, [], {}
+    for t in range(80, 160):
+        observations = dict(session.observations[t])
+        observations[part] = given[t] = mirror_about_ray(observations[part])
+        events += learner.update(session.actions[t], observations)
+        if any(e.kind == "mirror_undone" for e in events):
+            break
+    undone = [e for e in events if e.kind == "mirror_undone"]
+    assert len(undone) == 1 and undone[0].child == part and learner.corrected["flipped"] >= MIRROR_BLOCK // 2
+    _, stored = learner.samples()
+    for s, obs in zip(range(learner.step - len(stored), learner.step), stored, strict=True):  # one record a step
+        if s in given and rotational_error(given[s][None], mirror_about_ray(given[s])[None])[0] > 0.1:
+            assert np.allclose(obs[part], given[s])
+    assert BodySchemeLearner.from_state(learner.to_state()).to_state() == learner.to_state()
