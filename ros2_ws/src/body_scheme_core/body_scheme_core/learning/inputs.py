@@ -37,6 +37,7 @@ __all__ = [
     "check_n_actions",
     "root_part",
     "check_action_bounds",
+    "check_action_range",
     "check_initial_models",
     "check_action_vector",
     "check_stamp",
@@ -246,6 +247,18 @@ def check_observation_mapping(observations):
         raise InvalidInputError(f"observations must be a mapping part id -> (4, 4) pose, got "
                                 f"{type(observations).__name__}")
     return observations
+
+
+def check_action_range(a, lower, upper, margin):
+    """Refuse actions beyond the joint limits ``[lower, upper]`` (None: no limits) by more than ``margin`` of each
+    joint's range (``ActionOutOfRangeError``)."""
+    if lower is None or upper is None:
+        return
+    span = np.where(np.isfinite(upper - lower), upper - lower, 0.0)
+    outside = (a < lower - margin * span) | (a > upper + margin * span)
+    if np.any(outside):
+        raise ActionOutOfRangeError(f"actions {np.flatnonzero(outside).tolist()} are beyond the joint limits "
+                                    f"[{lower.tolist()}, {upper.tolist()}]: {a.tolist()}")
 
 
 def filter_observations(observations, part_ids, max_distance=math.inf, reach=None):

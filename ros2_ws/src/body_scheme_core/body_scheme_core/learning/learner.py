@@ -46,17 +46,18 @@ from collections import Counter, deque
 import numpy as np
 
 from ..calibration import NoiseModel
-from ..errors import ActionOutOfRangeError, BodySchemeError, LearnerStepError, NotFittedError
+from ..errors import BodySchemeError, LearnerStepError, NotFittedError
 from ..events import Event, format_errors
 from ..models import ChainModel, GPModel, RigidJointModel
 from ..prediction import BodyScheme
-from ..transforms import invert_transform, mirror_about_ray
+from ..transforms import invert_transform
 from .adaptation import Adaptation
 from .bootstrap import Bootstrap
 from .chain import ChainTargets
 from .config import BodySchemeConfig
 from .inputs import (
     check_action_bounds,
+    check_action_range,
     check_action_vector,
     check_body_size,
     check_config,
@@ -71,7 +72,7 @@ from .inputs import (
 )
 from .learner_fit import JointFitSteps
 from .learner_state import learner_from_state, learner_to_state, restore, snapshot
-from .mirrors import MIRROR_BLOCK, MirrorWatch, mirrored_observations, rechosen_poses
+from .mirrors import MIRROR_BLOCK, MirrorWatch, decide_flips, rechosen_history
 from .pool import ModelPool
 from .relative import PartPairs
 from .root_pose import RootPoseEstimator, RootWatch, still_part
@@ -379,7 +380,7 @@ class BodySchemeLearner(JointFitSteps):
         the models or the recorded observations) and put back if it fails.
         """
         a = check_action_vector(actions, self.n_actions).copy()
-        self._check_action_range(a)
+        check_action_range(a, self.action_lower, self.action_upper, self.config.action_margin)
         check_observation_mapping(observations)
         filter_covariances(covariances, {})  # its type, before anything changes
         stamp = check_stamp(stamp, self.last_stamp)
@@ -427,17 +428,6 @@ class BodySchemeLearner(JointFitSteps):
         self.step = step + 1
         return events
 
-    def _check_action_range(self, a):
-        """Refuse actions beyond the joint limits by more than ``config.action_margin`` of each joint's range."""
-        if self.action_lower is None or self.action_upper is None:
-            return
-        span = np.where(np.isfinite(self.action_upper - self.action_lower), self.action_upper - self.action_lower, 0.0)
-        margin = self.config.action_margin * span
-        outside = (a < self.action_lower - margin) | (a > self.action_upper + margin)
-        if np.any(outside):
-            raise ActionOutOfRangeError(f"actions {np.flatnonzero(outside).tolist()} are beyond the joint limits "
-                                    f"[{self.action_lower.tolist()}, {self.action_upper.tolist()}]: {a.tolist()}")
-
     def _accept(self, a, observations, step, events):
         """The valid observations ``{part: world2part}``, the parts taken in as their mirror image and the parts whose
         mirror image the body scheme holds (:class:`~body_scheme_core.learning.mirrors.MirrorWatch`); rejected ones
@@ -450,43 +440,32 @@ class BodySchemeLearner(JointFitSteps):
         cal = self._calibrated
         if cal is None:
             return valid, [], []
-        predicted = self._predicted(cal, a)
-        judged = [p for p in valid if p in predicted]
-        flipped = mirrored_observations(predicted, valid, self.noise.theta_rot, self.noise.theta_trans)
-        mirrored = []
-        for part, detail, placed in flipped:
-            if placed:  # the scheme explains where the part is: its mirrored orientation is the true one
-                valid[part] = mirror_about_ray(valid[part])
-                self.corrected["flipped"] += 1
-                mirrored.append(part)
-                continue
-            del valid[part]  # the scheme does not know where the part is (a change?): neither orientation is trusted
-            self.rejected["flipped"] += 1
-            events.append(Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part))
-        return valid, mirrored, self._mirror_watch.record(judged, mirrored)
+        flips = decide_flips(self._predicted(cal, a), valid, self.noise.theta_rot, self.noise.theta_trans)
+        if flips.mirrored:  # (a counter gains a key only when it counts something)
+            self.corrected["flipped"] += len(flips.mirrored)
+        if flips.refused:
+            self.rejected["flipped"] += len(flips.refused)
+        events += [Event(step, "input_rejected", f"observation rejected (flipped): {detail}", child=part)
+                   for part, detail in flips.refused]
+        return flips.observations, flips.mirrored, self._mirror_watch.record(flips.judged, flips.mirrored)
 
     def _undo_mirror(self, parts, step, events):
         """The body scheme holds the mirror image of ``parts``: every stored pose of each is chosen again against the
-        mirror of the prediction (:func:`~body_scheme_core.learning.mirrors.rechosen_poses`), its detection
+        mirror of the prediction (:func:`~body_scheme_core.learning.mirrors.rechosen_history`), its detection
         covariance dropped where the pose changed (it is the other solution's), and a ``mirror_undone`` event is
         reported; the caller fits again."""
         cal = self._calibrated
-        records = list(self._history)
+        records, covariances = list(self._history), self._covariances
         for part in parts:
-            at = [k for k, (_, _, obs) in enumerate(records) if part in obs]
-            A = np.stack([records[k][1] for k in at])
-            predicted = cal.world2root @ cal.scheme.predict_batch(A)[:, cal.scheme.parts.index(part)]
-            poses, changed = rechosen_poses(predicted, [records[k][2][part] for k in at])
-            for k in np.flatnonzero(changed):
-                s, a, obs = records[at[k]]
-                records[at[k]] = (s, a, {**obs, part: poses[k]})  # stored observations are never changed in place
-                if part in self._covariances.get(s, {}):
-                    self._covariances[s] = {p: C for p, C in self._covariances[s].items() if p != part}
+            column = cal.scheme.parts.index(part)
+            records, covariances, changed, stored = rechosen_history(
+                records, covariances, part, lambda A, c=column: cal.world2root @ cal.scheme.predict_batch(A)[:, c])
             events.append(Event(step, "mirror_undone", f"part {part} was taken in mirrored in more than half of its "
                                 f"last {MIRROR_BLOCK} observations: the body scheme held its mirror image; "
-                                f"{int(changed.sum())} of its {len(at)} stored poses chosen again", child=part))
+                                f"{changed} of its {stored} stored poses chosen again", child=part))
         self._history.clear()
-        self._history.extend(records)
+        self._history.extend(records)  # in place: the deque is shared with the phase objects
+        self._covariances = covariances
 
     def _accept_covariances(self, covariances, obs, step, events):
         """The usable covariances of the accepted observations ``obs``; dropped ones are counted and reported."""

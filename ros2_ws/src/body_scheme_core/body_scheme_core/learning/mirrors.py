@@ -17,6 +17,7 @@ the mirror of the prediction (:func:`rechosen_poses`) and fits again.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -24,7 +25,8 @@ from ..errors import ModelFileError
 from ..state_values import integer, listing
 from ..transforms import mirror_about_ray, rotational_error
 
-__all__ = ["MIRROR_BLOCK", "mirrored_observations", "MirrorWatch", "rechosen_poses"]
+__all__ = ["MIRROR_BLOCK", "mirrored_observations", "FlipDecisions", "decide_flips", "MirrorWatch", "rechosen_poses",
+           "rechosen_history"]
 
 #: Observations of a part per decision of :class:`MirrorWatch`. At a 30 % flip rate more than half of 60 are taken
 #: in mirrored with probability about 1e-4 while the scheme is right; about 70 % are while it holds the mirror.
@@ -52,6 +54,42 @@ def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.
                 f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
                 f"{math.degrees(theta_rot):.1f} deg)", bool(c))
             for p, e, m, f, c in zip(parts, error, mirrored, flipped, placed, strict=True) if f]
+
+
+class FlipDecisions(NamedTuple):
+    """What the flip check made of one step's observations.
+
+    Attributes
+    ----------
+    observations : dict
+        ``{part: world2part}`` to learn from: flips taken in mirrored, refused ones left out, the rest as given.
+    judged : list of int
+        Parts the calibrated scheme predicts, all compared with their prediction.
+    mirrored : list of int
+        Parts taken in as their mirror image.
+    refused : list of (int, str)
+        Flipped parts whose position the scheme does not explain (a change?), with why: neither orientation trusted.
+    """
+
+    observations: dict
+    judged: list
+    mirrored: list
+    refused: list
+
+
+def decide_flips(predicted, observations, theta_rot, theta_trans):
+    """The flip check of one step (:func:`mirrored_observations`) applied: a flip whose position the scheme explains
+    is taken in mirrored, one whose position it does not is refused. ``observations`` is not changed."""
+    taken = dict(observations)
+    mirrored, refused = [], []
+    for part, detail, placed in mirrored_observations(predicted, observations, theta_rot, theta_trans):
+        if placed:  # the scheme explains where the part is: its mirrored orientation is the true one
+            taken[part] = mirror_about_ray(taken[part])
+            mirrored.append(part)
+        else:
+            del taken[part]
+            refused.append((part, detail))
+    return FlipDecisions(taken, [p for p in observations if p in predicted], mirrored, refused)
 
 
 class MirrorWatch:
@@ -115,3 +153,38 @@ def rechosen_poses(predicted, observed):
     flipped = mirror_about_ray(observed)
     changed = rotational_error(target, flipped) < rotational_error(target, observed)
     return np.where(changed[:, None, None], flipped, observed), changed
+
+
+def rechosen_history(records, covariances, part, predict):
+    """The stored poses of ``part`` chosen again (:func:`rechosen_poses`): its scheme's mirror image is undone.
+
+    Parameters
+    ----------
+    records : list of (int, ndarray, dict)
+        The history, ``(step, actions, {part: world2part})`` oldest first; not changed (stored observations are never
+        changed in place: a changed record is a new tuple and dict).
+    covariances : dict
+        ``{step: {part: (6, 6)}}``, the detections' own covariances; not changed.
+    part : int
+    predict : callable
+        ``predict(A)``: ``world2part`` of ``part`` the scheme predicts at actions ``A`` (k, m), shape (k, 4, 4).
+
+    Returns
+    -------
+    records, covariances
+        New ones, a changed pose without its detection's covariance (it is the other solution's).
+    changed, stored : int
+        How many of the part's stored poses changed, of how many.
+    """
+    records, covariances = list(records), dict(covariances)
+    at = [k for k, (_, _, obs) in enumerate(records) if part in obs]
+    if not at:
+        return records, covariances, 0, 0
+    poses, changed = rechosen_poses(predict(np.stack([records[k][1] for k in at])),
+                                    np.stack([records[k][2][part] for k in at]))
+    for k in np.flatnonzero(changed):
+        step, a, obs = records[at[k]]
+        records[at[k]] = (step, a, {**obs, part: poses[k]})
+        if part in covariances.get(step, {}):
+            covariances[step] = {p: C for p, C in covariances[step].items() if p != part}
+    return records, covariances, int(changed.sum()), len(at)

@@ -7,7 +7,7 @@ import pytest
 
 from body_scheme_core.errors import ModelFileError
 from body_scheme_core.learning.learner import BodySchemeLearner
-from body_scheme_core.learning.mirrors import MIRROR_BLOCK, MirrorWatch, rechosen_poses
+from body_scheme_core.learning.mirrors import MIRROR_BLOCK, MirrorWatch, decide_flips, rechosen_history, rechosen_poses
 from body_scheme_core.transforms import mirror_about_ray, rotational_error, transform_from_rotvec
 from body_scheme_core.world import make_session, planar_2dof
 
@@ -48,6 +48,37 @@ def test_poses_are_chosen_again_against_the_mirror_of_the_prediction():
     poses, changed = rechosen_poses(predicted, stored)
     assert np.allclose(poses, true) and np.array_equal(changed, flipped)
 
+
+
+def _poses(k, seed=3):
+    rng = np.random.default_rng(seed)
+    return np.stack([transform_from_rotvec(rng.normal(size=3), [0.3, -0.2, 1.5] + 0.1 * rng.normal(size=3))
+                     for _ in range(k)])
+
+
+def test_a_flip_is_taken_in_mirrored_where_the_position_is_explained_and_refused_where_not():
+    true = _poses(3)
+    far = mirror_about_ray(true[2])
+    far[:3, 3] *= 1.3  # along the ray: the mirror image stays the same, the position is off
+    given = {1: true[0], 2: mirror_about_ray(true[1]), 3: far, 4: true[0]}
+    flips = decide_flips({1: true[0], 2: true[1], 3: true[2]}, given, math.radians(5), 0.05)
+    assert flips.judged == [1, 2, 3] and flips.mirrored == [2] and [p for p, _ in flips.refused] == [3]
+    assert np.allclose(flips.observations[2], true[1]) and set(flips.observations) == {1, 2, 4}
+    assert np.array_equal(given[2], mirror_about_ray(true[1]))  # the input is not changed
+
+
+def test_a_history_chosen_again_changes_new_records_only_and_drops_the_other_solutions_covariance():
+    true = _poses(4)
+    # What a scheme holding part 7's mirror image kept: true poses corrected into its mirror, one pose left true.
+    stored = [mirror_about_ray(true[0]), mirror_about_ray(true[1]), true[2], mirror_about_ray(true[3])]
+    records = [(s, np.full(1, float(s)), {7: stored[s], 8: true[s]}) for s in range(4)]
+    covariances = {0: {7: np.eye(6), 8: np.eye(6)}, 2: {7: np.eye(6)}}
+    new, covs, changed, n = rechosen_history(records, covariances, 7,
+                                             lambda A: mirror_about_ray(true[A[:, 0].astype(int)]))
+    assert (changed, n) == (3, 4) and all(np.allclose(new[s][2][7], true[s]) for s in range(4))
+    assert new[2] is records[2] and all(np.array_equal(new[s][2][8], true[s]) for s in range(4))
+    assert set(covs[0]) == {8} and set(covs[2]) == {7} and set(covariances[0]) == {7, 8}
+    assert records[0][2][7] is stored[0]
 
 def test_a_learner_whose_scheme_holds_a_parts_mirror_chooses_its_stored_poses_again():
     """A calibrated learner is shown one part mirrored about the ray on every step (as a scheme holding the part's
