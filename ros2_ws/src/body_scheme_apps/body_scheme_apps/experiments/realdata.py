@@ -97,8 +97,9 @@ def _split(n):
 
 
 def _learner(n_actions, noise, initial=None):
-    config = BodySchemeConfig(root=0, sensor_root=True, **({} if noise is None else {"sigma_trans": noise[0],
-                                                                                    "sigma_rot": noise[1]}))
+    # A laser tracker and motion capture have no planar-marker ambiguity: no mirrored readings.
+    config = BodySchemeConfig(root=0, sensor_root=True, mirror_hypotheses=False,
+                              **({} if noise is None else {"sigma_trans": noise[0], "sigma_rot": noise[1]}))
     return BodySchemeLearner([0, 1], n_actions, config, initial_models=initial)
 
 

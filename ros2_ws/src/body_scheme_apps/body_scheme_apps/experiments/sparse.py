@@ -161,7 +161,8 @@ def _learn(tree, A, observations, heldout, every, initial=None, sensor=False):
     the tool's observations only); returns the learner, the held-out errors (mm) after each ``every``-th step and
     the events."""
     parts = [SENSOR, 2] if sensor else list(tree.marker_ids)
-    config = BodySchemeConfig(root=SENSOR, sensor_root=True) if sensor else BodySchemeConfig(root=1)
+    config = (BodySchemeConfig(root=SENSOR, sensor_root=True, mirror_hypotheses=False)  # a laser tracker: no flips
+              if sensor else BodySchemeConfig(root=1))
     learner = BodySchemeLearner(parts, tree.n_actions, config, initial_models=initial,
                                 action_lower=tree.action_lower, action_upper=tree.action_upper)
     curve, events = [], []

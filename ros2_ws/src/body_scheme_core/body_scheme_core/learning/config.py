@@ -178,6 +178,12 @@ class BodySchemeConfig:
         helps where each detection's noise is random and its own (the joint fit's effector error 0.55 times as large
         when it varies one to eight times between detections); on the simulator's rendered images, whose errors
         are view-dependent biases the covariance does not describe, it made 2 of 3 sessions worse (docs/nodes.md).
+    mirror_hypotheses : bool
+        While a candidate learns (bootstrapping), each relative observation counts as whichever of its four readings
+        is nearest the candidate's prediction: each of its two poses as given or mirrored about the camera's ray (the
+        planar ambiguity a marker tracker falls into, :func:`~body_scheme_core.transforms.mirror_about_ray`), so a
+        flip before the scheme is calibrated neither teaches a model nor makes it invalid. Off: poses as given (a
+        tracker without the ambiguity: a laser tracker, motion capture).
     """
 
     sigma_trans: float | str = "auto"
@@ -223,6 +229,7 @@ class BodySchemeConfig:
     max_chain_joints: int = MAX_CHAIN_JOINTS
     sensor_root: bool = False
     detection_covariances: bool = False
+    mirror_hypotheses: bool = True
 
     def __post_init__(self):
         for name in ("sigma_trans", "sigma_rot"):
@@ -242,7 +249,8 @@ class BodySchemeConfig:
                 raise InvalidInputError(f"{name} must be below 1, got {getattr(self, name)!r}")
         if not self.cusum_clip > self.cusum_drift:
             raise InvalidInputError(f"cusum_clip ({self.cusum_clip!r}) must exceed cusum_drift ({self.cusum_drift!r})")
-        for name in ("fit_joint_scale", "gp_optimize", "lazy_layers", "sensor_root", "detection_covariances"):
+        for name in ("fit_joint_scale", "gp_optimize", "lazy_layers", "sensor_root", "detection_covariances",
+                     "mirror_hypotheses"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidInputError(f"{name} must be true or false, got {getattr(self, name)!r}")
         kinds = self.candidate_kinds

@@ -160,7 +160,8 @@ class BodySchemeLearner(JointFitSteps):
         self.n_actions = n_actions
         self.root = root_part(parts, config.root)
         self.noise = NoiseModel.from_config(parts, config)
-        self._pairs = PartPairs(parts, self.noise, exact=(self.root,) if config.sensor_root else ())
+        self._pairs = PartPairs(parts, self.noise, exact=(self.root,) if config.sensor_root else (),
+                                mirrors=config.mirror_hypotheses)
 
     def _set_models(self, pool, tree, bootstrapping, found, tree_since, mismatch, calibrated, vetoed=None,
                     refining=None, unexplained=None, lack_of_fit=(), failed=None, root_watch=None, root_since=0,

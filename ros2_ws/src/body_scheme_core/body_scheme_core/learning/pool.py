@@ -62,6 +62,10 @@ class Targets(NamedTuple):
     flip : ndarray of bool, shape (k,)
         Where ``Z`` is the *inverse* of what the model predicts: the prediction is inverted before the comparison,
         so the error is measured in the direction whose translation carries no parent-orientation lever arm.
+    alternatives : ndarray, shape (k, 3, 4, 4), or None
+        Other readings of each ``Z`` (its poses mirrored about the camera's ray,
+        :attr:`~body_scheme_core.learning.relative.RelativeObservations.alternatives`); a model is judged against,
+        and learns from, the reading nearest its prediction (:meth:`nearest`). None: ``Z`` only.
     """
 
     Z: np.ndarray
@@ -69,11 +73,27 @@ class Targets(NamedTuple):
     theta_rot: np.ndarray
     sigma: np.ndarray
     flip: np.ndarray
+    alternatives: np.ndarray | None = None
 
     def select(self, index):
         """The rows ``index``."""
         return Targets(self.Z[index], self.theta_trans[index], self.theta_rot[index], self.sigma[index],
-                       self.flip[index])
+                       self.flip[index], None if self.alternatives is None else self.alternatives[index])
+
+    def nearest(self, Zp, index=slice(None)):
+        """Of rows ``index``, the observed transform, or the alternative reading (poses mirrored about the ray) that
+        explains the predictions ``Zp`` where it does not: off by more than a threshold while the alternative is
+        within both and less than half as far (in threshold units, the larger of the two errors)."""
+        Z = self.Z[index]
+        if self.alternatives is None:
+            return Z
+        options = np.concatenate([Z[:, None], self.alternatives[index]], axis=1)
+        e_t, e_r = prediction_errors(Zp[:, None], options)
+        ratio = np.maximum(e_t / self.theta_trans[index][:, None], e_r / self.theta_rot[index][:, None])
+        best = 1 + np.argmin(ratio[:, 1:], axis=1)
+        k = np.arange(len(Z))
+        use = (ratio[:, 0] > 1.0) & (ratio[k, best] <= 1.0) & (ratio[k, best] < 0.5 * ratio[:, 0])
+        return np.where(use[:, None, None], options[k, best], Z)
 
 
 class LearningSlots(NamedTuple):
@@ -339,7 +359,7 @@ class ModelPool:
                 Zp[i] = P
         if np.any(targets.flip):
             Zp[targets.flip] = invert_transform(Zp[targets.flip])
-        e_t, e_r = prediction_errors(Zp, targets.Z)
+        e_t, e_r = prediction_errors(Zp, targets.nearest(Zp))
         return self.monitor.record([e.row for e in entries], e_t, e_r, step, n_train=[e.n_train for e in entries],
                                    cusum=cusum, theta_trans=targets.theta_trans, theta_rot=targets.theta_rot)
 
@@ -377,20 +397,24 @@ class ModelPool:
             for size in np.unique(n):
                 group = g[n == size]
                 Zp = self.gp_batch.predict(slots[group], a)
+                Z = targets.Z[group]
                 if size > 0:  # an empty GP predicts the identity: its error says nothing about the model
-                    e_t, e_r = prediction_errors(Zp, targets.Z[group])
+                    Z = targets.nearest(Zp, group)
+                    e_t, e_r = prediction_errors(Zp, Z)
                     self.monitor.record(rows[group], e_t, e_r, step, n_train=size, cusum=False,
                                         theta_trans=targets.theta_trans[group], theta_rot=targets.theta_rot[group])
                 if size < limit:
-                    self.gp_batch.add_samples(slots[group], a, targets.Z[group])
+                    self.gp_batch.add_samples(slots[group], a, Z)
         if np.any(rigid):
             r = np.flatnonzero(rigid)
             batch = self.rigid_batch
             n = batch.size(slots[r])
             Zp, ready = batch.predict(slots[r], a)
+            Z = targets.Z[r]
             if np.any(ready):
                 seen = r[ready]
-                e_t, e_r = prediction_errors(Zp[ready], targets.Z[seen])
+                Z[ready] = targets.nearest(Zp[ready], seen)
+                e_t, e_r = prediction_errors(Zp[ready], Z[ready])
                 self.monitor.record(rows[seen], e_t, e_r, step, n_train=n[ready], cusum=False,
                                     theta_trans=targets.theta_trans[seen], theta_rot=targets.theta_rot[seen])
             open_ = n < limit
@@ -399,7 +423,7 @@ class ModelPool:
                 size = n[open_] + 1
                 refit = self._promising([entries[k] for k in learn], rows[learn]) & np.isin(size, list(_REFIT_SIZES))
                 refit |= (size % _SLOW_REFIT == 0) | (size >= limit)
-                batch.add_samples(slots[learn], a, targets.Z[learn], targets.sigma[learn], refit=refit)
+                batch.add_samples(slots[learn], a, Z[open_], targets.sigma[learn], refit=refit)
 
     def replay(self, entries, history, targets_at, start=None):
         """Train learning ``entries`` on recorded ``history`` (``(step, a, observations)`` records) at once,

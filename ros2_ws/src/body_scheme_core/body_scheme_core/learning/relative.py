@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..transforms import invert_transform
+from ..transforms import invert_transform, mirror_about_ray
 from .validity import translation_threshold
 
 __all__ = ["PartPairs", "RelativeObservations"]
@@ -36,6 +36,9 @@ class RelativeObservations(NamedTuple):
     sigma : ndarray, shape (k, 2)
         Per-axis noise std of each row (trans m, rot rad): two markers' noise, and the parent's orientation noise
         times the distance (the lever arm) in translation.
+    alternatives : ndarray, shape (k, 3, 4, 4), or None
+        Each row's other readings: the first pose mirrored about the camera's ray, the second, both (None: the
+        poses are taken as given; :class:`PartPairs` ``mirrors``).
     """
 
     Z: np.ndarray
@@ -43,6 +46,7 @@ class RelativeObservations(NamedTuple):
     theta_trans: np.ndarray
     theta_rot: float
     sigma: np.ndarray
+    alternatives: np.ndarray | None = None
 
     def targets(self, pair):
         """:class:`~body_scheme_core.learning.pool.Targets` of models in canonical direction with pair indices
@@ -51,7 +55,8 @@ class RelativeObservations(NamedTuple):
 
         rows = self.row[pair]
         return Targets(self.Z[rows], self.theta_trans[rows], np.full(len(rows), self.theta_rot), self.sigma[rows],
-                       np.zeros(len(rows), dtype=bool))
+                       np.zeros(len(rows), dtype=bool),
+                       None if self.alternatives is None else self.alternatives[rows])
 
     def of_pairs(self, pair, flip):
         """Observed transforms of models with pair indices ``pair`` (all observed), inverted where ``flip``.
@@ -86,6 +91,10 @@ class PartPairs:
     exact : iterable of int
         Parts whose pose is given without noise (the sensor as the root, ``sensor_root``): a pair with one of them
         carries one marker's noise, and no lever arm of its orientation noise.
+    mirrors : bool
+        Also form each pair's readings with either pose, or both, mirrored about the camera's ray (a tracker's
+        planar ambiguity; ``config.mirror_hypotheses``): :attr:`RelativeObservations.alternatives`. Exact parts are
+        never mirrored.
 
     Attributes
     ----------
@@ -94,7 +103,7 @@ class PartPairs:
         Position of each part id in ``part_ids``.
     """
 
-    def __init__(self, part_ids, noise, exact=()):
+    def __init__(self, part_ids, noise, exact=(), mirrors=False):
         self.part_ids = tuple(part_ids)
         self.noise = noise
         self.part_index = {p: k for k, p in enumerate(self.part_ids)}
@@ -103,6 +112,7 @@ class PartPairs:
         self._first = np.array([i for i, _ in pairs], dtype=np.intp)
         self._second = np.array([j for _, j in pairs], dtype=np.intp)
         noisy = np.array([p not in set(exact) for p in self.part_ids], dtype=float)
+        self._mirrored = noisy.astype(bool) if mirrors else None
         # Per pair: how many of its two poses are noisy, and whether the first one's orientation noise has a lever.
         self._markers = noisy[self._first] + noisy[self._second]
         self._lever = noisy[self._first]
@@ -162,4 +172,12 @@ class PartPairs:
         sigma_t, sigma_r = self.noise.sigma_trans, self.noise.sigma_rot
         sigma = np.stack([np.sqrt((markers * sigma_t**2 + (2.0 / 3.0) * sigma_r**2 * d2) / 3.0),
                           sigma_r * np.sqrt(markers / 3.0)], axis=1)
-        return RelativeObservations(Z, row, self.threshold(Z, lever), self.noise.theta_rot, sigma)
+        alternatives = None
+        if self._mirrored is not None:
+            Ym = Y[seen]
+            Ym[self._mirrored[seen]] = mirror_about_ray(Ym[self._mirrored[seen]])
+            first, second = inv_index[self._first[both]], inv_index[self._second[both]]
+            Ymi = invert_transform(Ym)
+            alternatives = np.stack([Ymi[first] @ Y[seen][second], Yinv[first] @ Ym[second], Ymi[first] @ Ym[second]],
+                                    axis=1)
+        return RelativeObservations(Z, row, self.threshold(Z, lever), self.noise.theta_rot, sigma, alternatives)

@@ -177,3 +177,23 @@ def test_targets_select_rows():
     np.testing.assert_array_equal(sub.theta_trans, [3.0, 2.0])
     np.testing.assert_array_equal(sub.flip, [False, True])
 
+
+
+def test_a_model_is_judged_against_a_mirrored_reading_only_where_that_explains_what_the_given_one_does_not():
+    """Targets.nearest: a flipped child pose is read mirrored when the prediction is off by more than the
+    thresholds and the mirrored reading is within them; a reading the prediction explains is kept as given, and a
+    mirrored one that is not within the thresholds is not taken either."""
+    from body_scheme_core.transforms import mirror_about_ray
+
+    pairs = PartPairs((1, 2), NoiseModel((1, 2), 0.005, np.radians(1.0)), mirrors=True)  # thresholds 15 mm, 3 deg
+    world2base = transform_from_rotvec([0.2, -0.3, 0.1], [0.1, 0.0, 1.5])
+    truth = world2base @ _link(0.7)
+    tilted = truth @ transform_from_rotvec([0.0, 0.9, 0.0], [0.0, 0.0, 0.0])  # 52 deg from face-on: a large flip
+    link = invert_transform(world2base) @ tilted
+    flipped = pairs.observe({1: world2base, 2: mirror_about_ray(tilted)}).targets(np.array([0]))
+    given = pairs.observe({1: world2base, 2: tilted}).targets(np.array([0]))
+    assert prediction_errors(link[None], flipped.Z)[1][0] > np.radians(20)
+    assert np.allclose(flipped.nearest(link[None]), link[None])
+    assert np.array_equal(given.nearest(link[None]), given.Z)
+    wrong = link @ transform_from_rotvec([0.0, 0.0, 1.5], [0.0, 0.0, 0.0])  # a model off either way
+    assert np.array_equal(flipped.nearest(wrong[None]), flipped.Z)

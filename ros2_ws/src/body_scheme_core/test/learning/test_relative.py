@@ -95,3 +95,24 @@ def test_fewer_than_two_observed_parts_give_no_relative_observation():
     pairs = PartPairs((1, 2, 3), _noise((1, 2, 3)))
     rel = pairs.observe({2: np.eye(4)})
     assert rel.Z.shape == (0, 4, 4) and rel.theta_trans.shape == (0,) and np.all(rel.row == -1)
+
+
+def test_mirror_hypotheses_give_each_pair_its_three_other_readings_and_never_mirror_an_exact_part():
+    """With ``mirrors``, row k's alternatives are Y_i'^-1 Y_j, Y_i^-1 Y_j', Y_i'^-1 Y_j' (' = mirrored about the
+    camera's ray); the sensor root, exact, is never mirrored; without ``mirrors`` there are none."""
+    from body_scheme_core.transforms import mirror_about_ray
+
+    rng = np.random.default_rng(4)
+    parts = (1, 2, 3)
+    Y = {p: transform_from_rotvec(rng.normal(size=3), [0.2 * p, -0.1, 1.5]) for p in parts}
+    rel = PartPairs(parts, _noise(parts), mirrors=True).observe(Y)
+    M = {p: mirror_about_ray(Y[p]) for p in parts}
+    for (i, j), k in zip(itertools.combinations(parts, 2), range(3), strict=True):
+        row = rel.row[k]
+        assert np.allclose(rel.Z[row], relative_transform(Y[i], Y[j]))
+        assert np.allclose(rel.alternatives[row], [relative_transform(M[i], Y[j]), relative_transform(Y[i], M[j]),
+                                                   relative_transform(M[i], M[j])])
+    assert np.allclose(rel.targets(np.array([2])).alternatives[0][1], relative_transform(Y[2], M[3]))
+    exact = PartPairs(parts, _noise(parts), exact=(1,), mirrors=True).observe({**Y, 1: np.eye(4)})
+    assert np.allclose(exact.alternatives[exact.row[0]][0], exact.Z[exact.row[0]])  # part 1 stays as given
+    assert PartPairs(parts, _noise(parts)).observe(Y).alternatives is None
