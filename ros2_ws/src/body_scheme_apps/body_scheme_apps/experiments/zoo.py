@@ -7,8 +7,9 @@ marker, links with two, dummy actions and shuffled marker ids. :func:`~body_sche
 (:func:`~body_scheme_core.world.random_fault`, by seed in turn: a joint blocked in the middle of its range, a limb bent
 by 20 deg, a marker moved by 3 noise RMS, a tool lengthening a last limb by 3 noise RMS), every marker dropped in 15 %
 of the steps. A :class:`~body_scheme_core.learning.learner.BodySchemeLearner` learns from scratch with the default
-configuration: it is given no noise value. The noise levels (position as the RMS of the 3D error, orientation as the
-RMS angle, see :class:`~body_scheme_core.world.ObservationModel`):
+configuration, given no noise value; at the levels with mirrored orientations (``realcam``, ``flips30``) it is told
+what a tag tracker's user would tell it, ``mirror_hypotheses`` (:data:`LEARNER_SETTINGS`). The noise levels (position
+as the RMS of the 3D error, orientation as the RMS angle, see :class:`~body_scheme_core.world.ObservationModel`):
 
 - ``camera``: 5 mm / 1 deg, isotropic;
 - ``realcam``: 3 mm per axis across the ray, 20 mm along it, 3 deg, 3 % of the orientations mirrored about the ray
@@ -37,7 +38,7 @@ import time
 
 import numpy as np
 
-from body_scheme_core.learning import BodySchemeLearner
+from body_scheme_core.learning import BodySchemeConfig, BodySchemeLearner
 from body_scheme_core.transforms import mirror_about_ray, rotational_error
 from body_scheme_core.world import RANDOM_FAULTS, Body, is_correct_model, is_true_tree, make_session, random_fault
 from body_scheme_core.world import zoo_robot as _zoo_robot
@@ -57,6 +58,9 @@ NOISE_LEVELS = {
     "flips30": {"sigma_trans": math.sqrt(2 * 0.003**2 + 0.020**2), "sigma_rot": math.radians(3.0),
                 "depth_ratio": 0.020 / 0.003, "flip_rate": 0.30},
 }
+#: The learner's settings per level beyond the defaults: the levels of a tag tracker whose poses flip are learned as
+#: its user would (``learner.mirror_hypotheses``); the learner is never told the noise.
+LEARNER_SETTINGS = {"realcam": {"mirror_hypotheses": True}, "flips30": {"mirror_hypotheses": True}}
 #: A flip's mirror image is nearer the true orientation than the observation by more than this many noise RMS.
 FLIP_MARGIN = 3.0
 VARIANTS = tuple(NOISE_LEVELS)
@@ -162,7 +166,8 @@ def run(seed, perception="camera", quick=False):
     changed = fault.apply(Body(tree), Body(tree))
     A_test = rng.uniform(tree.action_lower, tree.action_upper, (100, tree.n_actions))
     affected = _affected(tree, changed, A_test)
-    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions, action_lower=tree.action_lower,
+    config = BodySchemeConfig(**LEARNER_SETTINGS.get(perception, {}))
+    learner = BodySchemeLearner(tree.marker_ids, tree.n_actions, config, action_lower=tree.action_lower,
                                 action_upper=tree.action_upper)
     exceptions, false_alarms, repairs, detected_at, collateral = 0, 0, 0, None, 0
     flips = FlipTally(FLIP_MARGIN * level["sigma_rot"])
