@@ -179,13 +179,13 @@ class BodySchemeConfig:
         when it varies one to eight times between detections); on the simulator's rendered images, whose errors
         are view-dependent biases the covariance does not describe, it made 2 of 3 sessions worse (docs/nodes.md).
     mirror_hypotheses : bool
-        While a candidate learns (bootstrapping), each relative observation counts as whichever of its four readings
-        is nearest the candidate's prediction: each of its two poses as given or mirrored about the camera's ray (the
-        planar ambiguity a marker tracker falls into, :func:`~body_scheme_core.transforms.mirror_about_ray`), where
-        the given reading is off by more than a threshold and the other is within both and less than half as far, so
-        a flip before the scheme is calibrated neither teaches a model nor makes it invalid. Off (the default): poses
-        as given, as a laser tracker or motion capture needs. On for a tag tracker whose poses flip often (the robot
-        zoo's 30 % level: the true tree in 23 of 40 bodies instead of 15); on flip-free poses at the paper's noise
+        While a candidate learns (bootstrapping), a relative observation may be read with one or both of its poses
+        mirrored about the camera's ray (the planar ambiguity a marker tracker falls into,
+        :func:`~body_scheme_core.transforms.mirror_about_ray`): where the given reading is off the candidate's
+        prediction by more than a threshold and the other is within both and less than half as far, so a flip before
+        the scheme is calibrated neither teaches a model nor makes it invalid. Off (the default): poses as given, as a
+        laser tracker or motion capture needs. On for a tag tracker whose poses flip often (the robot zoo's 30 %
+        level: the true tree in 26 of 40 bodies instead of 15); on flip-free poses at the paper's noise
         (thresholds of 45 deg) the other readings make wrong candidates valid for a while: more tree changes,
         bootstrapping 2.8 times as long on the 6-DOF arm (docs/core/learning-and-adaptation.md, Sec. 1).
     """

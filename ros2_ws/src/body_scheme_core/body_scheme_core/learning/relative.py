@@ -164,9 +164,11 @@ class PartPairs:
         row[both] = np.arange(both.size)
         if both.size == 0:
             return RelativeObservations(np.zeros((0, 4, 4)), row, np.zeros(0), self.noise.theta_rot, np.ones((0, 2)))
-        Yinv = invert_transform(Y[seen])
+        Ys = Y[seen]
+        Yinv = invert_transform(Ys)
         inv_index = np.cumsum(seen) - 1
-        Z = Yinv[inv_index[self._first[both]]] @ Y[self._second[both]]
+        first, second = inv_index[self._first[both]], inv_index[self._second[both]]
+        Z = Yinv[first] @ Ys[second]
         markers, lever = self._markers[both], self._lever[both]
         d2 = np.sum(Z[:, :3, 3] ** 2, axis=1) * lever
         sigma_t, sigma_r = self.noise.sigma_trans, self.noise.sigma_rot
@@ -174,10 +176,9 @@ class PartPairs:
                           sigma_r * np.sqrt(markers / 3.0)], axis=1)
         alternatives = None
         if self._mirrored is not None:
-            Ym = Y[seen]
+            Ym = Ys.copy()
             Ym[self._mirrored[seen]] = mirror_about_ray(Ym[self._mirrored[seen]])
-            first, second = inv_index[self._first[both]], inv_index[self._second[both]]
             Ymi = invert_transform(Ym)
-            alternatives = np.stack([Ymi[first] @ Y[seen][second], Yinv[first] @ Ym[second], Ymi[first] @ Ym[second]],
+            alternatives = np.stack([Ymi[first] @ Ys[second], Yinv[first] @ Ym[second], Ymi[first] @ Ym[second]],
                                     axis=1)
         return RelativeObservations(Z, row, self.threshold(Z, lever), self.noise.theta_rot, sigma, alternatives)
