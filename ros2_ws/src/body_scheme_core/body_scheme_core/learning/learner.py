@@ -441,7 +441,8 @@ class BodySchemeLearner(JointFitSteps):
         cal = self._calibrated
         if cal is None:
             return valid, [], []
-        flips = decide_flips(self._predicted(cal, a), valid, self.noise.theta_rot, self.noise.theta_trans)
+        flips = decide_flips(self._predicted(cal, a), valid, self.noise.theta_rot, self.noise.theta_trans,
+                             eager=self.config.mirror_hypotheses)
         if flips.mirrored:  # (a counter gains a key only when it counts something)
             self.corrected["flipped"] += len(flips.mirrored)
         if flips.refused:

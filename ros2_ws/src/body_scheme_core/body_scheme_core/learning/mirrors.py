@@ -25,20 +25,28 @@ from ..errors import ModelFileError
 from ..state_values import integer, listing
 from ..transforms import mirror_about_ray, rotational_error
 
-__all__ = ["MIRROR_BLOCK", "mirrored_observations", "FlipDecisions", "decide_flips", "MirrorWatch", "rechosen_poses",
-           "rechosen_history"]
+__all__ = ["MIRROR_BLOCK", "EAGER_FLOOR", "mirrored_observations", "FlipDecisions", "decide_flips", "MirrorWatch",
+           "rechosen_poses", "rechosen_history"]
 
 #: Observations of a part per decision of :class:`MirrorWatch`. At a 30 % flip rate more than half of 60 are taken
 #: in mirrored with probability about 1e-4 while the scheme is right; about 70 % are while it holds the mirror.
 MIRROR_BLOCK = 60
 
+#: The ``floor`` of :func:`mirrored_observations` for a tracker known to flip (``config.mirror_hypotheses``): a third
+#: of the rotational threshold, about one noise RMS at the default 3-sigma validity. A flip of a marker seen nearly
+#: face-on is off by less than the threshold, so the stricter default floor (1) lets it through, and the
+#: rotational CUSUM of a rigid edge sums such flips into false alarms (robot zoo, 30 % flips).
+EAGER_FLOOR = 1.0 / 3.0
 
-def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.inf):
+
+def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.inf, floor=1.0):
     """``[(part, detail, placed)]``: observations whose orientation is the mirror image about the camera's ray of what
     the calibrated body scheme predicts (``world2part``, per part, at this step's actions; the planar ambiguity a
-    marker tracker falls into): off by more than ``theta_rot`` while the mirror is within it and less than half as
-    far off. ``placed``: the observed position is within ``theta_trans`` of the predicted one (a flip keeps the
-    position, so the prediction is then trusted to tell which orientation is the true one). Every predicted part is
+    marker tracker falls into): off by more than ``floor`` times ``theta_rot`` while the mirror is within
+    ``theta_rot`` and less than half as far off (``floor`` below 1: also a flip whose mirror image is only a few
+    noise RMS away, as of a marker seen nearly face-on, :data:`EAGER_FLOOR`). ``placed``: the observed position is
+    within ``theta_trans`` of the predicted one (a flip keeps the position, so the prediction is then trusted to
+    tell which orientation is the true one). Every predicted part is
     judged, also one the scheme does not explain yet: a prediction that is wrong by a change or a poor fit makes a
     true observation look neither near nor mirrored, and a flip let through would look like a lack of fit itself."""
     parts = [p for p in observations if p in world2part]
@@ -48,7 +56,7 @@ def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.
     observed = np.stack([observations[p] for p in parts])
     error = rotational_error(predicted, observed)
     mirrored = rotational_error(predicted, mirror_about_ray(observed))
-    flipped = (error > theta_rot) & (mirrored <= theta_rot) & (mirrored < 0.5 * error)
+    flipped = (error > floor * theta_rot) & (mirrored <= theta_rot) & (mirrored < 0.5 * error)
     placed = np.linalg.norm(predicted[:, :3, 3] - observed[:, :3, 3], axis=1) <= theta_trans
     return [(p, f"the orientation of part {p} is {math.degrees(e):.0f} deg from the body scheme's prediction, "
                 f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
@@ -77,12 +85,14 @@ class FlipDecisions(NamedTuple):
     refused: list
 
 
-def decide_flips(predicted, observations, theta_rot, theta_trans):
+def decide_flips(predicted, observations, theta_rot, theta_trans, eager=False):
     """The flip check of one step (:func:`mirrored_observations`) applied: a flip whose position the scheme explains
-    is taken in mirrored, one whose position it does not is refused. ``observations`` is not changed."""
+    is taken in mirrored, one whose position it does not is refused. ``eager``: the tracker is known to flip, so a
+    flip off by more than :data:`EAGER_FLOOR` times ``theta_rot`` counts. ``observations`` is not changed."""
     taken = dict(observations)
     mirrored, refused = [], []
-    for part, detail, placed in mirrored_observations(predicted, observations, theta_rot, theta_trans):
+    floor = EAGER_FLOOR if eager else 1.0
+    for part, detail, placed in mirrored_observations(predicted, observations, theta_rot, theta_trans, floor):
         if placed:  # the scheme explains where the part is: its mirrored orientation is the true one
             taken[part] = mirror_about_ray(taken[part])
             mirrored.append(part)

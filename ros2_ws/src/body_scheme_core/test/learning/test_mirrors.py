@@ -68,6 +68,31 @@ def test_a_flip_is_taken_in_mirrored_where_the_position_is_explained_and_refused
     assert np.array_equal(given[2], mirror_about_ray(true[1]))  # the input is not changed
 
 
+def _nearly_face_on(tilt_deg):
+    """A marker at 1.5 m whose normal is ``tilt_deg`` off the camera's ray: its mirror image is twice that away."""
+    position = np.array([0.3, -0.2, 1.5])
+    z = -position / np.linalg.norm(position)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = np.column_stack([x, np.cross(z, x), z]), position
+    return pose @ transform_from_rotvec([math.radians(tilt_deg), 0.0, 0.0], [0.0, 0.0, 0.0])
+
+
+def test_a_tracker_known_to_flip_has_its_flips_of_a_nearly_face_on_marker_taken_in_mirrored():
+    true, theta = _nearly_face_on(1.5), math.radians(5)
+    flip = mirror_about_ray(true)
+    assert math.radians(2.9) < rotational_error(true[None], flip[None])[0] < math.radians(3.1)  # within theta
+    noisy = true @ transform_from_rotvec([0.0, math.radians(2.5), 0.0], [0.0, 0.0, 0.0])  # a true pose, 2.5 deg off
+    given = {1: flip, 2: noisy}
+    assert decide_flips({1: true, 2: true}, given, theta, 0.05).mirrored == []  # off by less than theta: let through
+    eager = decide_flips({1: true, 2: true}, given, theta, 0.05, eager=True)
+    assert eager.mirrored == [1] and np.allclose(eager.observations[1], true)
+    assert np.array_equal(eager.observations[2], noisy)  # its mirror image is no nearer: kept as given
+    tiny = {1: mirror_about_ray(_nearly_face_on(0.4))}  # 0.8 deg: below EAGER_FLOOR * theta, noise
+    assert decide_flips({1: _nearly_face_on(0.4)}, tiny, theta, 0.05, eager=True).mirrored == []
+
+
 def test_a_history_chosen_again_changes_new_records_only_and_drops_the_other_solutions_covariance():
     true = _poses(4)
     # What a scheme holding part 7's mirror image kept: true poses corrected into its mirror, one pose left true.
