@@ -115,7 +115,7 @@ class BabbleNode(Node):
         self.watch = watched_status(p("watch_diagnostics", "scheme_node").value, self.get_namespace())
         self.error_hold = p("error_hold", 2.0).value
         camera_topic = p("camera_topic", "observations").value
-        self.camera_timeout = p("camera_timeout", 3.0).value
+        self.camera_timeout = p("camera_timeout", 10.0).value
         self.wait_for_frame = p("wait_for_frame", True).value
         self.joint_state_timeout = p("joint_state_timeout", 3.0).value
         camera_info_topic = p("camera_info_topic", "camera/camera_info").value
