@@ -13,17 +13,16 @@ Every step, against the chain-consistent targets of the calibrated body scheme
 
 from __future__ import annotations
 
-from .challengers import Challengers
-from .detection import Detection
-from .memory import Memory
-from .repair import Repair
+from . import challengers, detection, repair
 from .tracked import CANDIDATE, MEMORY
 
 __all__ = ["Adaptation"]
 
 
-class Adaptation(Detection, Repair, Challengers, Memory):
+class Adaptation:
     """Detects mismatching tree models and repairs them from memory or with newly learned replacements.
+
+    The state the steps share; the steps are functions of the modules named above that take it (``adapt``).
 
     Parameters
     ----------
@@ -46,6 +45,9 @@ class Adaptation(Detection, Repair, Challengers, Memory):
     mismatch : dict of int to Mismatch
     refining : dict of int to tuple (int, int)
     failed : dict of frozenset to tuple (int, int)
+    chain_samples : dict of int to int
+        Per failed chain's model id, the samples its replacements were last fitted on (not saved: after a load they
+        are fitted again once there are enough).
     """
 
     def __init__(self, config, pool, history, part_ids, root, mismatch=None, refining=None, failed=None):
@@ -57,7 +59,7 @@ class Adaptation(Detection, Repair, Challengers, Memory):
         self.mismatch = {} if mismatch is None else mismatch
         self.refining = {} if refining is None else dict(refining)
         self.failed = {} if failed is None else dict(failed)
-        self._chain_samples = {}  # failed chain id -> samples its replacements were last fitted on (Repair)
+        self.chain_samples = {}
 
     def step(self, tree, a, chain, chain_at, step, events):
         """One step after bootstrapping: evaluate and train, detect mismatches, repair the edges in mismatch.
@@ -99,12 +101,20 @@ class Adaptation(Detection, Repair, Challengers, Memory):
         if fitted:
             index, targets = chain.for_entries(fitted, own=True)
             pool.evaluate([fitted[k] for k in index], a, targets, step, cusum=False)
-        changes = self._refine_choices(tree, step, events) + self._challenge(tree, step, events)
+        changes = repair.refine_choices(self, tree, step, events) + challengers.challenge(self, tree, step, events)
         # After those changes: detection sees the tree as it is now (a replaced model is no edge of it any more).
-        self._detect(tree, alarms, step, events)
+        detection.detect(self, tree, alarms, step, events)
         for edge_id in list(self.mismatch):
             if edge_id in self.mismatch:
-                change = self._repair(tree, pool.tracked[edge_id], chain, chain_at, step, events)
+                change = repair.repair(self, tree, pool.tracked[edge_id], chain, chain_at, step, events)
                 if change is not None:
                     changes.append(change)
         return changes
+
+    def sample_challengers(self, tree, chain, chain_at, step, events):
+        """:func:`~body_scheme_core.learning.challengers.sample_challengers` (right after bootstrapping)."""
+        challengers.sample_challengers(self, tree, chain, chain_at, step, events)
+
+    def flag(self, entry, step, events, cause):
+        """:func:`~body_scheme_core.learning.detection.flag`: tree edge ``entry`` in mismatch for ``cause``."""
+        detection.flag(self, entry, step, events, cause)

@@ -23,7 +23,8 @@ from ..events import Event, finite_or_none, format_errors
 from ..limits import MAX_INTEGER
 from ..state_values import integer, listing, mapping
 
-__all__ = ["Detection", "Mismatch", "upstream_edges"]
+__all__ = ["Mismatch", "upstream_edges", "detect", "flag", "root_most_rising", "mismatch_state",
+           "mismatch_from_state"]
 
 #: An alarm is attributed to an edge above it only if that edge's CUSUM reached this fraction of the alarm level: a
 #: change above raises the errors of its own child too, while healthy edges wander a little above zero (up to 0.7 of
@@ -53,7 +54,7 @@ class Mismatch:
     bridged_at : int
         Step at which candidates of other pairs across the cut were sampled; -1 before.
     search : int
-        1 when the edge is searched for like a new one (:meth:`Adaptation.flag`: the joint fit left a part below it
+        1 when the edge is searched for like a new one (:func:`flag`: the joint fit left a part below it
         unexplained; or its pair failed again within ``2 test_window`` steps): no remembered model is asked (the body
         did not change back), candidates of the pair and of every pair across the cut are sampled together, and the
         cheapest by absolute complexity wins, as while bootstrapping.
@@ -108,143 +109,145 @@ def upstream_edges(root, edges):
     return out
 
 
-class Detection:
-    """Mismatch detection, a part of :class:`~body_scheme_core.learning.adaptation.Adaptation` (which holds
-    ``config``, ``pool``, ``root`` and the edges in :attr:`mismatch`)."""
+def detect(adapt, tree, alarms, step, events):
+    """Mismatch detection on the tree edges evaluated in this step (``alarms``: CUSUM alarm by model id)."""
+    c = adapt.config
+    pool = adapt.pool
+    monitor = pool.monitor
+    observed = [pool.tracked[i] for i in tree if i in alarms and i not in adapt.mismatch]
+    if not observed:
+        return
+    upstream = None  # the tree's paths, found when an edge alarms (rarely: not every step)
+    st, valid = pool.window_stats([e.row for e in observed], [pool.n_now(e) for e in observed])
+    for k, e in enumerate(observed):
+        if e.id in adapt.mismatch:  # attributed from an edge below it earlier in this loop
+            continue
+        window_bad = st.n[k] >= c.min_test_samples and not valid[k]
+        if not (alarms[e.id] or window_bad):
+            _challenge_from_memory(adapt, e, step, events, st, k)
+            continue
+        if upstream is None:
+            upstream = upstream_edges(adapt.root, [(pool.tracked[i].parent, pool.tracked[i].child, i)
+                                                  for i in tree])
+        above = upstream.get(e.id, [])
+        if any(i in adapt.mismatch for i in above):
+            continue  # its errors follow from the edge above (it should not have had a target)
+        culprit = root_most_rising(pool, c.cusum_threshold, above, e)
+        if culprit is None:
+            _start_mismatch(adapt, e, step, events, bool(alarms[e.id]), st, k)
+            continue
+        f = pool.tracked[culprit]
+        st_f, _ = pool.window_stats([f.row], [pool.n_now(f)])
+        cause = (f"the errors of {e.describe()} below it rose with its own (CUSUM "
+                 f"{monitor.cusum[f.row][0]:.2f} / {monitor.cusum[f.row][1]:.2f} since step "
+                 f"{int(monitor.change_point([f.row])[0])})")
+        _start_mismatch(adapt, f, step, events, False, st_f, 0, cause=cause)
 
-    def _detect(self, tree, alarms, step, events):
-        """Mismatch detection on the tree edges evaluated in this step (``alarms``: CUSUM alarm by model id)."""
-        c = self.config
-        pool = self.pool
-        monitor = pool.monitor
-        observed = [pool.tracked[i] for i in tree if i in alarms and i not in self.mismatch]
-        if not observed:
-            return
-        upstream = None  # the tree's paths, found when an edge alarms (rarely: not every step)
-        st, valid = pool.window_stats([e.row for e in observed], [pool.n_now(e) for e in observed])
-        for k, e in enumerate(observed):
-            if e.id in self.mismatch:  # attributed from an edge below it earlier in this loop
-                continue
-            window_bad = st.n[k] >= c.min_test_samples and not valid[k]
-            if not (alarms[e.id] or window_bad):
-                self._challenge_from_memory(e, step, events, st, k)
-                continue
-            if upstream is None:
-                upstream = upstream_edges(self.root, [(pool.tracked[i].parent, pool.tracked[i].child, i)
-                                                      for i in tree])
-            above = upstream.get(e.id, [])
-            if any(i in self.mismatch for i in above):
-                continue  # its errors follow from the edge above (it should not have had a target)
-            culprit = self._root_most_rising(above, e)
-            if culprit is None:
-                self._start_mismatch(e, step, events, bool(alarms[e.id]), st, k)
-                continue
-            f = pool.tracked[culprit]
-            st_f, _ = pool.window_stats([f.row], [pool.n_now(f)])
-            cause = (f"the errors of {e.describe()} below it rose with its own (CUSUM "
-                     f"{monitor.cusum[f.row][0]:.2f} / {monitor.cusum[f.row][1]:.2f} since step "
-                     f"{int(monitor.change_point([f.row])[0])})")
-            self._start_mismatch(f, step, events, False, st_f, 0, cause=cause)
 
-    def _root_most_rising(self, above, entry):
-        """The edge nearest the root among ``above`` whose CUSUM excursion started no later than ``entry``'s and
-        reached at least ``_ATTRIBUTION_FRACTION`` of the alarm level (a noise excursion of a healthy edge does not)."""
-        monitor = self.pool.monitor
-        start = int(monitor.change_point([entry.row])[0])
-        start = math.inf if start < 0 else start
-        level = _ATTRIBUTION_FRACTION * self.config.cusum_threshold
-        for i in above:
-            f = self.pool.tracked[i]
-            if not np.any(monitor.cusum[f.row] >= level):
-                continue
-            tau = int(monitor.change_point([f.row])[0])
-            if 0 <= tau <= start + 1:
-                return i
-        return None
+def root_most_rising(pool, cusum_threshold, above, entry):
+    """The edge nearest the root among ``above`` (model ids of ``pool``) whose CUSUM excursion started no later than
+    ``entry``'s and reached at least ``_ATTRIBUTION_FRACTION`` of the alarm level ``cusum_threshold`` (a noise
+    excursion of a healthy edge does not)."""
+    monitor = pool.monitor
+    start = int(monitor.change_point([entry.row])[0])
+    start = math.inf if start < 0 else start
+    level = _ATTRIBUTION_FRACTION * cusum_threshold
+    for i in above:
+        f = pool.tracked[i]
+        if not np.any(monitor.cusum[f.row] >= level):
+            continue
+        tau = int(monitor.change_point([f.row])[0])
+        if 0 <= tau <= start + 1:
+            return i
+    return None
 
-    def _challenge_from_memory(self, entry, step, events, st, k):
-        """Start a mismatch early when a remembered model of the same pair clearly fits the recent samples better.
 
-        Only while the tree model's CUSUM is up by :data:`_CHALLENGE_FRACTION` of the alarm level (evidence of a drift,
-        which one sample of a real change gives; noise excursions stay lower): over the samples since the excursion
-        started, a remembered model must be valid (at least ``reinstate_min_samples`` samples) and beat the tree model
-        in a paired comparison in both channels, by more than ``challenge_margin`` on average. This is what lets a
-        repair, or the same failure again, be handled within a few samples.
-        """
-        c = self.config
-        monitor = self.pool.monitor
-        if not np.any(monitor.cusum[entry.row] >= _CHALLENGE_FRACTION * c.cusum_threshold):
-            return
-        memory = self.pool.memory_of_pair(entry.parent, entry.child)
-        if not memory:
-            return
-        tau = int(monitor.change_point([entry.row])[0])
-        rows = [e.row for e in memory]
-        ok = monitor.valid(monitor.stats(rows, since=tau), c.reinstate_min_samples)
-        n, diff = monitor.paired_difference(rows, [entry.row] * len(rows), since=tau)
-        better = (ok & (n >= c.reinstate_min_samples) & (diff.mean(axis=1) < -c.challenge_margin)
-                  & np.all(diff < 0.0, axis=1))
-        if np.any(better):
-            best = int(np.argmin(np.where(better, diff.mean(axis=1), np.inf)))
-            cause = (f"remembered {memory[best].describe()} fits the {n[best]} samples since step {tau} better by "
-                     f"{-diff[best, 0]:.2f} (trans) / {-diff[best, 1]:.2f} (rot) thresholds")
-            self._start_mismatch(entry, step, events, False, st, k, cause=cause)
+def _challenge_from_memory(adapt, entry, step, events, st, k):
+    """Start a mismatch early when a remembered model of the same pair clearly fits the recent samples better.
 
-    def flag(self, entry, step, events, cause):
-        """Put tree edge ``entry`` in mismatch for a reason the detectors did not see (the joint fit left a part below
-        it unexplained): it is repaired like a detected change, by remembered models, replacements of other classes
-        and action sets, and pairs across the cut. The change point is the CUSUM's if it rose, else the oldest step of
-        the history (the model may have been wrong all along)."""
-        st, _ = self.pool.window_stats([entry.row], [self.pool.n_now(entry)])
-        oldest = self.history[0][0] if self.history else step
-        self._start_mismatch(entry, step, events, False, st, 0, cause=cause, fallback_tau=oldest, search=True)
+    Only while the tree model's CUSUM is up by :data:`_CHALLENGE_FRACTION` of the alarm level (evidence of a drift,
+    which one sample of a real change gives; noise excursions stay lower): over the samples since the excursion
+    started, a remembered model must be valid (at least ``reinstate_min_samples`` samples) and beat the tree model
+    in a paired comparison in both channels, by more than ``challenge_margin`` on average. This is what lets a
+    repair, or the same failure again, be handled within a few samples.
+    """
+    c = adapt.config
+    monitor = adapt.pool.monitor
+    if not np.any(monitor.cusum[entry.row] >= _CHALLENGE_FRACTION * c.cusum_threshold):
+        return
+    memory = adapt.pool.memory_of_pair(entry.parent, entry.child)
+    if not memory:
+        return
+    tau = int(monitor.change_point([entry.row])[0])
+    rows = [e.row for e in memory]
+    ok = monitor.valid(monitor.stats(rows, since=tau), c.reinstate_min_samples)
+    n, diff = monitor.paired_difference(rows, [entry.row] * len(rows), since=tau)
+    better = (ok & (n >= c.reinstate_min_samples) & (diff.mean(axis=1) < -c.challenge_margin)
+              & np.all(diff < 0.0, axis=1))
+    if np.any(better):
+        best = int(np.argmin(np.where(better, diff.mean(axis=1), np.inf)))
+        cause = (f"remembered {memory[best].describe()} fits the {n[best]} samples since step {tau} better by "
+                 f"{-diff[best, 0]:.2f} (trans) / {-diff[best, 1]:.2f} (rot) thresholds")
+        _start_mismatch(adapt, entry, step, events, False, st, k, cause=cause)
 
-    def _start_mismatch(self, entry, step, events, alarm, st, k, cause=None, fallback_tau=None, search=False):
-        """Put ``entry`` in mismatch, with the change point from its CUSUM (else ``fallback_tau``, else the oldest
-        window sample); searched for like a new edge (``search``, or when its pair failed within ``2 test_window``
-        steps: repairing it the usual way did not last)."""
-        c = self.config
-        monitor = self.pool.monitor
-        n, mt, mr = int(st.n[k]), float(st.trans_error[k]), float(st.rot_error[k])
-        theta_t, theta_r = float(st.theta_trans[k]), float(st.theta_rot[k])
-        tau = int(monitor.change_point([entry.row])[0])
-        if tau < 0 and fallback_tau is not None:
-            tau = int(fallback_tau)
-        elif tau < 0:
-            tau = int(monitor.first_step([entry.row])[0])
-            tau = step if tau < 0 else tau
-        S = monitor.cusum[entry.row]
-        if cause is None:
-            cause = (f"CUSUM {S[0]:.2f} (trans) / {S[1]:.2f} (rot) reached {c.cusum_threshold:g}" if alarm
-                     else f"test window invalid over {n} samples")
-        pair = frozenset((entry.parent, entry.child))
-        last, last_tau = self.failed.get(pair, (-math.inf, tau))
-        again = step - last <= 2 * c.test_window
-        if again:  # the repair of the same change did not last: its data since that change point is still good
-            tau = min(tau, last_tau)
-        self.failed[pair] = (step, tau)
-        self.mismatch[entry.id] = Mismatch(tau=tau, detected=step, train_from=tau, search=int(search or again))
-        events.append(Event(step, "mismatch_detected",
-                            f"{entry.describe()} no longer matches the observations: {cause}; window mean "
-                            f"{format_errors(mt, mr)} over {n} samples (thresholds "
-                            f"{format_errors(theta_t, theta_r)}); change point estimated at step {tau}",
-                            parent=entry.parent, child=entry.child, model=entry.describe(),
-                            trans_error=finite_or_none(mt), rot_error=finite_or_none(mr)))
 
-    # ------------------------------------------------------------------ state
-    def mismatch_state(self):
-        """The edges in mismatch as JSON-serialisable dicts ``{"edge": id, "tau": ..., ...}``."""
-        return [{"edge": k, **asdict(v)} for k, v in self.mismatch.items()]
+def flag(adapt, entry, step, events, cause):
+    """Put tree edge ``entry`` in mismatch for a reason the detectors did not see (the joint fit left a part below
+    it unexplained): it is repaired like a detected change, by remembered models, replacements of other classes
+    and action sets, and pairs across the cut. The change point is the CUSUM's if it rose, else the oldest step of
+    the history (the model may have been wrong all along)."""
+    st, _ = adapt.pool.window_stats([entry.row], [adapt.pool.n_now(entry)])
+    oldest = adapt.history[0][0] if adapt.history else step
+    _start_mismatch(adapt, entry, step, events, False, st, 0, cause=cause, fallback_tau=oldest, search=True)
 
-    @staticmethod
-    def mismatch_from_state(items, tracked):
-        """Rebuild :attr:`mismatch` from :meth:`mismatch_state` output; edges must be ids in ``tracked``."""
-        mismatch = {}
-        for item in listing(items, "mismatch"):
-            item = dict(mapping(item, "mismatch item"))
-            edge = integer(item.pop("edge", None), "mismatch edge")
-            if edge not in tracked or edge in mismatch:
-                raise ModelFileError(f"mismatch refers to unknown model id {edge}, or twice")
-            mismatch[edge] = Mismatch(**{k: integer(item[k], f"mismatch {k}", minimum=low, maximum=high)
-                                         for k, low, high in _MISMATCH_FIELDS})
-        return mismatch
+
+def _start_mismatch(adapt, entry, step, events, alarm, st, k, cause=None, fallback_tau=None, search=False):
+    """Put ``entry`` in mismatch, with the change point from its CUSUM (else ``fallback_tau``, else the oldest
+    window sample); searched for like a new edge (``search``, or when its pair failed within ``2 test_window``
+    steps: repairing it the usual way did not last)."""
+    c = adapt.config
+    monitor = adapt.pool.monitor
+    n, mt, mr = int(st.n[k]), float(st.trans_error[k]), float(st.rot_error[k])
+    theta_t, theta_r = float(st.theta_trans[k]), float(st.theta_rot[k])
+    tau = int(monitor.change_point([entry.row])[0])
+    if tau < 0 and fallback_tau is not None:
+        tau = int(fallback_tau)
+    elif tau < 0:
+        tau = int(monitor.first_step([entry.row])[0])
+        tau = step if tau < 0 else tau
+    S = monitor.cusum[entry.row]
+    if cause is None:
+        cause = (f"CUSUM {S[0]:.2f} (trans) / {S[1]:.2f} (rot) reached {c.cusum_threshold:g}" if alarm
+                 else f"test window invalid over {n} samples")
+    pair = frozenset((entry.parent, entry.child))
+    last, last_tau = adapt.failed.get(pair, (-math.inf, tau))
+    again = step - last <= 2 * c.test_window
+    if again:  # the repair of the same change did not last: its data since that change point is still good
+        tau = min(tau, last_tau)
+    adapt.failed[pair] = (step, tau)
+    adapt.mismatch[entry.id] = Mismatch(tau=tau, detected=step, train_from=tau, search=int(search or again))
+    events.append(Event(step, "mismatch_detected",
+                        f"{entry.describe()} no longer matches the observations: {cause}; window mean "
+                        f"{format_errors(mt, mr)} over {n} samples (thresholds "
+                        f"{format_errors(theta_t, theta_r)}); change point estimated at step {tau}",
+                        parent=entry.parent, child=entry.child, model=entry.describe(),
+                        trans_error=finite_or_none(mt), rot_error=finite_or_none(mr)))
+
+
+# ------------------------------------------------------------------ state
+def mismatch_state(mismatch):
+    """The edges in mismatch as JSON-serialisable dicts ``{"edge": id, "tau": ..., ...}``."""
+    return [{"edge": k, **asdict(v)} for k, v in mismatch.items()]
+
+
+def mismatch_from_state(items, tracked):
+    """Rebuild :attr:`mismatch` from :meth:`mismatch_state` output; edges must be ids in ``tracked``."""
+    mismatch = {}
+    for item in listing(items, "mismatch"):
+        item = dict(mapping(item, "mismatch item"))
+        edge = integer(item.pop("edge", None), "mismatch edge")
+        if edge not in tracked or edge in mismatch:
+            raise ModelFileError(f"mismatch refers to unknown model id {edge}, or twice")
+        mismatch[edge] = Mismatch(**{k: integer(item[k], f"mismatch {k}", minimum=low, maximum=high)
+                                     for k, low, high in _MISMATCH_FIELDS})
+    return mismatch

@@ -586,7 +586,8 @@ class BodySchemeLearner(JointFitSteps):
         return chain_at
 
     def _sample_challengers(self, step, events):
-        """After bootstrapping: GP challengers of the tree's rigid joints (:meth:`Adaptation.sample_challengers`)."""
+        """After bootstrapping: GP challengers of the tree's rigid joints
+        (:func:`~body_scheme_core.learning.challengers.sample_challengers`)."""
         if self._calibrated is None or self._calibrated.tree != tuple(self._tree):
             return
         chain_at = self._chain_at()

@@ -261,8 +261,8 @@ class JointFitSteps:
     def _flag_unexplained(self, step, events):
         """After a joint fit in steady state: the root-most part the scheme does not explain puts the edge into it
         in mismatch (once per ``history_length`` steps and part), so that the pair, other classes and other pairs
-        across the cut are searched for a model that explains it (:meth:`Adaptation.flag`). A root it does not explain
-        moves: the part that moves least becomes the root (:meth:`_choose_root`)."""
+        across the cut are searched for a model that explains it (:func:`~body_scheme_core.learning.detection.flag`).
+        A root it does not explain moves: the part that moves least becomes the root (:meth:`_choose_root`)."""
         cal = self._calibrated
         if cal is None or cal.tree != tuple(self._tree):
             return

@@ -21,11 +21,12 @@ from ..errors import BodySchemeError, InvalidInputError, ModelFileError
 from ..limits import MAX_COORDINATE
 from ..prediction import BodyScheme
 from ..state_values import boolean, finite_array, integer, listing, mapping, number, optional_number, part_id
-from .adaptation import Adaptation
 from .config import BodySchemeConfig
+from .detection import mismatch_from_state, mismatch_state
 from .inputs import check_action_vector, check_n_actions, check_part_ids, filter_covariances, rigidity_problem
 from .mirrors import MirrorWatch
 from .pool import ModelPool, check_monitor_settings
+from .repair import failed_from_state, failed_state, refining_from_state, refining_state
 from .root_pose import RootPoseEstimator, RootWatch
 from .validity import ValidityMonitor
 
@@ -80,9 +81,9 @@ def learner_to_state(self):
         "tree_since": self._bootstrap.tree_since,
         "next_id": self._pool.next_id,
         "entries": self._pool.tracked_state(),
-        "mismatch": self._adaptation.mismatch_state(),
-        "refining": self._adaptation.refining_state(),
-        "failed": self._adaptation.failed_state(),
+        "mismatch": mismatch_state(self._adaptation.mismatch),
+        "refining": refining_state(self._adaptation.refining),
+        "failed": failed_state(self._adaptation.failed),
         "vetoed": [[k, v] for k, v in self._bootstrap.vetoed.items()],
         "monitor": self._pool.monitor.to_dict(),
         "gp_batch": self._pool.gp_batch.state_dict(),
@@ -150,9 +151,9 @@ def learner_from_state(cls, state):
                                     state["monitor"], state["gp_batch"], state["rigid_batch"])
         if tree is not None and any(i not in pool.tracked for i in tree):
             raise ModelFileError(f"tree refers to unknown model ids {tree}")
-        mismatch = Adaptation.mismatch_from_state(state["mismatch"], pool.tracked)
-        refining = Adaptation.refining_from_state(state["refining"], pool.tracked, pool.next_id)
-        failed = Adaptation.failed_from_state(state["failed"], parts)
+        mismatch = mismatch_from_state(state["mismatch"], pool.tracked)
+        refining = refining_from_state(state["refining"], pool.tracked, pool.next_id)
+        failed = failed_from_state(state["failed"], parts)
         vetoed = {integer(k, "vetoed id"): integer(v, "vetoed size")
                   for k, v in (listing(item, "vetoed item", 2) for item in listing(state["vetoed"], "vetoed"))}
         self._history = deque(maxlen=config.history_length)

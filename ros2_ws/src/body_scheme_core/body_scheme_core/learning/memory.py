@@ -13,7 +13,7 @@ import math
 from ..events import Event, finite_or_none, format_errors
 from .tracked import MEMORY
 
-__all__ = ["Memory", "least_recently_used"]
+__all__ = ["retire", "least_recently_used"]
 
 
 def least_recently_used(models, capacity):
@@ -35,26 +35,22 @@ def least_recently_used(models, capacity):
     return ordered[:max(0, len(ordered) - capacity)]
 
 
-class Memory:
-    """Retiring models to memory, a part of :class:`~body_scheme_core.learning.adaptation.Adaptation`."""
-
-    def _retire(self, entry, step, events, why):
-        """Move a model that left the tree to memory; forget the least recently used beyond ``memory_size``."""
-        pool = self.pool
-        pool.assign(entry, MEMORY, step)
-        pool.monitor.reset_cusum([entry.row])
-        same = pool.memory_of_pair(entry.parent, entry.child)
-        forgotten = least_recently_used(same, self.config.memory_size)
-        for e in forgotten:
-            pool.remove(e)
-        note = f"; forgot {', '.join(e.describe() for e in forgotten)} (least recently used)" if forgotten else ""
-        kept = len(same) - len(forgotten)
-        mt = mr = math.inf
-        if entry.id in pool.tracked:
-            st = pool.monitor.stats([entry.row])
-            mt, mr = float(st.trans_error[0]), float(st.rot_error[0])
-        events.append(Event(step, "model_retired",
-                            f"{entry.describe()} retired ({why}); window mean {format_errors(mt, mr)}; memory holds "
-                            f"{kept} model(s) of pair {entry.parent}-{entry.child}{note}",
-                            parent=entry.parent, child=entry.child, model=entry.describe(),
-                            trans_error=finite_or_none(mt), rot_error=finite_or_none(mr)))
+def retire(pool, memory_size, entry, step, events, why):
+    """Move a model that left the tree to memory; forget the least recently used beyond ``memory_size``."""
+    pool.assign(entry, MEMORY, step)
+    pool.monitor.reset_cusum([entry.row])
+    same = pool.memory_of_pair(entry.parent, entry.child)
+    forgotten = least_recently_used(same, memory_size)
+    for e in forgotten:
+        pool.remove(e)
+    note = f"; forgot {', '.join(e.describe() for e in forgotten)} (least recently used)" if forgotten else ""
+    kept = len(same) - len(forgotten)
+    mt = mr = math.inf
+    if entry.id in pool.tracked:
+        st = pool.monitor.stats([entry.row])
+        mt, mr = float(st.trans_error[0]), float(st.rot_error[0])
+    events.append(Event(step, "model_retired",
+                        f"{entry.describe()} retired ({why}); window mean {format_errors(mt, mr)}; memory holds "
+                        f"{kept} model(s) of pair {entry.parent}-{entry.child}{note}",
+                        parent=entry.parent, child=entry.child, model=entry.describe(),
+                        trans_error=finite_or_none(mt), rot_error=finite_or_none(mr)))

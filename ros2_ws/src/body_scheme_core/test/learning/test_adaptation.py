@@ -7,18 +7,23 @@ helpers are tested on their own.
 
 import math
 import re
-from collections import deque
 
 import numpy as np
 import pytest
 
 from body_scheme_core.errors import ModelFileError
-from body_scheme_core.learning.adaptation import Adaptation
 from body_scheme_core.learning.config import BodySchemeConfig
-from body_scheme_core.learning.detection import Mismatch
+from body_scheme_core.learning.detection import Mismatch, mismatch_from_state, mismatch_state, root_most_rising
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.memory import least_recently_used
-from body_scheme_core.learning.repair import bridge_relative_complexity, tree_halves
+from body_scheme_core.learning.repair import (
+    bridge_relative_complexity,
+    failed_from_state,
+    failed_state,
+    refining_from_state,
+    refining_state,
+    tree_halves,
+)
 from body_scheme_core.learning.tracked import MEMORY, TrackedModel
 from body_scheme_core.models import RevoluteModel
 from body_scheme_core.models.engineered import EngineeredModel, engineered_models
@@ -77,24 +82,25 @@ def test_relative_complexity_counts_actions_and_another_pair():
 
 def test_adaptation_state_round_trip():
     """The edges in mismatch and the replacements still refining survive their state; unknown ids are refused."""
-    adaptation = Adaptation(BodySchemeConfig(), None, deque(), (1, 2), 1)
-    adaptation.mismatch[4] = Mismatch(tau=10, detected=12, sampled_at=12, train_from=10, resamples=1)
-    state = adaptation.mismatch_state()
+    mismatch = {4: Mismatch(tau=10, detected=12, sampled_at=12, train_from=10, resamples=1)}
+    state = mismatch_state(mismatch)
     assert state == [{"edge": 4, "tau": 10, "detected": 12, "sampled_at": 12, "train_from": 10, "resamples": 1,
                       "bridged_at": -1, "search": 0}]
-    assert Adaptation.mismatch_from_state(state, {4: None}) == adaptation.mismatch
+    assert mismatch_from_state(state, {4: None}) == mismatch
     with pytest.raises(ModelFileError, match="unknown model id 4"):
-        Adaptation.mismatch_from_state(state, {})
-    adaptation.refining[7] = (4, 10)
-    assert Adaptation.refining_from_state(adaptation.refining_state(), {7: None}, 8) == {7: (4, 10)}
+        mismatch_from_state(state, {})
+    refining = {7: (4, 10)}
+    assert refining_from_state(refining_state(refining), {7: None}, 8) == {7: (4, 10)}
     with pytest.raises(ModelFileError, match="unknown model id 7"):
-        Adaptation.refining_from_state(adaptation.refining_state(), {}, 8)
+        refining_from_state(refining_state(refining), {}, 8)
     with pytest.raises(ModelFileError, match="refining failed id"):  # an id the pool has not given out
-        Adaptation.refining_from_state(adaptation.refining_state(), {7: None}, 4)
+        refining_from_state(refining_state(refining), {7: None}, 4)
+    failed = {frozenset((1, 2)): (5, 3)}
+    assert failed_from_state(failed_state(failed), {1, 2}) == failed
     with pytest.raises(ModelFileError, match="two distinct parts"):
-        Adaptation.failed_from_state([[1, 1, 5, 3]], {1, 2})
+        failed_from_state([[1, 1, 5, 3]], {1, 2})
     with pytest.raises(ModelFileError, match="failed step"):
-        Adaptation.failed_from_state([[1, 2, 1e308, 3]], {1, 2})
+        failed_from_state([[1, 2, 1e308, 3]], {1, 2})
 
 
 def test_a_failing_model_is_detected_replaced_and_remembered():
@@ -160,16 +166,17 @@ def test_an_alarm_is_blamed_on_an_edge_above_only_if_that_edge_rose_too():
     run = _Run(robot, engineered_models(robot), make_session(robot, 30, seed=0))
     run.run(0, 30)
     learner = run.learner
-    monitor, adaptation = learner._pool.monitor, learner._adaptation
+    pool, threshold = learner._pool, learner.config.cusum_threshold
+    monitor = pool.monitor
     upper, lower = run.edge(2, 3), run.edge(4, 5)
     monitor.cusum[lower.row] = [2.5, 0.0]
     monitor.cusum_start[lower.row] = [25, -1]
     monitor.cusum_start[upper.row] = [24, -1]
-    half = 0.5 * learner.config.cusum_threshold
+    half = 0.5 * threshold
     monitor.cusum[upper.row] = [0.6 * half, 0.0]
-    assert adaptation._root_most_rising([upper.id], lower) is None
+    assert root_most_rising(pool, threshold, [upper.id], lower) is None
     monitor.cusum[upper.row] = [1.1 * half, 0.0]
-    assert adaptation._root_most_rising([upper.id], lower) == upper.id
+    assert root_most_rising(pool, threshold, [upper.id], lower) == upper.id
 
 
 def test_a_remembered_model_that_fits_again_is_put_back():
