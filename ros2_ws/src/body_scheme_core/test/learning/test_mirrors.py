@@ -132,6 +132,7 @@ def test_a_learner_whose_scheme_holds_a_parts_mirror_chooses_its_stored_poses_ag
     assert BodySchemeLearner.from_state(learner.to_state()).to_state() == learner.to_state()
 
 
+@pytest.mark.slow  # two 400-step zoo bodies, with and without the hypotheses
 @pytest.mark.parametrize("seed", [24, 36])
 def test_with_mirror_hypotheses_a_body_whose_poses_flip_often_is_learned_while_without_it_is_not(seed):
     """Two of the robot zoo's bodies at a tag tracker's noise with 30 % of the orientations mirrored from the first
