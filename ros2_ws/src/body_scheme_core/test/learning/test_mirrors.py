@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import ModelFileError
+from body_scheme_core.learning import learner as learner_module
 from body_scheme_core.learning.config import BodySchemeConfig
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.mirrors import MIRROR_BLOCK, MirrorWatch, decide_flips, rechosen_history, rechosen_poses
@@ -130,6 +131,20 @@ def test_a_learner_whose_scheme_holds_a_parts_mirror_chooses_its_stored_poses_ag
         if s in given and rotational_error(given[s][None], mirror_about_ray(given[s])[None])[0] > 0.1:
             assert np.allclose(obs[part], given[s])
     assert BodySchemeLearner.from_state(learner.to_state()).to_state() == learner.to_state()
+
+
+@pytest.mark.parametrize("told", [False, True])
+def test_the_learner_checks_flips_eagerly_only_when_told_its_tracker_flips(told, monkeypatch):
+    """``mirror_hypotheses`` (a tracker known to flip) lowers the flip check's floor once the scheme is calibrated."""
+    robot = planar_2dof()
+    session = make_session(robot, 60, seed=4, sigma_trans=0.005, sigma_rot=math.radians(1.0))
+    learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, BodySchemeConfig(mirror_hypotheses=told))
+    seen = []
+    monkeypatch.setattr(learner_module, "decide_flips",
+                        lambda *args, **kwargs: seen.append(kwargs["eager"]) or decide_flips(*args, **kwargs))
+    for t in range(60):
+        learner.update(session.actions[t], session.observations[t])
+    assert seen and set(seen) == {told}
 
 
 @pytest.mark.slow  # two 400-step zoo bodies, with and without the hypotheses
