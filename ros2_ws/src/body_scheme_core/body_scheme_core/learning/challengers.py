@@ -3,6 +3,10 @@
 Right after bootstrapping, every rigid joint of the tree gets a GP challenger trained on the chain-consistent history;
 it takes the edge only if it predicts the same samples clearly better (a nonlinear transmission, a flexing tool), else
 it is dropped.
+
+The steps are functions of ``adapt`` (:class:`~body_scheme_core.learning.adaptation.Adaptation`: the pool, the
+configuration, the history, the edges in mismatch, the replacements refining and the pairs that failed); they
+change it and the tree in place and append their events.
 """
 
 from __future__ import annotations

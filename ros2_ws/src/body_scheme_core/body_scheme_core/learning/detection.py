@@ -8,6 +8,11 @@ clearly fits the samples since the CUSUM left zero better (the memory challenge)
 every edge below a changed one (their parent's predicted pose is wrong too), so an alarm is attributed to the edge
 nearest the root on its path whose CUSUM rose with it (:func:`upstream_edges`); the edges below wait (they get no
 targets while a part above them is in mismatch) and restart their detectors when it is repaired.
+
+The steps are functions of ``adapt`` (:class:`~body_scheme_core.learning.adaptation.Adaptation`: the pool, the
+configuration, the history, the edges in mismatch, the replacements refining and the pairs that failed); they
+change it and the tree in place and append their events. :func:`root_most_rising` takes the pool and the alarm
+level only.
 """
 
 from __future__ import annotations
@@ -241,7 +246,7 @@ def mismatch_state(mismatch):
 
 
 def mismatch_from_state(items, tracked):
-    """Rebuild :attr:`mismatch` from :meth:`mismatch_state` output; edges must be ids in ``tracked``."""
+    """Rebuild ``Adaptation.mismatch`` from :func:`mismatch_state` output; edges must be ids in ``tracked``."""
     mismatch = {}
     for item in listing(items, "mismatch"):
         item = dict(mapping(item, "mismatch item"))

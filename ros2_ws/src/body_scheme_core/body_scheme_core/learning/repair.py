@@ -9,6 +9,11 @@ every other pair that reconnects the two halves are sampled too (a local re-boot
 permanent. The cheapest valid candidate by ``C(M2|M1)`` plus its error and class penalty replaces the failed model
 (``model_replaced``); a different pair also reports ``structure_changed``. The other candidates keep learning until
 they are frozen: a simpler one that becomes valid takes over unless the installed model is clearly better.
+
+The steps are functions of ``adapt`` (:class:`~body_scheme_core.learning.adaptation.Adaptation`: the pool, the
+configuration, the history, the edges in mismatch, the replacements refining and the pairs that failed); they
+change it and the tree in place and append their events. Comparisons of models take the pool and the
+configuration only.
 """
 
 from __future__ import annotations
@@ -457,17 +462,17 @@ def replay(pool, history, entries, chain_at, start):
 
 # ------------------------------------------------------------------ state
 def refining_state(refining):
-    """:attr:`refining` as JSON-serialisable ``[[tree model id, failed model id, tau], ...]``."""
+    """``Adaptation.refining`` as JSON-serialisable ``[[tree model id, failed model id, tau], ...]``."""
     return [[k, f, t] for k, (f, t) in refining.items()]
 
 
 def failed_state(failed):
-    """:attr:`failed` as JSON-serialisable ``[[part, part, step, tau], ...]``."""
+    """``Adaptation.failed`` as JSON-serialisable ``[[part, part, step, tau], ...]``."""
     return [[*sorted(pair), step, tau] for pair, (step, tau) in failed.items()]
 
 
 def failed_from_state(items, part_ids):
-    """Rebuild :attr:`failed` from :meth:`failed_state` output; pairs of two distinct known parts, once each."""
+    """Rebuild ``Adaptation.failed`` from :func:`failed_state` output; pairs of two distinct known parts, once each."""
     failed = {}
     for item in listing(items, "failed"):
         p, q, step, tau = listing(item, "failed item", 4)
@@ -479,7 +484,7 @@ def failed_from_state(items, part_ids):
 
 
 def refining_from_state(items, tracked, next_id):
-    """Rebuild :attr:`refining` from :meth:`refining_state` output; the installed model must be tracked, the
+    """Rebuild ``Adaptation.refining`` from :func:`refining_state` output; the installed model must be tracked, the
     failed one an id the pool gave out."""
     refining = {}
     for item in listing(items, "refining"):
