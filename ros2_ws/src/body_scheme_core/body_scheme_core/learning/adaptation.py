@@ -32,7 +32,6 @@ class Adaptation:
         Recent raw steps ``(step, actions, {part: world2part})``, replayed to replacements (shared with the
         learner, which appends to it).
     part_ids : tuple of int
-    root : int
     mismatch : dict of int to Mismatch, optional
         Edges in mismatch by tree-model id (a restored state).
     refining : dict of int to tuple (int, int), optional
@@ -50,24 +49,25 @@ class Adaptation:
         are fitted again once there are enough).
     """
 
-    def __init__(self, config, pool, history, part_ids, root, mismatch=None, refining=None, failed=None):
+    def __init__(self, config, pool, history, part_ids, mismatch=None, refining=None, failed=None):
         self.config = config
         self.pool = pool
         self.history = history
         self.part_ids = tuple(part_ids)
-        self.root = root
         self.mismatch = {} if mismatch is None else mismatch
         self.refining = {} if refining is None else dict(refining)
         self.failed = {} if failed is None else dict(failed)
         self.chain_samples = {}
 
-    def step(self, tree, a, chain, chain_at, step, events):
+    def step(self, tree, root, a, chain, chain_at, step, events):
         """One step after bootstrapping: evaluate and train, detect mismatches, repair the edges in mismatch.
 
         Parameters
         ----------
         tree : list of int
             Ids of the tree's models; edges are replaced in place.
+        root : int
+            The tree's root part (the learner's).
         a : ndarray, shape (m,)
         chain : ChainTargets
             Targets of this step.
@@ -103,10 +103,10 @@ class Adaptation:
             pool.evaluate([fitted[k] for k in index], a, targets, step, cusum=False)
         changes = repair.refine_choices(self, tree, step, events) + challengers.challenge(self, tree, step, events)
         # After those changes: detection sees the tree as it is now (a replaced model is no edge of it any more).
-        detection.detect(self, tree, alarms, step, events)
+        detection.detect(self, tree, root, alarms, step, events)
         for edge_id in list(self.mismatch):
             if edge_id in self.mismatch:
-                change = repair.repair(self, tree, pool.tracked[edge_id], chain, chain_at, step, events)
+                change = repair.repair(self, tree, root, pool.tracked[edge_id], chain, chain_at, step, events)
                 if change is not None:
                     changes.append(change)
         return changes

@@ -114,8 +114,9 @@ def upstream_edges(root, edges):
     return out
 
 
-def detect(adapt, tree, alarms, step, events):
-    """Mismatch detection on the tree edges evaluated in this step (``alarms``: CUSUM alarm by model id)."""
+def detect(adapt, tree, root, alarms, step, events):
+    """Mismatch detection on the tree edges evaluated in this step (``alarms``: CUSUM alarm by model id; ``root``:
+    the tree's root part)."""
     c = adapt.config
     pool = adapt.pool
     monitor = pool.monitor
@@ -132,8 +133,7 @@ def detect(adapt, tree, alarms, step, events):
             _challenge_from_memory(adapt, e, step, events, st, k)
             continue
         if upstream is None:
-            upstream = upstream_edges(adapt.root, [(pool.tracked[i].parent, pool.tracked[i].child, i)
-                                                  for i in tree])
+            upstream = upstream_edges(root, [(pool.tracked[i].parent, pool.tracked[i].child, i) for i in tree])
         above = upstream.get(e.id, [])
         if any(i in adapt.mismatch for i in above):
             continue  # its errors follow from the edge above (it should not have had a target)

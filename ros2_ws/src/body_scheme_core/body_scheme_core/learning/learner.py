@@ -171,8 +171,7 @@ class BodySchemeLearner(JointFitSteps):
         self._tree = tree
         self._bootstrapping = bootstrapping
         self._bootstrap = Bootstrap(self.config, pool, self._pairs, found, tree_since, vetoed, self._history)
-        self._adaptation = Adaptation(self.config, pool, self._history, self.part_ids, self.root, mismatch, refining,
-                                      failed)
+        self._adaptation = Adaptation(self.config, pool, self._history, self.part_ids, mismatch, refining, failed)
         self._calibrated = calibrated
         self._reach = None  # (the Calibrated it belongs to, reach in m) cache: see _workspace
         self._prediction = None  # (the Calibrated it belongs to, world2part at this step) cache: see _predicted
@@ -523,7 +522,7 @@ class BodySchemeLearner(JointFitSteps):
                           self.noise.sigma_rot)
         if root is None or root == self.root:
             return False
-        self.root = self._adaptation.root = self._root_pose.root = root
+        self.root = self._root_pose.root = root
         self._root_pose.invalidate()
         self._root_watch.restart()
         self._root_since = 0
@@ -545,7 +544,7 @@ class BodySchemeLearner(JointFitSteps):
 
         targets = ChainTargets(scheme, world2root, a, obs, noise, untrusted, part_std,
                                self._predicted(self._calibrated, a))
-        changes = self._adaptation.step(self._tree, a, targets, chain_at, step, events)
+        changes = self._adaptation.step(self._tree, self.root, a, targets, chain_at, step, events)
         for change in changes:
             self._after_change(change)
         seen, expected = obs.get(self.root), self._root_watch.expected(world2root)

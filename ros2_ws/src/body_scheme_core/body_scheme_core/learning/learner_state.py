@@ -373,7 +373,6 @@ def restore(learner, saved):
     learner._tree = saved["lists"]["_tree"]
     learner._unexplained = saved["unexplained"]
     learner._mirror_watch = saved["mirror_watch"]
-    learner._adaptation.root = learner.root
     learner.rejected, learner.corrected = saved["lists"]["rejected"], saved["lists"]["corrected"]
     learner._history.clear()
     learner._history.extend(saved["lists"]["_history"])  # the deque is shared with the adaptation object
@@ -454,7 +453,7 @@ def structural_problems(learner):
         if len(set(slots)) != len(slots) or batch.n_allocated != len(slots) or any(
                 not batch._allocated[s] for s in slots if 0 <= s < len(batch._allocated)):
             problems.append(f"{'rigid' if rigid else 'GP'} batch slots and learning models do not match one to one")
-    if learner.root not in parts or learner._adaptation.root != learner.root or learner._root_pose.root != learner.root:
+    if learner.root not in parts or learner._root_pose.root != learner.root:
         problems.append(f"the root {learner.root} is not the same everywhere or not a part")
     steps = [s for s, _, _ in learner._history]
     if any(b <= a for a, b in zip(steps, steps[1:], strict=False)) or (steps and steps[-1] >= learner.step):

@@ -112,15 +112,20 @@ def bridge_relative_complexity(entry, failed):
 def _halves(adapt, tree, failed):
     pool = adapt.pool
     return tree_halves(adapt.part_ids, [(pool.tracked[i].parent, pool.tracked[i].child)
-                                            for i in tree if i != failed.id])
+                                        for i in tree if i != failed.id])
 
 
-def repair(adapt, tree, failed, chain, chain_at, step, events):
-    """Memory first, then replacements of the pair, then of pairs across the cut. Returns a Change or None."""
+def repair(adapt, tree, root, failed, chain, chain_at, step, events):
+    """Memory first, then replacements of the pair, then of pairs across the cut (``root``: the tree's root part).
+    Returns a Change or None."""
     c = adapt.config
     pool = adapt.pool
     mismatch = adapt.mismatch[failed.id]
     halves = _halves(adapt, tree, failed)
+
+    def sample(start, bridges, why):
+        _sample(adapt, failed, mismatch, chain, chain_at, halves, halves[root], step, events, start, bridges, why)
+
     if not mismatch.search:
         change = _reinstate_from_memory(adapt, tree, failed, mismatch, halves, step, events)
         if change is not None:
@@ -129,11 +134,10 @@ def repair(adapt, tree, failed, chain, chain_at, step, events):
         _sample_chains(adapt, failed, mismatch, chain_at, step, events)
     candidates = pool.candidates_of(failed.id)
     if not candidates and mismatch.sampled_at < 0:
-        _sample(adapt, failed, mismatch, chain, chain_at, halves, step, events, mismatch.tau, bridges=False,
-                     why="searched for like a new edge" if mismatch.search else "no remembered model fits")
+        sample(mismatch.tau, bridges=False,
+               why="searched for like a new edge" if mismatch.search else "no remembered model fits")
         if mismatch.search:
-            _sample(adapt, failed, mismatch, chain, chain_at, halves, step, events, mismatch.tau, bridges=True,
-                         why="searched for like a new edge")
+            sample(mismatch.tau, bridges=True, why="searched for like a new edge")
     if failed.kind == "gp" and not mismatch.search:  # besides its replacements: the pair may need a chain
         _sample_chains(adapt, failed, mismatch, chain_at, step, events)
     candidates = pool.candidates_of(failed.id)
@@ -144,18 +148,17 @@ def repair(adapt, tree, failed, chain, chain_at, step, events):
         if choice is not None:
             return _install_replacement(adapt, tree, failed, choice, step, events)
     if mismatch.sampled_at >= 0 and mismatch.bridged_at < 0 and step - mismatch.sampled_at >= c.bridge_patience:
-        _sample(adapt, failed, mismatch, chain, chain_at, halves, step, events, mismatch.train_from, bridges=True,
-                     why=f"no replacement of pair {failed.parent}-{failed.child} became valid within "
-                         f"{c.bridge_patience} steps")
+        sample(mismatch.train_from, bridges=True,
+               why=f"no replacement of pair {failed.parent}-{failed.child} became valid within {c.bridge_patience} "
+                   f"steps")
     elif candidates and step - mismatch.sampled_at >= c.replacement_patience:
         for e in candidates:
             pool.remove(e)
         start = max(mismatch.train_from, step - c.test_window + 1)
         mismatch.resamples += 1
         mismatch.bridged_at = -1
-        _sample(adapt, failed, mismatch, chain, chain_at, halves, step, events, start, bridges=False,
-                     why=f"none of the {len(candidates)} replacements became valid within "
-                         f"{c.replacement_patience} steps")
+        sample(start, bridges=False,
+               why=f"none of the {len(candidates)} replacements became valid within {c.replacement_patience} steps")
     return None
 
 
@@ -196,13 +199,13 @@ def _reinstate_from_memory(adapt, tree, failed, mismatch, halves, step, events):
     return Change(back, failed, mismatch.tau)
 
 
-def _orient(adapt, failed, halves):
-    """The failed edge's pair ordered from the root's half (``u``) to the other (``v``)."""
-    root_half = halves[adapt.root]
+def _orient(failed, halves, root_half):
+    """The failed edge's pair ordered from the root's half (label ``root_half`` of ``halves``: ``u``) to the other
+    (``v``)."""
     return (failed.parent, failed.child) if halves[failed.parent] == root_half else (failed.child, failed.parent)
 
 
-def _sample(adapt, failed, mismatch, chain, chain_at, halves, step, events, start, bridges, why):
+def _sample(adapt, failed, mismatch, chain, chain_at, halves, root_half, step, events, start, bridges, why):
     """Start candidates for ``failed`` learning on the chain-consistent history since step ``start``.
 
     Without ``bridges``: one per (action set, class) of relative complexity at most ``replacement_max_relative``
@@ -211,9 +214,8 @@ def _sample(adapt, failed, mismatch, chain, chain_at, halves, step, events, star
     """
     c = adapt.config
     pool = adapt.pool
-    u, v = _orient(adapt, failed, halves)
+    u, v = _orient(failed, halves, root_half)
     if bridges:
-        root_half = halves[adapt.root]
         near = [p for p in adapt.part_ids if halves[p] == root_half]
         far = [p for p in adapt.part_ids if halves[p] != root_half]
         subsets = action_subsets(pool.n_actions, c.max_complexity)
