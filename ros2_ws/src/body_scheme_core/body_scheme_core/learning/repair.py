@@ -77,6 +77,19 @@ def _chain_change(failed, new):
     return ""
 
 
+def _replaced(step, new, old, choice, how, across):
+    """The events of ``new`` taking ``old``'s place in the tree: ``model_replaced`` (``how`` follows the two models'
+    names; the errors of ``choice``), and ``structure_changed`` (``across`` follows the new edge) when it joins
+    another pair of parts."""
+    events = [Event(step, "model_replaced", f"{new.describe()} replaces {old.describe()}{how}", parent=new.parent,
+                    child=new.child, model=new.describe(), trans_error=choice.trans_error,
+                    rot_error=choice.rot_error)]
+    if {new.parent, new.child} != {old.parent, old.child}:
+        events.append(Event(step, "structure_changed", f"edge {old.parent}-{old.child} replaced by "
+                                                       f"{new.parent}-{new.child} ({new.describe()}){across}"))
+    return events
+
+
 def tree_halves(part_ids, edges):
     """Label of the connected component of every part, for a tree with one edge removed (two halves).
 
@@ -376,17 +389,10 @@ def refine_choices(adapt, tree, step, events):
             pool.monitor.reset_cusum([new.row])
             why = ("the simpler candidate became valid" if simpler
                    else "a candidate that nests it predicts the same samples clearly better")
-            events.append(Event(step, "model_replaced",
-                                f"{new.describe()} replaces {current.describe()}, the replacement of "
-                                f"{failed.describe()} installed first: {why}, with mean error "
-                                f"{format_errors(choice.trans_error, choice.rot_error)} over "
-                                f"{choice.n_test} test samples after {new.n_train} training samples",
-                                parent=new.parent, child=new.child, model=new.describe(),
-                                trans_error=choice.trans_error, rot_error=choice.rot_error))
-            if {new.parent, new.child} != {current.parent, current.child}:
-                events.append(Event(step, "structure_changed",
-                                    f"edge {current.parent}-{current.child} replaced by {new.parent}-{new.child} "
-                                    f"({new.describe()}), a simpler candidate across the cut"))
+            events += _replaced(step, new, current, choice,
+                                f", the replacement of {failed.describe()} installed first: {why}, with mean error "
+                                f"{format_errors(choice.trans_error, choice.rot_error)} over {choice.n_test} test "
+                                f"samples after {new.n_train} training samples", ", a simpler candidate across the cut")
             pool.remove(current)
             del adapt.refining[new_id]
             adapt.refining[new.id] = (failed_id, tau)
@@ -406,21 +412,14 @@ def _install_replacement(adapt, tree, failed, choice, step, events):
     pool.assign(new, TREE, step)
     mismatch = _take_over(adapt, tree, failed, new, keep_candidates=True)
     adapt.refining[new.id] = (failed.id, mismatch.tau)
-    events.append(Event(step, "model_replaced",
-                        f"{new.describe()} replaces {failed.describe()}: valid with mean error "
-                        f"{format_errors(choice.trans_error, choice.rot_error)} over {choice.n_test} test samples "
-                        f"after {new.n_train} training samples since step {mismatch.train_from}; cost "
-                        f"{'C(M2)' if mismatch.search else 'C(M2|M1)'} + error and class penalty = "
-                        f"{choice.cost:.2f} ({'' if mismatch.search else 'relative '}complexity "
-                        f"{choice.relative}), "
-                        f"cheapest of {choice.n_valid} valid among {choice.n_sampled} sampled; mismatch lasted "
-                        f"{step - mismatch.detected} steps{_chain_change(failed, new)}",
-                        parent=new.parent, child=new.child, model=new.describe(),
-                        trans_error=choice.trans_error, rot_error=choice.rot_error))
-    if {new.parent, new.child} != {failed.parent, failed.child}:
-        events.append(Event(step, "structure_changed",
-                            f"edge {failed.parent}-{failed.child} replaced by {new.parent}-{new.child} "
-                            f"({new.describe()}): no model of pair {failed.parent}-{failed.child} fits"))
+    events += _replaced(step, new, failed, choice,
+                        f": valid with mean error {format_errors(choice.trans_error, choice.rot_error)} over "
+                        f"{choice.n_test} test samples after {new.n_train} training samples since step "
+                        f"{mismatch.train_from}; cost {'C(M2)' if mismatch.search else 'C(M2|M1)'} + error and class "
+                        f"penalty = {choice.cost:.2f} ({'' if mismatch.search else 'relative '}complexity "
+                        f"{choice.relative}), cheapest of {choice.n_valid} valid among {choice.n_sampled} sampled; "
+                        f"mismatch lasted {step - mismatch.detected} steps{_chain_change(failed, new)}",
+                        f": no model of pair {failed.parent}-{failed.child} fits")
     retire(adapt.pool, adapt.config.memory_size, failed, step, events, f"replaced by {new.describe()}")
     return Change(new, failed, mismatch.tau)
 
