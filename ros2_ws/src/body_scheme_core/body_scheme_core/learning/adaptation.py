@@ -22,7 +22,9 @@ __all__ = ["Adaptation"]
 class Adaptation:
     """Detects mismatching tree models and repairs them from memory or with newly learned replacements.
 
-    The state the steps share; the steps are functions of the modules named above that take it (``adapt``).
+    The state the steps share; the steps are functions of :mod:`~body_scheme_core.learning.detection`,
+    :mod:`~body_scheme_core.learning.repair`, :mod:`~body_scheme_core.learning.challengers` and
+    :mod:`~body_scheme_core.learning.memory` that take it (``adapt``).
 
     Parameters
     ----------

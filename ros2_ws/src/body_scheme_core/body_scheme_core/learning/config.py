@@ -184,8 +184,9 @@ class BodySchemeConfig:
         :func:`~body_scheme_core.transforms.mirror_about_ray`): where the given reading is off the candidate's
         prediction by more than a threshold and the other is within both and less than half as far, so a flip before
         the scheme is calibrated neither teaches a model nor makes it invalid. Once it is calibrated, a flip off the
-        prediction by more than a third of the rotational threshold is taken in mirrored too (not only one off by
-        more than the threshold: :data:`~body_scheme_core.learning.mirrors.EAGER_FLOOR`). Off (the default): poses
+        prediction by more than a third of the rotational threshold is taken in mirrored too, or refused where its
+        position is off as well (not only one off by more than the threshold:
+        :data:`~body_scheme_core.learning.mirrors.EAGER_FLOOR`). Off (the default): poses
         as given, as a laser tracker or motion capture needs. On for a tag tracker whose poses flip often (the robot
         zoo's 30 % level: the true tree in 28 of 40 bodies instead of 15); on flip-free poses at the paper's noise
         (thresholds of 45 deg) the other readings make wrong candidates valid for a while: more tree changes,

@@ -58,9 +58,10 @@ def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.
     mirrored = rotational_error(predicted, mirror_about_ray(observed))
     flipped = (error > floor * theta_rot) & (mirrored <= theta_rot) & (mirrored < 0.5 * error)
     placed = np.linalg.norm(predicted[:, :3, 3] - observed[:, :3, 3], axis=1) <= theta_trans
+    bound = f"threshold {math.degrees(theta_rot):.1f} deg" + (
+        f", {math.degrees(floor * theta_rot):.1f} deg for a tracker known to flip" if floor < 1.0 else "")
     return [(p, f"the orientation of part {p} is {math.degrees(e):.0f} deg from the body scheme's prediction, "
-                f"its mirror about the camera's ray {math.degrees(m):.0f} deg (threshold "
-                f"{math.degrees(theta_rot):.1f} deg)", bool(c))
+                f"its mirror about the camera's ray {math.degrees(m):.0f} deg ({bound})", bool(c))
             for p, e, m, f, c in zip(parts, error, mirrored, flipped, placed, strict=True) if f]
 
 
