@@ -57,6 +57,8 @@ def mirrored_observations(world2part, observations, theta_rot, theta_trans=math.
     error = rotational_error(predicted, observed)
     mirrored = rotational_error(predicted, mirror_about_ray(observed))
     flipped = (error > floor * theta_rot) & (mirrored <= theta_rot) & (mirrored < 0.5 * error)
+    if not np.any(flipped):
+        return []
     placed = np.linalg.norm(predicted[:, :3, 3] - observed[:, :3, 3], axis=1) <= theta_trans
     bound = f"threshold {math.degrees(theta_rot):.1f} deg" + (
         f", {math.degrees(floor * theta_rot):.1f} deg for a tracker known to flip" if floor < 1.0 else "")
