@@ -84,7 +84,7 @@ def test_the_next_samples_are_drawn_near_the_posture_then_the_joint_fit_runs_and
     explorer.after_learning(learner, 3.0, session.actions[3])  # the last one was learnt: fit, snapshot, answer
     answers = received(1)
     assert len(answers) == 1 and answers[0].outcome == "" and answers[0].step == step and snapshots == [True]
-    assert learner._calibrated.step == step - 1
+    assert learner.state.calibrated.step == step - 1
     commands = received(4, make.commands)
     assert len(commands) == 4
     for command in commands[:3]:

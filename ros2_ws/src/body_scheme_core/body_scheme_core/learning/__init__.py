@@ -10,8 +10,9 @@
   (:mod:`.memory`);
 - the root pose and the chain-consistent targets the tree's models are tested against (:mod:`.root_pose`,
   :mod:`.chain`);
-- the learner that runs them step by step (:mod:`.learner`, its joint-fit steps in :mod:`.learner_fit`), its
-  configuration (:mod:`.config`) and input checks (:mod:`.inputs`), and its saved state (:mod:`.learner_state`,
+- the learner that runs them step by step (:mod:`.learner`): its state, every field once (:mod:`.learner_state`),
+  its time step (:mod:`.learner_step`) and joint-fit steps (:mod:`.learner_fit`) as functions of that state, its
+  configuration (:mod:`.config`) and input checks (:mod:`.inputs`), and its saved state (:mod:`.state_file`,
   :mod:`.persistence`).
 
 The package exports what users and the other packages call: the learner, its configuration, its saved state, and

@@ -13,6 +13,8 @@ Every step, against the chain-consistent targets of the calibrated body scheme
 
 from __future__ import annotations
 
+import dataclasses
+
 from . import challengers, detection, repair
 from .tracked import CANDIDATE, MEMORY
 
@@ -60,6 +62,16 @@ class Adaptation:
         self.refining = {} if refining is None else dict(refining)
         self.failed = {} if failed is None else dict(failed)
         self.chain_samples = {}
+
+    def snapshot(self):
+        """What :meth:`restore` needs to undo a learner's step (the mismatch records are copied: a step updates
+        them)."""
+        return ({k: dataclasses.replace(v) for k, v in self.mismatch.items()}, dict(self.refining), dict(self.failed),
+                dict(self.chain_samples))
+
+    def restore(self, saved):
+        """Undo every change since :meth:`snapshot` returned ``saved``."""
+        self.mismatch, self.refining, self.failed, self.chain_samples = saved
 
     def step(self, tree, root, a, chain, chain_at, step, events):
         """One step after bootstrapping: evaluate and train, detect mismatches, repair the edges in mismatch.

@@ -86,6 +86,16 @@ class Bootstrap:
         self._layers = None  # {(parent, child): highest complexity instantiated}, see _instantiated_layers
         self._chain_tried = {}  # (parent, child) -> samples of both parts at the last identification
 
+    def snapshot(self):
+        """What :meth:`restore` needs to undo a learner's step."""
+        return (self.found, self.tree_since, dict(self.vetoed), self.raced,
+                None if self._layers is None else dict(self._layers), dict(self._chain_tried))
+
+    def restore(self, saved):
+        """Undo every change since :meth:`snapshot` returned ``saved``."""
+        self.found, self.tree_since, self.vetoed, self.raced, self._layers, self._chain_tried = saved
+        self._pair_index = None
+
     @staticmethod
     def add_candidates(pool, part_ids, n_actions, config):
         """Start the candidates of the fully connected network learning in ``pool``: those of complexity <= 1 with

@@ -169,6 +169,19 @@ class ModelPool:
         """Forget what is derived from the set of tracked models, their roles and slots (rebuilt on demand)."""
         self._learning = None
 
+    def snapshot(self):
+        """What :meth:`restore` needs to undo a learner's step: the set of tracked models (their entries' own changes
+        are journaled, :class:`~body_scheme_core.learning.tracked.Journal`), the batches' slots and the monitor."""
+        return (self.next_id, dict(self.tracked), (self.gp_batch, self.gp_batch.snapshot()),
+                (self.rigid_batch, self.rigid_batch.snapshot()), self.monitor.copy())
+
+    def restore(self, saved):
+        """Undo every change since :meth:`snapshot` returned ``saved`` (but the entries', which the journal undoes)."""
+        self.next_id, self.tracked, (self.gp_batch, gp_saved), (self.rigid_batch, rigid_saved), self.monitor = saved
+        self.gp_batch.restore(gp_saved)
+        self.rigid_batch.restore(rigid_saved)
+        self._changed()
+
     # ------------------------------------------------------------------ membership
     def _add(self, parent, child, actions, kind, role, row, **kwargs):
         entry = TrackedModel(self.next_id, parent, child, actions, kind, role, row, **kwargs)

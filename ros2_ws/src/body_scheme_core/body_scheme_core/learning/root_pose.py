@@ -80,6 +80,14 @@ class RootPoseEstimator:
         """The kept samples ``[(actions, {part: world2part})]``, oldest first."""
         return list(self._samples)
 
+    def snapshot(self):
+        """What :meth:`restore` needs to undo a learner's step."""
+        return self.root, self._cache, self._samples.copy()
+
+    def restore(self, saved):
+        """Undo every change since :meth:`snapshot` returned ``saved``."""
+        self.root, self._cache, self._samples = saved
+
     def invalidate(self):
         """Forget the cached estimate (the root changed)."""
         self._cache = None
@@ -181,6 +189,14 @@ class RootWatch:
         self.monitor = monitor
         self.offset = np.eye(4) if offset is None else np.array(offset, dtype=float)
         self.n_offset = OFFSET_SAMPLES if n_offset is None else int(n_offset)
+
+    def snapshot(self):
+        """What :meth:`restore` needs to undo a learner's step."""
+        return self.monitor.copy(), self.offset.copy(), self.n_offset
+
+    def restore(self, saved):
+        """Undo every change since :meth:`snapshot` returned ``saved``."""
+        self.monitor, self.offset, self.n_offset = saved
 
     def expected(self, world2root):
         """Where the root's marker is expected in the world ``(4, 4)``, or None while its offset is being learnt."""

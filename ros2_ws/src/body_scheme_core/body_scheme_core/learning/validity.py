@@ -484,6 +484,13 @@ class ValidityMonitor:
         return np.where(first == big, -1, first)
 
     # ------------------------------------------------------------------ persistence
+    def copy(self):
+        """An independent copy: its arrays copied, its settings shared (immutable)."""
+        clone = ValidityMonitor.__new__(ValidityMonitor)
+        vars(clone).update({name: value.copy() if isinstance(value, np.ndarray) else value
+                            for name, value in vars(self).items()})
+        return clone
+
     def to_dict(self):
         """JSON-serialisable state (all rows, used or free, so row indices survive a round trip)."""
         data = {"window": self.window, "theta": self.theta.tolist(), "cusum_drift": self.cusum_drift,

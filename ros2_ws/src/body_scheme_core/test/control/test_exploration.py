@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from body_scheme_core.control.exploration import ExplorationPolicy, NearFocus, explore_near, in_camera_view
-from body_scheme_core.errors import InvalidInputError, LearnerStepError
+from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.prediction.uncertainty import parameter_jacobian
 from body_scheme_core.world import Body, ObservationModel, make_session, planar_2dof
@@ -122,7 +122,7 @@ def test_explore_near_observes_each_chosen_command_then_refits(learned):
     span = tree.action_upper - tree.action_lower
     assert len(commanded) == 4 and learner.step == step + 4
     assert all(np.all(np.abs(a - answer) <= 0.05 * span + 1e-12) for a in commanded)
-    assert learner._calibrated.step == learner.step - 1
+    assert learner.state.calibrated.step == learner.step - 1
     with pytest.raises(InvalidInputError, match="n_samples"):
         explore_near(learner, policy, answer, observe, n_samples=0)
 
@@ -188,22 +188,6 @@ def test_bad_settings_are_refused(kwargs, match):
     args = {"lower": [0.0, 0.0], "upper": [1.0, 1.0], **kwargs}
     with pytest.raises(InvalidInputError, match=match):
         ExplorationPolicy(**args)
-
-
-def test_a_joint_fit_on_demand_that_fails_is_undone(learned, monkeypatch):
-    """``recalibrate`` is all or nothing like ``update``: a failure after the fit leaves the learner's state as it was
-    and raises LearnerStepError."""
-    _, learner = learned
-    learner = BodySchemeLearner.from_state(learner.to_state())
-    before = learner.to_state()
-
-    def broken(*args):
-        raise RuntimeError("injected")
-
-    monkeypatch.setattr(learner, "_flag_unexplained", broken)
-    with pytest.raises(LearnerStepError, match="undone"):
-        learner.recalibrate()
-    assert learner.to_state() == before
 
 
 def test_with_excursions_it_moves_each_joint_alone_then_pairs_before_babbling():

@@ -38,7 +38,7 @@ class _Run:
     def __init__(self, robot, models, session, memory=(), config=None):
         self.learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, config, initial_models=models)
         if memory:
-            self.learner._pool.add_fitted(list(memory), MEMORY, origin="test", last_used=0)
+            self.learner.state.pool.add_fitted(list(memory), MEMORY, origin="test", last_used=0)
         self.session = session
         self.events = []
 
@@ -55,8 +55,8 @@ class _Run:
         return [e.kind for e in self.events if e.step >= start]
 
     def edge(self, parent, child):
-        pool = self.learner._pool
-        return next(pool.tracked[i] for i in self.learner._tree
+        pool = self.learner.state.pool
+        return next(pool.tracked[i] for i in self.learner.state.tree
                     if {pool.tracked[i].parent, pool.tracked[i].child} == {parent, child})
 
 
@@ -119,17 +119,17 @@ def test_a_failing_model_is_detected_replaced_and_remembered():
     assert {detected.parent, detected.child} == {2, 3} and detected.step < 40
     # The replacements were trained on exactly the child's samples since the change point, replayed at once.
     used, start = map(int, re.search(r"trained on the (\d+) samples since step (\d+)", sampled.reason).groups())
-    assert used == sum(1 for s, _, obs in run.learner._history if start <= s <= sampled.step and 3 in obs)
+    assert used == sum(1 for s, _, obs in run.learner.state.history if start <= s <= sampled.step and 3 in obs)
     assert f"since step {start}" in replaced.reason
     new = run.edge(2, 3)
     assert new.origin == "replacement" and new.since == start and new.model is not None
-    assert run.learner._adaptation.mismatch == {}
+    assert run.learner.state.adaptation.mismatch == {}
     run.run(replaced_at + 1, 90)
     assert "mismatch_detected" not in run.kinds(replaced_at + 1)
     assert run.edge(1, 2).model is models[0]  # engineered models are never refitted
-    (remembered,) = run.learner._pool.with_role(MEMORY)
+    (remembered,) = run.learner.state.pool.with_role(MEMORY)
     assert remembered.id == failed_id
-    assert run.learner._pool.candidates_of(failed_id) == []  # siblings were dropped once frozen or superseded
+    assert run.learner.state.pool.candidates_of(failed_id) == []  # siblings were dropped once frozen or superseded
 
 
 def test_a_simpler_sibling_that_becomes_valid_takes_over():
@@ -144,7 +144,7 @@ def test_a_simpler_sibling_that_becomes_valid_takes_over():
     assert replaced[0].model.startswith("gp(3->4")
     assert replaced[1].model.startswith("revolute(3->4") and "installed first" in replaced[1].reason
     assert run.edge(3, 4).kind == "revolute"
-    assert [e.kind for e in run.learner._pool.with_role(MEMORY)] == ["engineered"]
+    assert [e.kind for e in run.learner.state.pool.with_role(MEMORY)] == ["engineered"]
 
 
 def test_edges_below_a_changed_edge_wait_for_it():
@@ -166,7 +166,7 @@ def test_an_alarm_is_blamed_on_an_edge_above_only_if_that_edge_rose_too():
     run = _Run(robot, engineered_models(robot), make_session(robot, 30, seed=0))
     run.run(0, 30)
     learner = run.learner
-    pool, threshold = learner._pool, learner.config.cusum_threshold
+    pool, threshold = learner.state.pool, learner.config.cusum_threshold
     monitor = pool.monitor
     upper, lower = run.edge(2, 3), run.edge(4, 5)
     monitor.cusum[lower.row] = [2.5, 0.0]
@@ -192,7 +192,7 @@ def test_a_remembered_model_that_fits_again_is_put_back():
     detected, reinstated, retired = [e for e in run.events if e.step >= 80]
     assert "remembered engineered(2->3 | a1)" in detected.reason and reinstated.step - 80 < 10
     assert run.edge(2, 3).model is models[1] and retired.model == learned.describe()
-    assert [e.id for e in run.learner._pool.with_role(MEMORY)] == [learned.id]
+    assert [e.id for e in run.learner.state.pool.with_role(MEMORY)] == [learned.id]
 
 
 def test_unpromising_replacements_are_sampled_again_after_patience():
@@ -219,7 +219,7 @@ def test_a_remembered_model_of_another_pair_can_reconnect_the_tree():
     assert len(changed) == 1 and changed[0].reason.startswith("edge 1-3 replaced by 2-3")
     assert {frozenset((e.parent, e.child)) for e in (run.edge(1, 2), run.edge(2, 3))} == {
         frozenset((1, 2)), frozenset((2, 3))}
-    assert [e.model for e in run.learner._pool.with_role(MEMORY)] == [wrong13]
+    assert [e.model for e in run.learner.state.pool.with_role(MEMORY)] == [wrong13]
 
 
 def test_a_wrong_edge_is_replaced_by_a_pair_across_the_cut():
@@ -251,6 +251,6 @@ def test_memory_keeps_at_most_memory_size_models_per_pair():
     retired = [e for e in run.events if e.kind == "model_retired"]
     assert len(retired) == 2
     assert "forgot engineered(2->3 | a1)" in retired[1].reason and "memory holds 1 model(s)" in retired[1].reason
-    (remembered,) = run.learner._pool.with_role(MEMORY)
+    (remembered,) = run.learner.state.pool.with_role(MEMORY)
     assert remembered.model is not models[1]
     assert np.isfinite(run.learner.calibration_rms)

@@ -176,7 +176,7 @@ def test_lazy_layers_and_racing_learn_the_tree_of_the_eager_search(make):
 def test_a_serial_chain_with_one_joint_per_link_never_instantiates_layer_two():
     seen = []
     _learn(powercube_6dof(), LAZY, watch=lambda learner: seen.append(
-        max(e.complexity for e in learner._pool.tracked.values())))
+        max(e.complexity for e in learner.state.pool.tracked.values())))
     assert seen and max(seen) == 1
 
 
@@ -187,7 +187,7 @@ def test_a_raced_out_candidate_never_comes_back_as_a_tree_model():
     raced, alive = set(), {}
 
     def watch(learner):
-        now = {i: (e.parent, e.child, e.actions, e.kind) for i, e in learner._pool.tracked.items()}
+        now = {i: (e.parent, e.child, e.actions, e.kind) for i, e in learner.state.pool.tracked.items()}
         if learner.phase == "bootstrapping":
             raced.update(spec for i, spec in alive.items() if i not in now)
             assert not raced & {spec for i, spec in now.items() if i not in alive}  # never instantiated again

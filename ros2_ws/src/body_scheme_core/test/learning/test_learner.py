@@ -9,6 +9,8 @@ import pytest
 from body_scheme_core.errors import InvalidInputError, ModelFileError, NotFittedError
 from body_scheme_core.learning.config import BodySchemeConfig
 from body_scheme_core.learning.learner import BodySchemeLearner
+from body_scheme_core.learning.learner_fit import sample_challengers
+from body_scheme_core.learning.learner_step import workspace
 from body_scheme_core.models import GPModel, StaticModel
 from body_scheme_core.models.engineered import engineered_models
 from body_scheme_core.transforms import invert_transform, mirror_about_ray, rotational_error, transform_from_rotvec
@@ -204,7 +206,7 @@ def test_bad_observations_are_rejected_and_counted():
     assert learner.rejected == {"not_finite": 2, "unknown_id": 3, "not_rigid": 2, "bad_shape": 1}
     assert len(_kinds(events, "input_rejected")) == 8
     assert learner.step == 2
-    assert [len(rec[2]) for rec in learner._history] == [1, 0]  # only the good root pose was used
+    assert [len(rec[2]) for rec in learner.state.history] == [1, 0]  # only the good root pose was used
 
 
 def test_bad_actions_raise_and_change_nothing():
@@ -347,7 +349,7 @@ def test_a_rigid_challenger_takes_a_gp_edge_that_a_joint_describes():
                                 initial_models=[engineered_models(robot)[0], gp])
     _run(learner, session, 0, 30)
     events = []
-    learner._sample_challengers(30, events)  # as when bootstrapping ends
+    sample_challengers(learner.state, 30, events)  # as when bootstrapping ends
     assert "prismatic and revolute joints for each of the 1 GP edges" in events[0].reason
     events = _run(learner, session, 30, 60)
     replaced = _kinds(events, "model_replaced")
@@ -438,7 +440,7 @@ def test_outliers_beyond_the_robots_reach_are_refused_once_calibrated():
         learner.update(a, obs)
     assert learner.phase == "steady"
     tree_before = [(e["parent"], e["child"], e["model"]) for e in learner.edge_status()]
-    centre, radius = learner._workspace()
+    centre, radius = workspace(learner.state)
     root = robot.marker_ids[0]
     seen = max(np.linalg.norm(obs[p][:3, 3] - obs[root][:3, 3]) for obs in session.observations[:100] if root in obs
                for p in obs)
@@ -609,7 +611,7 @@ def test_fitted_at_changes_exactly_when_a_joint_fit_runs():
         learner.update(session.actions[t], session.observations[t])
         seen.add(learner.fitted_at)
     step, fitted_tree = learner.fitted_at
-    assert step < learner.step and len(seen - {None}) >= 2 and fitted_tree == tuple(learner._tree)
+    assert step < learner.step and len(seen - {None}) >= 2 and fitted_tree == tuple(learner.state.tree)
     before = learner.fitted_at
     learner.recalibrate()
     assert learner.fitted_at != before and learner.fitted_at[0] == learner.step - 1

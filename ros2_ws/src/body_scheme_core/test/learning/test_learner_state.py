@@ -1,14 +1,18 @@
 """Tests of the learner's state in memory and on disk: atomic steps, structure checks and strict state files
 (learner_state.py)."""
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from body_scheme_core.errors import LearnerStepError, ModelFileError, StampOrderError
+from body_scheme_core.learning import learner_fit, learner_step
 from body_scheme_core.learning.learner import BodySchemeLearner
-from body_scheme_core.learning.learner_state import structural_problems
+from body_scheme_core.learning.learner_state import UNDO, LearnerState, restore, snapshot, structural_problems
+from body_scheme_core.learning.learner_step import time_step
+from body_scheme_core.learning.tracked import Journal
 from body_scheme_core.world import make_session, planar_2dof, powercube_6dof
 
 
@@ -26,20 +30,21 @@ def _learner(session, steps):
     return learner
 
 
-@pytest.mark.parametrize("where, steps", [("_bootstrap_step", 10), ("_calibrate", 10), ("_adapt_step", 70),
-                                          ("_learn_noise", 70)])
-def test_a_step_that_fails_inside_is_undone_whole(session, monkeypatch, where, steps):
+@pytest.mark.parametrize("module, where, steps", [(learner_step, "_bootstrap_step", 10),
+                                                  (learner_fit, "calibrate_tree", 10),
+                                                  (learner_step, "_adapt_step", 70), (learner_fit, "_learn_noise", 70)])
+def test_a_step_that_fails_inside_is_undone_whole(session, monkeypatch, module, where, steps):
     """A defect raised anywhere in a step (while bootstrapping or after) leaves the learner exactly as it was: the
     same state, step counter and structure; the error is a LearnerStepError caused by the original, and the next
     step goes on."""
     learner = _learner(session, steps)
-    original = getattr(BodySchemeLearner, where)
+    original = getattr(module, where)
 
-    def broken(self, *args, **kwargs):
-        original(self, *args, **kwargs)  # change things first, then fail
+    def broken(*args, **kwargs):
+        original(*args, **kwargs)  # change things first, then fail
         raise KeyError("a defect")
 
-    monkeypatch.setattr(BodySchemeLearner, where, broken)
+    monkeypatch.setattr(module, where, broken)
     for t in range(steps, steps + 80):  # until the broken piece runs (the joint fit is not due every step)
         before = json.dumps(learner.to_state(), sort_keys=True)
         try:
@@ -50,7 +55,7 @@ def test_a_step_that_fails_inside_is_undone_whole(session, monkeypatch, where, s
     else:
         pytest.fail(f"{where} never ran")
     assert json.dumps(learner.to_state(), sort_keys=True) == before and learner.step == t
-    assert structural_problems(learner) == []
+    assert structural_problems(learner.state) == []
     monkeypatch.undo()
     learner.update(session.actions[t], session.observations[t])
     assert learner.step == t + 1
@@ -60,11 +65,11 @@ def test_undone_means_identical_to_a_learner_that_never_saw_the_step(session, mo
     """After a failed step the learner continues exactly like one that never tried it."""
     a, b = _learner(session, 70), _learner(session, 70)
 
-    def broken(self, *args, **kwargs):
+    def broken(*args, **kwargs):
         raise RuntimeError("a defect")
 
-    monkeypatch.setattr(BodySchemeLearner, "_flag_unexplained", broken)
-    monkeypatch.setattr(BodySchemeLearner, "_calibration_due", lambda self, step: True)
+    monkeypatch.setattr(learner_fit, "_flag_unexplained", broken)
+    monkeypatch.setattr(learner_step, "calibration_due", lambda state, step: True)
     with pytest.raises(LearnerStepError):
         a.update(session.actions[70], session.observations[70])
     monkeypatch.undo()
@@ -73,6 +78,52 @@ def test_undone_means_identical_to_a_learner_that_never_saw_the_step(session, mo
         events_b = b.update(session.actions[t], session.observations[t])
         assert events_a == events_b
     assert json.dumps(a.to_state(), sort_keys=True) == json.dumps(b.to_state(), sort_keys=True)
+
+
+def test_a_joint_fit_on_demand_that_fails_is_undone(session, monkeypatch):
+    """``recalibrate`` is all or nothing like ``update``: a failure after the fit leaves the learner's state as it was
+    and raises LearnerStepError."""
+    learner = _learner(session, 70)
+    before = learner.to_state()
+
+    def broken(*args):
+        raise RuntimeError("injected")
+
+    monkeypatch.setattr(learner_fit, "_flag_unexplained", broken)
+    with pytest.raises(LearnerStepError, match="undone"):
+        learner.recalibrate()
+    assert learner.to_state() == before
+
+
+def test_every_field_says_how_it_is_undone_and_the_state_file_saves_every_field(session):
+    """Each LearnerState field has an undo policy; the state file's keys are exactly the keys the fields name."""
+    learner = _learner(session, 5)
+    fields = dataclasses.fields(LearnerState)
+    assert all(f.metadata["undo"] in UNDO for f in fields)
+    named = {key for f in fields for key in f.metadata["file"]}
+    assert named == set(learner.to_state()) - {"version"}
+
+
+def test_a_restored_snapshot_is_the_state_it_was_taken_of(session):
+    """Sixty steps through the end of bootstrapping, run on the state directly, then restored: the saved state, the
+    fields the file does not hold and the objects the phase objects share are as before."""
+    learner = _learner(session, 40)
+    s = learner.state
+    before = json.dumps(learner.to_state(), sort_keys=True)
+    transient = (s.just_finished, s.reach, s.prediction, s.pairs, s.history, s.noise)
+    with Journal() as journal:
+        saved = snapshot(s, journal)
+        for t in range(40, 100):
+            time_step(s, session.actions[t], session.observations[t], None)
+        assert s.step == 100 and json.dumps(learner.to_state(), sort_keys=True) != before
+        restore(s, saved)
+    assert json.dumps(learner.to_state(), sort_keys=True) == before
+    assert (s.just_finished, s.reach, s.prediction, s.pairs, s.history, s.noise) == transient
+    assert s.bootstrap.history is s.history and s.adaptation.history is s.history and s.pairs.noise is s.noise
+    assert s.bootstrap.pool is s.pool and s.adaptation.pool is s.pool
+    assert structural_problems(s) == []
+    for t in range(40, 45):  # and it goes on
+        learner.update(session.actions[t], session.observations[t])
 
 
 def test_a_missing_stamp_does_not_reset_the_time_order():
@@ -147,10 +198,10 @@ def test_a_non_rigid_pose_in_the_history_is_refused(state):
 def test_structural_problems_name_what_is_wrong(state):
     """A sound learner has none; a tree edge that is not tracked, or a monitor row shared by two models, is named."""
     learner = BodySchemeLearner.from_state(state)
-    assert structural_problems(learner) == []
-    learner._tree[0] = 10_000
-    assert any("not tracked" in p for p in structural_problems(learner))
+    assert structural_problems(learner.state) == []
+    learner.state.tree[0] = 10_000
+    assert any("not tracked" in p for p in structural_problems(learner.state))
     learner = BodySchemeLearner.from_state(state)
-    entries = list(learner._pool.tracked.values())
+    entries = list(learner.state.pool.tracked.values())
     entries[1].row = entries[0].row
-    assert any("monitor rows" in p for p in structural_problems(learner))
+    assert any("monitor rows" in p for p in structural_problems(learner.state))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from body_scheme_core.errors import ModelFileError
-from body_scheme_core.learning import learner as learner_module
+from body_scheme_core.learning import learner_step
 from body_scheme_core.learning.config import BodySchemeConfig
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.mirrors import MIRROR_BLOCK, MirrorWatch, decide_flips, rechosen_history, rechosen_poses
@@ -140,7 +140,7 @@ def test_the_learner_checks_flips_eagerly_only_when_told_its_tracker_flips(told,
     session = make_session(robot, 60, seed=4, sigma_trans=0.005, sigma_rot=math.radians(1.0))
     learner = BodySchemeLearner(robot.marker_ids, robot.n_actions, BodySchemeConfig(mirror_hypotheses=told))
     seen = []
-    monkeypatch.setattr(learner_module, "decide_flips",
+    monkeypatch.setattr(learner_step, "decide_flips",
                         lambda *args, **kwargs: seen.append(kwargs["eager"]) or decide_flips(*args, **kwargs))
     for t in range(60):
         learner.update(session.actions[t], session.observations[t])

@@ -215,7 +215,7 @@ def test_numbers_that_overflow_are_refused_at_load_and_non_finite_state_at_save(
     with pytest.raises(ModelFileError, match="not finite"):
         load_state(path)
     broken = load_state(_document(learner, tmp_path)[0])  # a copy: the fixture is shared
-    broken._history[0][1][0] = float("inf")
+    broken.state.history[0][1][0] = float("inf")
     with pytest.raises(ModelFileError, match="NaN or infinite"):
         save_state(broken, tmp_path / "other.json")
     assert not (tmp_path / "other.json").exists()

@@ -136,7 +136,7 @@ def test_the_learner_never_breaks(s):
         events = learner.update(session.actions[t], observations, stamp=given_stamp)
         accepted += 1
         assert learner.step == accepted
-        assert structural_problems(learner) == []
+        assert structural_problems(learner.state) == []
         TOTALS["events"] += len(events)
         if learner.body_scheme is not None:
             predicted = learner.predict(session.actions[t])
