@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from ..transforms import invert_transform, rotational_error
-from .pool import Targets
+from .targets import Targets
 
 __all__ = ["ChainTargets"]
 

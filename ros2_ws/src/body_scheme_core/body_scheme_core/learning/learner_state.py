@@ -248,7 +248,7 @@ def structural_problems(state):
         slots = [e.slot for e in tracked.values() if e.slot >= 0 and (e.kind in ("static", "prismatic", "revolute"))
                  == rigid]
         if len(set(slots)) != len(slots) or batch.n_allocated != len(slots) or any(
-                not batch._allocated[s] for s in slots if 0 <= s < len(batch._allocated)):
+                not batch.is_allocated(s) for s in slots):
             problems.append(f"{'rigid' if rigid else 'GP'} batch slots and learning models do not match one to one")
     if state.root not in parts or state.root_pose.root != state.root:
         problems.append(f"the root {state.root} is not the same everywhere or not a part")

@@ -13,11 +13,11 @@ a replacement for a failed tree model). :class:`ModelPool` holds all of them wit
 
 Every step each tracked model whose *target* is available first predicts it, its error enters its test window, and
 only then may a learning model add the sample to its training set (:meth:`ModelPool.evaluate`,
-:meth:`ModelPool.train`). The targets come from the caller as a :class:`Targets`: the relative observations
-``Y_i^-1 Y_j`` while bootstrapping (:mod:`~body_scheme_core.learning.relative`), the chain-consistent observations of
-the calibrated body scheme afterwards (:mod:`~body_scheme_core.learning.chain`). The decisions built on top (structure
-search, change detection, repair) live in :mod:`~body_scheme_core.learning.bootstrap` and
-:mod:`~body_scheme_core.learning.adaptation`.
+:meth:`ModelPool.train`). The targets come from the caller as a :class:`~body_scheme_core.learning.targets.Targets`:
+the relative observations ``Y_i^-1 Y_j`` while bootstrapping (:mod:`~body_scheme_core.learning.relative`), the
+chain-consistent observations of the calibrated body scheme afterwards (:mod:`~body_scheme_core.learning.chain`). The
+decisions built on top (structure search, change detection, repair) live in
+:mod:`~body_scheme_core.learning.bootstrap` and :mod:`~body_scheme_core.learning.adaptation`.
 """
 
 from __future__ import annotations
@@ -26,15 +26,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import ModelFileError
 from ..models import RIGID_CLASSES, GPBatch, GPModel, RigidBatch
-from ..state_values import integer, listing
 from ..transforms import invert_transform, transform_from_vector12
 from .quality import prediction_errors
 from .tracked import CANDIDATE, MEMORY, TrackedModel, nested_models
 from .validity import ValidityMonitor
 
-__all__ = ["Targets", "LearningSlots", "ModelPool", "check_monitor_settings"]
+__all__ = ["LearningSlots", "ModelPool"]
 
 #: Rigid candidates are refitted with every sample only while they are among the ``_PROMISING`` best of their pair
 #: and class (by mean error over the test window) or not yet judged; the others every ``_SLOW_REFIT`` samples. A
@@ -44,56 +42,6 @@ _SLOW_REFIT = 8
 #: Training-set sizes at which promising rigid candidates are refitted: every sample while few, then ever more
 #: sparsely (the body scheme's accuracy comes from the joint fit; candidate fits only rank and validate).
 _REFIT_SIZES = frozenset((1, 2, 3, 4, 5, 6, 7, 8, 10, 12, 15, 19, 24, 30))
-
-
-class Targets(NamedTuple):
-    """What tracked models are tested against (and candidates learn from) in one step.
-
-    Attributes
-    ----------
-    Z : ndarray, shape (k, 4, 4)
-        Observed ``parent2child`` per model, oriented as the model predicts.
-    theta_trans : ndarray, shape (k,)
-        Translational validity threshold of each sample (m).
-    theta_rot : ndarray, shape (k,)
-        Rotational validity threshold of each sample (rad).
-    sigma : ndarray, shape (k, 2)
-        Per-axis noise std of each sample (trans m, rot rad), for the rigid candidates' weighting.
-    flip : ndarray of bool, shape (k,)
-        Where ``Z`` is the *inverse* of what the model predicts: the prediction is inverted before the comparison,
-        so the error is measured in the direction whose translation carries no parent-orientation lever arm.
-    alternatives : ndarray, shape (k, 3, 4, 4), or None
-        Other readings of each ``Z`` (its poses mirrored about the camera's ray,
-        :attr:`~body_scheme_core.learning.relative.RelativeObservations.alternatives`); a model is judged against,
-        and learns from, the reading nearest its prediction (:meth:`nearest`). None: ``Z`` only.
-    """
-
-    Z: np.ndarray
-    theta_trans: np.ndarray
-    theta_rot: np.ndarray
-    sigma: np.ndarray
-    flip: np.ndarray
-    alternatives: np.ndarray | None = None
-
-    def select(self, index):
-        """The rows ``index``."""
-        return Targets(self.Z[index], self.theta_trans[index], self.theta_rot[index], self.sigma[index],
-                       self.flip[index], None if self.alternatives is None else self.alternatives[index])
-
-    def nearest(self, Zp, index=slice(None)):
-        """Of rows ``index``, the observed transform, or the alternative reading (poses mirrored about the ray) that
-        explains the predictions ``Zp`` where it does not: off by more than a threshold while the alternative is
-        within both and less than half as far (in threshold units, the larger of the two errors)."""
-        Z = self.Z[index]
-        if self.alternatives is None:
-            return Z
-        options = np.concatenate([Z[:, None], self.alternatives[index]], axis=1)
-        e_t, e_r = prediction_errors(Zp[:, None], options)
-        ratio = np.maximum(e_t / self.theta_trans[index][:, None], e_r / self.theta_rot[index][:, None])
-        best = 1 + np.argmin(ratio[:, 1:], axis=1)
-        k = np.arange(len(Z))
-        use = (ratio[:, 0] > 1.0) & (ratio[k, best] <= 1.0) & (ratio[k, best] < 0.5 * ratio[:, 0])
-        return np.where(use[:, None, None], options[k, best], Z)
 
 
 class LearningSlots(NamedTuple):
@@ -441,9 +389,9 @@ class ModelPool:
     def replay(self, entries, history, targets_at, start=None):
         """Train learning ``entries`` on recorded ``history`` (``(step, a, observations)`` records) at once,
         test-then-train as if live, from step ``start`` on (None: all of it). ``targets_at(a, observations)`` gives
-        ``(index, targets)``: which entries the record gives a target, and their :class:`Targets`. Returns the number
-        of records that gave at least one entry a target. The one history replay of bootstrapping, repair and the
-        challengers."""
+        ``(index, targets)``: which entries the record gives a target, and their
+        :class:`~body_scheme_core.learning.targets.Targets`. Returns the number of records that gave at least one
+        entry a target. The one history replay of bootstrapping, repair and the challengers."""
         ids = np.array([e.id for e in entries], dtype=np.int64)
         used = 0
         for rec_step, a, obs in history:
@@ -511,67 +459,3 @@ class ModelPool:
     def tracked_state(self):
         """The tracked models as dicts; learning models are in the batches, so no snapshot is saved."""
         return [e.to_dict(with_model=e.slot < 0) for e in self.tracked.values()]
-
-    @classmethod
-    def from_state(cls, config, n_actions, part_ids, tracked, next_id, monitor, gp_batch, rigid_batch):
-        """Rebuild from :meth:`tracked_state`, ``next_id``, ``ValidityMonitor.to_dict`` and the batches' state dicts.
-
-        Raises
-        ------
-        ModelFileError
-            If the monitor or batches do not have the configuration's settings, or a model refers to an unknown part,
-            a free monitor row or batch slot (or one of another model class or actions), has an id at or above
-            ``next_id`` or twice, or is frozen without a stored model.
-        """
-        monitor = ValidityMonitor.from_dict(monitor)
-        check_monitor_settings(monitor, config, "monitor")
-        gp = GPBatch.from_state_dict(gp_batch)
-        rigid = RigidBatch.from_state_dict(rigid_batch)
-        expected = GPBatch.from_config(n_actions, config, gp.max_dim)
-        if (gp.n_actions, gp.capacity, gp.hyperparameters) != (n_actions, config.train_window,
-                                                                 expected.hyperparameters):
-            raise ModelFileError(f"the GP batch ({gp.n_actions} actions, capacity {gp.capacity}, "
-                                 f"{gp.hyperparameters}) does not have the configuration's settings "
-                                 f"({n_actions}, {config.train_window}, {expected.hyperparameters})")
-        if not config.max_complexity <= gp.max_dim <= max(config.max_complexity, n_actions):
-            raise ModelFileError(f"the GP batch's max_dim {gp.max_dim} is below max_complexity or above the actions")
-        if (rigid.n_actions, rigid.capacity, rigid.f_scale, rigid.fit_scale) != (
-                n_actions, config.train_window, config.f_scale, config.fit_joint_scale):
-            raise ModelFileError("the rigid batch does not have the configuration's actions, train_window, f_scale "
-                                 "and fit_joint_scale")
-        pool = cls(config, n_actions, gp, rigid, monitor, integer(next_id, "next_id"))
-        for data in listing(tracked, "entries"):
-            entry = TrackedModel.from_dict(data, n_actions, part_ids)
-            problem = pool._entry_problem(entry)
-            if problem:
-                raise ModelFileError(f"model {entry.describe()}: {problem}")
-            pool.tracked[entry.id] = entry
-        return pool
-
-    def _entry_problem(self, entry):
-        """What is wrong with a loaded entry given the monitor, the batches and the entries before it, or None."""
-        if entry.id >= self.next_id or entry.id in self.tracked:
-            return f"its id is at or above next_id {self.next_id}, or taken"
-        if not (0 <= entry.row < self.monitor.capacity and self.monitor.in_use[entry.row]):
-            return f"has no monitor row {entry.row}"
-        if entry.slot < 0:
-            return None if entry.model is not None else "is frozen without a stored model"
-        if entry.model is not None:
-            return "is learning in a batch slot and has a stored model"
-        rigid = entry.kind in RIGID_CLASSES
-        batch = self.rigid_batch if rigid else self.gp_batch
-        if entry.slot >= len(batch._allocated) or not batch._allocated[entry.slot]:
-            return f"refers to free batch slot {entry.slot}"
-        held = (batch.slot_kind(entry.slot) if rigid else "gp", batch.slot_actions(entry.slot))
-        if held != (entry.kind, entry.actions):
-            return f"its batch slot {entry.slot} holds a {held[0]} model of actions {list(held[1])}"
-        return None
-
-
-def check_monitor_settings(monitor, config, name):
-    """Raise ``ModelFileError`` unless a loaded validity monitor has the configuration's test window and CUSUM."""
-    settings = (monitor.window, monitor.cusum_drift, monitor.cusum_threshold, monitor.cusum_clip, monitor.sigmas)
-    expected = (config.test_window, config.cusum_drift, config.cusum_threshold, config.cusum_clip,
-                config.validity_sigmas)
-    if settings != tuple(float(v) if k else v for k, v in enumerate(expected)):
-        raise ModelFileError(f"{name} has window and CUSUM settings {settings}, the configuration {expected}")

@@ -4,7 +4,7 @@ Local models describe pairs of parts. :class:`PartPairs` numbers the unordered p
 *canonical* direction of pair ``(p_i, p_j)`` is ``i < j``), and turns the marker poses of one step into a
 :class:`RelativeObservations`: all relative transforms of observed pairs, formed in one vectorised pass, with the
 translational validity threshold of each (it grows with the parts' distance, see
-:func:`~body_scheme_core.learning.validity.translation_threshold`). A model whose parent comes later in the part order
+:func:`~body_scheme_core.learning.targets.translation_threshold`). A model whose parent comes later in the part order
 predicts the inverse of the canonical transform (:meth:`PartPairs.flip`).
 """
 
@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..transforms import invert_transform, mirror_about_ray
-from .validity import translation_threshold
+from .targets import Targets, translation_threshold
 
 __all__ = ["PartPairs", "RelativeObservations"]
 
@@ -49,10 +49,8 @@ class RelativeObservations(NamedTuple):
     alternatives: np.ndarray | None = None
 
     def targets(self, pair):
-        """:class:`~body_scheme_core.learning.pool.Targets` of models in canonical direction with pair indices
+        """:class:`~body_scheme_core.learning.targets.Targets` of models in canonical direction with pair indices
         ``pair``."""
-        from .pool import Targets
-
         rows = self.row[pair]
         return Targets(self.Z[rows], self.theta_trans[rows], np.full(len(rows), self.theta_rot), self.sigma[rows],
                        np.zeros(len(rows), dtype=bool),

@@ -15,9 +15,20 @@ import numpy as np
 
 from ..calibration import PartConsistency
 from ..errors import BodySchemeError, InvalidInputError, ModelFileError
-from ..limits import MAX_COORDINATE
+from ..limits import MAX_COORDINATE, MAX_WINDOW
+from ..models import RIGID_CLASSES, GPBatch, RigidBatch
 from ..prediction import BodyScheme
-from ..state_values import boolean, finite_array, integer, listing, mapping, number, optional_number, part_id
+from ..state_values import (
+    boolean,
+    finite_array,
+    integer,
+    integer_array,
+    listing,
+    mapping,
+    number,
+    optional_number,
+    part_id,
+)
 from .adaptation import Adaptation
 from .bootstrap import Bootstrap
 from .config import BodySchemeConfig
@@ -25,12 +36,13 @@ from .detection import mismatch_from_state, mismatch_state
 from .inputs import check_action_vector, check_n_actions, check_part_ids, filter_covariances, rigidity_problem
 from .learner_state import Calibrated, LearnerState, structural_problems
 from .mirrors import MirrorWatch
-from .pool import ModelPool, check_monitor_settings
+from .pool import ModelPool
 from .repair import failed_from_state, failed_state, refining_from_state, refining_state
 from .root_pose import RootPoseEstimator, RootWatch
+from .tracked import TrackedModel
 from .validity import ValidityMonitor
 
-__all__ = ["STATE_VERSION", "to_dict", "from_dict"]
+__all__ = ["STATE_VERSION", "to_dict", "from_dict", "pool_from_dict", "monitor_to_dict", "monitor_from_dict"]
 
 #: Version of the dict layout of :func:`learner_to_state`.
 STATE_VERSION = 4  # 4: the learned noise and the lack-of-fit test; 3: rigid-joint models, two candidate batches, the
@@ -68,7 +80,7 @@ def to_dict(state):
         "refining": refining_state(s.adaptation.refining),
         "failed": failed_state(s.adaptation.failed),
         "vetoed": [[k, v] for k, v in s.bootstrap.vetoed.items()],
-        "monitor": s.pool.monitor.to_dict(),
+        "monitor": monitor_to_dict(s.pool.monitor),
         "gp_batch": s.pool.gp_batch.state_dict(),
         "rigid_batch": s.pool.rigid_batch.state_dict(),
         "calibration": None if cal is None else {
@@ -82,7 +94,7 @@ def to_dict(state):
         "unexplained": [[p, k] for p, k in s.unexplained.items()],
         "mirror_watch": s.mirror_watch.to_list(),
         "lack_of_fit": list(s.lack_of_fit),
-        "root_watch": s.root_watch.monitor.to_dict(),
+        "root_watch": monitor_to_dict(s.root_watch.monitor),
         "root_offset": {"pose": s.root_watch.offset.tolist(), "n": s.root_watch.n_offset},
         "root_since": s.root_since,
         "history": [{"step": k, "actions": a.tolist(), "observations": [[p, Y.tolist()] for p, Y in obs.items()],
@@ -130,8 +142,8 @@ def _state_from_dict(data):
     root = part_id(data["root"], parts, "root")
     if config.root is not None and root != config.root:
         raise ModelFileError(f"root {root} is not the configuration's root {config.root}")
-    pool = ModelPool.from_state(config, n_actions, parts, data["entries"], data["next_id"],
-                                data["monitor"], data["gp_batch"], data["rigid_batch"])
+    pool = pool_from_dict(config, n_actions, parts, data["entries"], data["next_id"], data["monitor"],
+                          data["gp_batch"], data["rigid_batch"])
     tree = None if data["tree"] is None else [integer(i, "tree id") for i in listing(data["tree"], "tree")]
     if tree is not None and any(i not in pool.tracked for i in tree):
         raise ModelFileError(f"tree refers to unknown model ids {tree}")
@@ -146,10 +158,10 @@ def _state_from_dict(data):
     rejected, corrected = (Counter({str(k): integer(v, f"{name}[{k!r}]") for k, v in mapping(value, name).items()})
                            for name, value in (("rejected", data["rejected"]),
                                                ("corrected", data.get("corrected", {}))))  # (older files: none)
-    watch = ValidityMonitor.from_dict(data["root_watch"])
+    watch = monitor_from_dict(data["root_watch"])
     if watch.capacity != 1 or not watch.in_use[0]:
         raise ModelFileError("root_watch must be one monitor row")
-    check_monitor_settings(watch, config, "root_watch")
+    _check_monitor_settings(watch, config, "root_watch")
     offset = mapping(data["root_offset"], "root_offset")
     state = LearnerState(
         config, part_ids, n_actions, _bounds_from_json(data["action_lower"], n_actions, "action_lower"),
@@ -306,3 +318,119 @@ def _bounds_from_json(value, n, name):
         else:
             raise ModelFileError(f"{name} contains an invalid limit {b!r}")
     return np.array(out)
+
+
+# ---------------------------------------------------------------------- the pool and its validity monitors
+def pool_from_dict(config, n_actions, part_ids, tracked, next_id, monitor, gp_batch, rigid_batch):
+    """A :class:`~body_scheme_core.learning.pool.ModelPool` from its saved parts: ``ModelPool.tracked_state``,
+    ``next_id``, :func:`monitor_to_dict` and the batches' state dicts.
+
+    Raises
+    ------
+    ModelFileError
+        If the monitor or batches do not have the configuration's settings, or a model refers to an unknown part,
+        a free monitor row or batch slot (or one of another model class or actions), has an id at or above
+        ``next_id`` or twice, or is frozen without a stored model.
+    """
+    monitor = monitor_from_dict(monitor)
+    _check_monitor_settings(monitor, config, "monitor")
+    gp = GPBatch.from_state_dict(gp_batch)
+    rigid = RigidBatch.from_state_dict(rigid_batch)
+    expected = GPBatch.from_config(n_actions, config, gp.max_dim)
+    if (gp.n_actions, gp.capacity, gp.hyperparameters) != (n_actions, config.train_window, expected.hyperparameters):
+        raise ModelFileError(f"the GP batch ({gp.n_actions} actions, capacity {gp.capacity}, "
+                             f"{gp.hyperparameters}) does not have the configuration's settings "
+                             f"({n_actions}, {config.train_window}, {expected.hyperparameters})")
+    if not config.max_complexity <= gp.max_dim <= max(config.max_complexity, n_actions):
+        raise ModelFileError(f"the GP batch's max_dim {gp.max_dim} is below max_complexity or above the actions")
+    if (rigid.n_actions, rigid.capacity, rigid.f_scale, rigid.fit_scale) != (
+            n_actions, config.train_window, config.f_scale, config.fit_joint_scale):
+        raise ModelFileError("the rigid batch does not have the configuration's actions, train_window, f_scale "
+                             "and fit_joint_scale")
+    pool = ModelPool(config, n_actions, gp, rigid, monitor, integer(next_id, "next_id"))
+    for data in listing(tracked, "entries"):
+        entry = TrackedModel.from_dict(data, n_actions, part_ids)
+        problem = _entry_problem(pool, entry)
+        if problem:
+            raise ModelFileError(f"model {entry.describe()}: {problem}")
+        pool.tracked[entry.id] = entry
+    return pool
+
+
+def _entry_problem(pool, entry):
+    """What is wrong with a loaded entry given the pool's monitor, batches and the entries before it, or None."""
+    if entry.id >= pool.next_id or entry.id in pool.tracked:
+        return f"its id is at or above next_id {pool.next_id}, or taken"
+    if not (0 <= entry.row < pool.monitor.capacity and pool.monitor.in_use[entry.row]):
+        return f"has no monitor row {entry.row}"
+    if entry.slot < 0:
+        return None if entry.model is not None else "is frozen without a stored model"
+    if entry.model is not None:
+        return "is learning in a batch slot and has a stored model"
+    rigid = entry.kind in RIGID_CLASSES
+    batch = pool.rigid_batch if rigid else pool.gp_batch
+    if not batch.is_allocated(entry.slot):
+        return f"refers to free batch slot {entry.slot}"
+    held = (batch.slot_kind(entry.slot) if rigid else "gp", batch.slot_actions(entry.slot))
+    if held != (entry.kind, entry.actions):
+        return f"its batch slot {entry.slot} holds a {held[0]} model of actions {list(held[1])}"
+    return None
+
+
+def _check_monitor_settings(monitor, config, name):
+    """Raise ``ModelFileError`` unless a loaded validity monitor has the configuration's test window and CUSUM."""
+    settings = (monitor.window, monitor.cusum_drift, monitor.cusum_threshold, monitor.cusum_clip, monitor.sigmas)
+    expected = (config.test_window, config.cusum_drift, config.cusum_threshold, config.cusum_clip,
+                config.validity_sigmas)
+    if settings != tuple(float(v) if k else v for k, v in enumerate(expected)):
+        raise ModelFileError(f"{name} has window and CUSUM settings {settings}, the configuration {expected}")
+
+
+def monitor_to_dict(monitor):
+    """A :class:`~body_scheme_core.learning.validity.ValidityMonitor` as JSON-serialisable data (all rows, used or
+    free, so row indices survive a round trip)."""
+    data = {"window": monitor.window, "theta": monitor.theta.tolist(), "cusum_drift": monitor.cusum_drift,
+            "cusum_threshold": monitor.cusum_threshold, "cusum_clip": monitor.cusum_clip, "sigmas": monitor.sigmas}
+    for name in monitor.ARRAYS:
+        data[name] = getattr(monitor, name).tolist()
+    return data
+
+
+def monitor_from_dict(data):
+    """Rebuild a validity monitor from :func:`monitor_to_dict` output.
+
+    Raises
+    ------
+    ModelFileError
+        On a missing key, a bad shape, NaN, a value out of its range (negative errors or counts, heads outside
+        the window), or a CUSUM that is above zero without the step it left zero at (or the reverse).
+    """
+    try:
+        theta = listing(data["theta"], "validity-monitor theta", 2)
+        monitor = ValidityMonitor(integer(data["window"], "validity-monitor window", 1, MAX_WINDOW), 0,
+                                  *(number(v, "validity-monitor theta", above=0.0) for v in theta),
+                                  *(number(data[k], f"validity-monitor {k}", above=0.0)
+                                    for k in ("cusum_drift", "cusum_threshold", "cusum_clip", "sigmas")))
+        n = len(listing(data["in_use"], "validity-monitor in_use"))
+        template = monitor.empty_rows(n)
+        for name in monitor.ARRAYS:
+            shape, dtype = template[name].shape, template[name].dtype
+            if dtype.kind == "b":
+                value = np.array([boolean(v, "validity-monitor in_use") for v in data[name]], dtype=bool)
+            elif dtype.kind == "f":
+                value = finite_array(data[name], shape, f"validity-monitor {name}") if n else template[name]
+            else:
+                value = integer_array(data[name], shape, f"validity-monitor {name}", -1) if n else template[name]
+            setattr(monitor, name, value)
+    except (KeyError, TypeError, InvalidInputError) as exc:
+        raise ModelFileError(f"bad validity-monitor state: {type(exc).__name__}: {exc}") from exc
+    problems = [what for what, bad in (
+        ("errors must be >= 0", np.any(monitor.errors < 0)),
+        ("thresholds must be > 0", np.any(monitor.thresholds <= 0)),
+        ("n_train and count must be >= 0", np.any(monitor.n_train < 0) or np.any(monitor.count < 0)),
+        ("ring-buffer heads must be in the window", np.any((monitor.head < 0) | (monitor.head >= monitor.window))),
+        ("a CUSUM is above zero exactly when it has a start step",
+         np.any((monitor.cusum < 0) | ((monitor.cusum > 0) != (monitor.cusum_start >= 0))))) if bad]
+    if problems:
+        raise ModelFileError(f"bad validity-monitor state: {'; '.join(problems)}")
+    return monitor

@@ -14,10 +14,11 @@ estimates as it goes (:mod:`~body_scheme_core.calibration.noise_model`): :meth:`
 the monitor the current ones, and every stored error is judged against them, old samples too. The rotational threshold
 is ``theta_rot`` for every sample. The translational threshold of a sample grows with the lever arm between its two
 parts, so it is computed per sample where the sample is formed and recorded with its errors:
-:func:`translation_threshold` for the relative observations of :mod:`~body_scheme_core.learning.relative`,
-:meth:`~body_scheme_core.learning.chain.ChainTargets.threshold` for chain-consistent targets; it travels to
-:meth:`ValidityMonitor.record` in :class:`~body_scheme_core.learning.pool.Targets`, and the monitor keeps it as a
-multiple of the ``theta_trans`` of that moment (the lever-arm factor, at least 1), so it follows the noise estimate too.
+:func:`~body_scheme_core.learning.targets.translation_threshold` for the relative observations of
+:mod:`~body_scheme_core.learning.relative`, :meth:`~body_scheme_core.learning.chain.ChainTargets.threshold` for
+chain-consistent targets; it travels to :meth:`ValidityMonitor.record` in
+:class:`~body_scheme_core.learning.targets.Targets`, and the monitor keeps it as a multiple of the ``theta_trans`` of
+that moment (the lever-arm factor, at least 1), so it follows the noise estimate too.
 
 The monitor is *batched*: one object holds the windows of hundreds of candidate models in ``(rows, W)`` arrays, with
 ``allocate``/``release`` row management like :class:`~body_scheme_core.models.gp_batch.GPBatch`, so one learner step
@@ -30,44 +31,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import InvalidInputError, ModelFileError
-from ..limits import MAX_WINDOW
-from ..state_values import boolean, finite_array, integer, integer_array, listing, number
+from ..errors import InvalidInputError
 
-__all__ = ["RATIO_CLIP", "translation_threshold", "WindowStats", "ValidityMonitor"]
+__all__ = ["RATIO_CLIP", "WindowStats", "ValidityMonitor"]
 
 #: Per-sample errors enter window means (validity, quality, paired comparisons) in threshold units clipped to this:
 #: one outlier (a misdetection) moves a window mean by at most ``RATIO_CLIP / window`` thresholds, while a model whose
 #: errors all exceed the threshold still averages above 1.
 RATIO_CLIP = 2.0
-
-
-def translation_threshold(theta_trans, theta_rot, distance):
-    """Validity threshold of the translational error of a relative observation whose parts are ``distance`` apart.
-
-    ``Z_ij = Y_i^-1 Y_j`` expresses the child's observed position in the parent's *observed* frame, so the parent's
-    orientation noise (RMS angle ``sigma_rot``) moves it by the lever arm: RMS ``sqrt(2/3) sigma_rot d`` (only the
-    rotation components perpendicular to the offset count). The threshold grows the same way::
-
-        theta_t(d) = sqrt(theta_trans^2 + (2/3) theta_rot^2 d^2)
-
-    It equals the paper's ``theta_trans`` for coincident parts. Without it a perfect model of two markers 0.5 m
-    apart has a mean error near ``theta_trans`` at the paper's noise (15 deg), and validity becomes a coin toss.
-
-    Parameters
-    ----------
-    theta_trans, theta_rot : float
-        Validity thresholds (m, rad).
-    distance : float or array-like
-        Observed distance between the two parts (m).
-
-    Returns
-    -------
-    theta : float or ndarray
-    """
-    d = np.asarray(distance, dtype=float)
-    theta = np.sqrt(theta_trans**2 + (2.0 / 3.0) * theta_rot**2 * d * d)
-    return float(theta) if theta.ndim == 0 else theta
 
 
 class WindowStats(NamedTuple):
@@ -98,8 +69,9 @@ class ValidityMonitor:
     """The validity monitor: test windows, validity and CUSUM change detectors of many models at once, one row each.
 
     Each row holds a ring buffer of the last ``window`` per-sample errors (translational, rotational) with their
-    translational threshold (see :func:`translation_threshold`), the step index at which they were observed and the
-    number of training samples the model had when it predicted them, plus a one-sided CUSUM per error channel.
+    translational threshold (see :func:`~body_scheme_core.learning.targets.translation_threshold`), the step index at
+    which they were observed and the number of training samples the model had when it predicted them, plus a
+    one-sided CUSUM per error channel.
 
     Parameters
     ----------
@@ -132,7 +104,7 @@ class ValidityMonitor:
     change, so data from there on is post-change data.
     """
 
-    _ARRAYS = ("errors", "thresholds", "steps", "n_train", "head", "count", "cusum", "cusum_start", "in_use")
+    ARRAYS = ("errors", "thresholds", "steps", "n_train", "head", "count", "cusum", "cusum_start", "in_use")
 
     def __init__(self, window, capacity=0, theta_trans=0.15, theta_rot=0.7853981633974483, cusum_drift=1.5,
                  cusum_threshold=12.0, cusum_clip=6.0, sigmas=3.0):
@@ -171,7 +143,7 @@ class ValidityMonitor:
         self.theta = np.array([theta_trans, theta_rot], dtype=float)
 
     # ------------------------------------------------------------------ rows
-    def _empty(self, capacity):
+    def empty_rows(self, capacity):
         W = self.window
         return {
             "errors": np.zeros((capacity, W, 2)),
@@ -186,10 +158,10 @@ class ValidityMonitor:
         }
 
     def _resize(self, capacity):
-        arrays = self._empty(capacity)
+        arrays = self.empty_rows(capacity)
         if hasattr(self, "errors"):
             k = min(self.capacity, capacity)
-            for name in self._ARRAYS:
+            for name in self.ARRAYS:
                 arrays[name][:k] = getattr(self, name)[:k]
         for name, value in arrays.items():
             setattr(self, name, value)
@@ -219,8 +191,8 @@ class ValidityMonitor:
     def clear(self, rows):
         """Empty the windows and reset the CUSUMs of ``rows``."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
-        empty = self._empty(1)
-        for name in self._ARRAYS:
+        empty = self.empty_rows(1)
+        for name in self.ARRAYS:
             if name != "in_use":
                 getattr(self, name)[rows] = empty[name][0]
 
@@ -230,7 +202,7 @@ class ValidityMonitor:
             raise InvalidInputError(f"window lengths differ: {other.window} != {self.window}")
         s = np.asarray(src_rows, dtype=np.int64)
         d = np.asarray(dst_rows, dtype=np.int64)
-        for name in self._ARRAYS:
+        for name in self.ARRAYS:
             if name != "in_use":
                 getattr(self, name)[d] = getattr(other, name)[s]
 
@@ -251,7 +223,8 @@ class ValidityMonitor:
         cusum : bool or array-like of bool, shape (k,)
             Whether to update the CUSUMs too (per row, or for all).
         theta_trans : float or array-like, shape (k,), optional
-            Translational threshold of each sample (:func:`translation_threshold`); default ``theta[0]``.
+            Translational threshold of each sample
+            (:func:`~body_scheme_core.learning.targets.translation_threshold`); default ``theta[0]``.
         theta_rot : float or array-like, shape (k,), optional
             Rotational threshold of each sample (larger than ``theta[1]`` where the target's own orientation is
             uncertain); default ``theta[1]``.
@@ -490,51 +463,3 @@ class ValidityMonitor:
         vars(clone).update({name: value.copy() if isinstance(value, np.ndarray) else value
                             for name, value in vars(self).items()})
         return clone
-
-    def to_dict(self):
-        """JSON-serialisable state (all rows, used or free, so row indices survive a round trip)."""
-        data = {"window": self.window, "theta": self.theta.tolist(), "cusum_drift": self.cusum_drift,
-                "cusum_threshold": self.cusum_threshold, "cusum_clip": self.cusum_clip, "sigmas": self.sigmas}
-        for name in self._ARRAYS:
-            data[name] = getattr(self, name).tolist()
-        return data
-
-    @classmethod
-    def from_dict(cls, data):
-        """Rebuild from :meth:`to_dict` output.
-
-        Raises
-        ------
-        ModelFileError
-            On a missing key, a bad shape, NaN, a value out of its range (negative errors or counts, heads outside
-            the window), or a CUSUM that is above zero without the step it left zero at (or the reverse).
-        """
-        try:
-            theta = listing(data["theta"], "validity-monitor theta", 2)
-            monitor = cls(integer(data["window"], "validity-monitor window", 1, MAX_WINDOW), 0,
-                          *(number(v, "validity-monitor theta", above=0.0) for v in theta),
-                          *(number(data[k], f"validity-monitor {k}", above=0.0)
-                            for k in ("cusum_drift", "cusum_threshold", "cusum_clip", "sigmas")))
-            n = len(listing(data["in_use"], "validity-monitor in_use"))
-            template = monitor._empty(n)
-            for name in cls._ARRAYS:
-                shape, dtype = template[name].shape, template[name].dtype
-                if dtype.kind == "b":
-                    value = np.array([boolean(v, "validity-monitor in_use") for v in data[name]], dtype=bool)
-                elif dtype.kind == "f":
-                    value = finite_array(data[name], shape, f"validity-monitor {name}") if n else template[name]
-                else:
-                    value = integer_array(data[name], shape, f"validity-monitor {name}", -1) if n else template[name]
-                setattr(monitor, name, value)
-        except (KeyError, TypeError, InvalidInputError) as exc:
-            raise ModelFileError(f"bad validity-monitor state: {type(exc).__name__}: {exc}") from exc
-        problems = [what for what, bad in (
-            ("errors must be >= 0", np.any(monitor.errors < 0)),
-            ("thresholds must be > 0", np.any(monitor.thresholds <= 0)),
-            ("n_train and count must be >= 0", np.any(monitor.n_train < 0) or np.any(monitor.count < 0)),
-            ("ring-buffer heads must be in the window", np.any((monitor.head < 0) | (monitor.head >= monitor.window))),
-            ("a CUSUM is above zero exactly when it has a start step",
-             np.any((monitor.cusum < 0) | ((monitor.cusum > 0) != (monitor.cusum_start >= 0))))) if bad]
-        if problems:
-            raise ModelFileError(f"bad validity-monitor state: {'; '.join(problems)}")
-        return monitor

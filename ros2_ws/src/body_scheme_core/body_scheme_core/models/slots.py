@@ -37,6 +37,10 @@ class SlotArrays:
         """Number of allocated slots."""
         return int(np.count_nonzero(self._allocated))
 
+    def is_allocated(self, slot):
+        """Whether ``slot`` (an int) is an allocated slot."""
+        return 0 <= slot < len(self._allocated) and bool(self._allocated[slot])
+
     @property
     def allocated_slots(self):
         """Allocated slot indices, ascending."""

@@ -1,14 +1,11 @@
 """Tests of the tracked models: prequential evaluation, storage, freezing, dominance and state."""
 
-import json
 
 import numpy as np
-import pytest
 
 from body_scheme_core.calibration.noise_model import NoiseModel
-from body_scheme_core.errors import ModelFileError
 from body_scheme_core.learning.config import BodySchemeConfig
-from body_scheme_core.learning.pool import ModelPool, Targets
+from body_scheme_core.learning.pool import ModelPool
 from body_scheme_core.learning.quality import prediction_errors
 from body_scheme_core.learning.relative import PartPairs
 from body_scheme_core.learning.tracked import MEMORY, TREE, TrackedModel, nested_models
@@ -151,49 +148,3 @@ def test_keep_only_freezes_the_kept_models_in_compact_storage():
     assert isinstance(kept.model, GPModel) and kept.n_train == 5 and pool.monitor.capacity == 1
     np.testing.assert_array_equal(pool.monitor.errors[kept.row], errors)
     np.testing.assert_allclose(kept.model.predict([[0.4]]), old_model.predict([[0.4]]), atol=1e-12)
-
-
-def test_state_round_trip():
-    """tracked_state and from_state give the same models, rows and slots; unknown parts are refused."""
-    pool = ModelPool(CONFIG, 1)
-    pool.add_learning([(1, 2, (0,), "gp"), (1, 2, (0,), "revolute")], origin="test")
-    pool.add_fitted([StaticModel(2, 1).fit(np.zeros((1, 1)), np.eye(4)[None])], MEMORY, origin="test", last_used=3)
-    for t, a in enumerate([0.2, -0.4, 0.7]):
-        _train(pool, a, t)
-    state = json.loads(json.dumps([pool.tracked_state(), pool.monitor.to_dict(), pool.gp_batch.state_dict(),
-                                   pool.rigid_batch.state_dict()]))
-    restored = ModelPool.from_state(CONFIG, 1, {1, 2}, state[0], pool.next_id, *state[1:])
-    assert restored.tracked_state() == pool.tracked_state() and restored.next_id == 3
-    state[0][2]["child"] = 7
-    with pytest.raises(ModelFileError, match="unknown part 7"):
-        ModelPool.from_state(CONFIG, 1, {1, 2}, state[0], pool.next_id, *state[1:])
-
-
-def test_targets_select_rows():
-    """Targets.select keeps the rows asked for, in order."""
-    targets = Targets(np.stack([np.eye(4)] * 3), np.array([1.0, 2.0, 3.0]), np.full(3, 0.5), np.ones((3, 2)),
-                      np.array([False, True, False]))
-    sub = targets.select([2, 1])
-    np.testing.assert_array_equal(sub.theta_trans, [3.0, 2.0])
-    np.testing.assert_array_equal(sub.flip, [False, True])
-
-
-
-def test_a_model_is_judged_against_a_mirrored_reading_only_where_that_explains_what_the_given_one_does_not():
-    """Targets.nearest: a flipped child pose is read mirrored when the prediction is off by more than the
-    thresholds and the mirrored reading is within them; a reading the prediction explains is kept as given, and a
-    mirrored one that is not within the thresholds is not taken either."""
-    from body_scheme_core.transforms import mirror_about_ray
-
-    pairs = PartPairs((1, 2), NoiseModel((1, 2), 0.005, np.radians(1.0)), mirrors=True)  # thresholds 15 mm, 3 deg
-    world2base = transform_from_rotvec([0.2, -0.3, 0.1], [0.1, 0.0, 1.5])
-    truth = world2base @ _link(0.7)
-    tilted = truth @ transform_from_rotvec([0.0, 0.9, 0.0], [0.0, 0.0, 0.0])  # 52 deg from face-on: a large flip
-    link = invert_transform(world2base) @ tilted
-    flipped = pairs.observe({1: world2base, 2: mirror_about_ray(tilted)}).targets(np.array([0]))
-    given = pairs.observe({1: world2base, 2: tilted}).targets(np.array([0]))
-    assert prediction_errors(link[None], flipped.Z)[1][0] > np.radians(20)
-    assert np.allclose(flipped.nearest(link[None]), link[None])
-    assert np.array_equal(given.nearest(link[None]), given.Z)
-    wrong = link @ transform_from_rotvec([0.0, 0.0, 1.5], [0.0, 0.0, 0.0])  # a model off either way
-    assert np.array_equal(flipped.nearest(wrong[None]), flipped.Z)

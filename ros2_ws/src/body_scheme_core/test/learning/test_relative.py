@@ -8,7 +8,7 @@ import pytest
 
 from body_scheme_core.calibration.noise_model import NoiseModel
 from body_scheme_core.learning.relative import PartPairs
-from body_scheme_core.learning.validity import translation_threshold
+from body_scheme_core.learning.targets import translation_threshold
 from body_scheme_core.transforms import invert_transform, relative_transform, transform_from_rotvec
 
 THETA_T, THETA_R = 0.15, np.radians(45.0)

@@ -1,29 +1,19 @@
 """Tests of the validity monitor: thresholds, test windows, validity, the CUSUM change detector and its state."""
 
-import json
 import math
 
 import numpy as np
 import pytest
 
-from body_scheme_core.errors import InvalidInputError, ModelFileError
+from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.learning.config import BodySchemeConfig
-from body_scheme_core.learning.validity import RATIO_CLIP, ValidityMonitor, translation_threshold
+from body_scheme_core.learning.validity import RATIO_CLIP, ValidityMonitor
 
 THETA_T, THETA_R = 0.15, math.radians(45.0)
 
 
 def _monitor(window=5, **kwargs):
     return ValidityMonitor(window, 0, THETA_T, THETA_R, **kwargs)
-
-
-def test_translation_threshold_grows_with_lever_arm():
-    """At zero distance the threshold is theta_trans; it grows like the parent's orientation noise moves the child."""
-    assert translation_threshold(THETA_T, THETA_R, 0.0) == pytest.approx(THETA_T)
-    d = np.array([0.0, 0.5, 1.0])
-    theta = translation_threshold(THETA_T, THETA_R, d)
-    np.testing.assert_allclose(theta, np.sqrt(THETA_T**2 + 2.0 / 3.0 * THETA_R**2 * d**2))
-    assert np.all(np.diff(theta) > 0)
 
 
 def test_window_keeps_only_the_last_samples():
@@ -181,36 +171,6 @@ def test_rows_are_reused_and_grow():
     assert again[0] == rows[1]
     assert mon.stats(again).n.tolist() == [0, 0]
     assert mon.capacity >= 4
-
-
-def test_monitor_round_trip_through_json():
-    """to_dict -> JSON -> from_dict reproduces every array exactly."""
-    rng = np.random.default_rng(0)
-    mon = _monitor(window=4)
-    rows = mon.allocate(3)
-    for step in range(7):
-        mon.record(rows, rng.uniform(0, 0.3, 3), rng.uniform(0, 1, 3), step, n_train=step,
-                   theta_trans=rng.uniform(0.15, 0.3, 3))
-    back = ValidityMonitor.from_dict(json.loads(json.dumps(mon.to_dict())))
-    for name in ValidityMonitor._ARRAYS:
-        np.testing.assert_array_equal(getattr(back, name), getattr(mon, name))
-    np.testing.assert_array_equal(back.stats(rows).trans_error, mon.stats(rows).trans_error)
-
-
-def test_monitor_from_dict_rejects_bad_content():
-    """Wrong shapes and NaN are ModelFileErrors."""
-    mon = _monitor(window=4)
-    mon.record(mon.allocate(2), [0.1, 0.1], [0.1, 0.1], 0)
-    data = mon.to_dict()
-    bad = dict(data, errors=[[[0.0, 0.0]] * 3] * 2)
-    with pytest.raises(ModelFileError, match="shape"):
-        ValidityMonitor.from_dict(bad)
-    bad = json.loads(json.dumps(data))
-    bad["cusum"][0][0] = float("nan")
-    with pytest.raises(ModelFileError, match="NaN"):
-        ValidityMonitor.from_dict(bad)
-    with pytest.raises(ModelFileError):
-        ValidityMonitor.from_dict({"window": 4})
 
 
 def test_zero_length_windows_are_rejected():
