@@ -3,6 +3,7 @@
 
 import dataclasses
 import json
+from collections import deque
 
 import numpy as np
 import pytest
@@ -30,14 +31,24 @@ def _learner(session, steps):
     return learner
 
 
+@pytest.fixture(scope="module")
+def at70(session):
+    """The saved state after 70 steps (steady): each test continues from its own copy."""
+    return _learner(session, 70).to_state()
+
+
+def _learner_at(session, steps, at70):
+    return BodySchemeLearner.from_state(at70) if steps == 70 else _learner(session, steps)
+
+
 @pytest.mark.parametrize("module, where, steps", [(learner_step, "_bootstrap_step", 10),
                                                   (learner_fit, "calibrate_tree", 10),
                                                   (learner_step, "_adapt_step", 70), (learner_fit, "_learn_noise", 70)])
-def test_a_step_that_fails_inside_is_undone_whole(session, monkeypatch, module, where, steps):
+def test_a_step_that_fails_inside_is_undone_whole(session, at70, monkeypatch, module, where, steps):
     """A defect raised anywhere in a step (while bootstrapping or after) leaves the learner exactly as it was: the
     same state, step counter and structure; the error is a LearnerStepError caused by the original, and the next
     step goes on."""
-    learner = _learner(session, steps)
+    learner = _learner_at(session, steps, at70)
     original = getattr(module, where)
 
     def broken(*args, **kwargs):
@@ -61,9 +72,9 @@ def test_a_step_that_fails_inside_is_undone_whole(session, monkeypatch, module, 
     assert learner.step == t + 1
 
 
-def test_undone_means_identical_to_a_learner_that_never_saw_the_step(session, monkeypatch):
+def test_undone_means_identical_to_a_learner_that_never_saw_the_step(session, at70, monkeypatch):
     """After a failed step the learner continues exactly like one that never tried it."""
-    a, b = _learner(session, 70), _learner(session, 70)
+    a, b = BodySchemeLearner.from_state(at70), BodySchemeLearner.from_state(at70)
 
     def broken(*args, **kwargs):
         raise RuntimeError("a defect")
@@ -80,10 +91,10 @@ def test_undone_means_identical_to_a_learner_that_never_saw_the_step(session, mo
     assert json.dumps(a.to_state(), sort_keys=True) == json.dumps(b.to_state(), sort_keys=True)
 
 
-def test_a_joint_fit_on_demand_that_fails_is_undone(session, monkeypatch):
+def test_a_joint_fit_on_demand_that_fails_is_undone(at70, monkeypatch):
     """``recalibrate`` is all or nothing like ``update``: a failure after the fit leaves the learner's state as it was
     and raises LearnerStepError."""
-    learner = _learner(session, 70)
+    learner = BodySchemeLearner.from_state(at70)
     before = learner.to_state()
 
     def broken(*args):
@@ -104,26 +115,55 @@ def test_every_field_says_how_it_is_undone_and_the_state_file_saves_every_field(
     assert named == set(learner.to_state()) - {"version"}
 
 
-def test_a_restored_snapshot_is_the_state_it_was_taken_of(session):
-    """Sixty steps through the end of bootstrapping, run on the state directly, then restored: the saved state, the
-    fields the file does not hold and the objects the phase objects share are as before."""
-    learner = _learner(session, 40)
+def test_a_restored_snapshot_is_the_state_it_was_taken_of():
+    """Sixty steps through the end of bootstrapping (the 2-DOF arm's), run on the state directly, then restored: the
+    saved state, the fields the file does not hold and the objects the phase objects share are as before."""
+    session = make_session(planar_2dof(), 100, seed=0)
+    learner = _learner(session, 20)
     s = learner.state
-    before = json.dumps(learner.to_state(), sort_keys=True)
+
+    def fingerprint():  # every field a step may change, by value (an object that undoes itself: what it keeps)
+        return {f.name: _by_value(getattr(s, f.name).snapshot() if f.metadata["undo"] == "own" else getattr(s, f.name))
+                for f in dataclasses.fields(s) if f.metadata["undo"] != "fixed"}
+
+    before, fields = json.dumps(learner.to_state(), sort_keys=True), fingerprint()
     transient = (s.just_finished, s.reach, s.prediction, s.pairs, s.history, s.noise)
     with Journal() as journal:
         saved = snapshot(s, journal)
-        for t in range(40, 100):
-            time_step(s, session.actions[t], session.observations[t], None)
-        assert s.step == 100 and json.dumps(learner.to_state(), sort_keys=True) != before
+        for t in range(20, 80):
+            observations = {**session.observations[t], **({2: np.full((4, 4), np.nan)} if t == 30 else {})}
+            time_step(s, session.actions[t], observations, None)
+        assert s.step == 80 and learner.phase == "steady" and s.rejected["not_finite"] == 1
+        changed = {name for name, value in fingerprint().items() if value != fields[name]}
+        assert {"step", "bootstrapping", "rejected", "history", "pool", "root_pose", "calibrated", "noise"} <= changed
         restore(s, saved)
-    assert json.dumps(learner.to_state(), sort_keys=True) == before
+    assert json.dumps(learner.to_state(), sort_keys=True) == before and fingerprint() == fields
     assert (s.just_finished, s.reach, s.prediction, s.pairs, s.history, s.noise) == transient
     assert s.bootstrap.history is s.history and s.adaptation.history is s.history and s.pairs.noise is s.noise
     assert s.bootstrap.pool is s.pool and s.adaptation.pool is s.pool
     assert structural_problems(s) == []
-    for t in range(40, 45):  # and it goes on
+    assert learner.phase == "bootstrapping"
+    for t in range(20, 25):  # and it goes on
         learner.update(session.actions[t], session.observations[t])
+
+
+def _by_value(value, seen=None):
+    """``value`` as nested tuples of plain values and array bytes, objects by their attributes (each once)."""
+    seen = set() if seen is None else seen
+    if value is None or isinstance(value, (bool, int, float, str, np.generic)):
+        return value
+    if isinstance(value, np.ndarray):
+        return value.shape, value.tobytes()
+    if isinstance(value, dict):
+        return tuple((_by_value(k, seen), _by_value(v, seen)) for k, v in value.items())
+    if isinstance(value, (list, tuple, deque)):
+        return tuple(_by_value(v, seen) for v in value)
+    if isinstance(value, (set, frozenset)):
+        return tuple(sorted(repr(v) for v in value))
+    if callable(value) or not hasattr(value, "__dict__") or id(value) in seen:
+        return type(value).__name__
+    seen.add(id(value))
+    return type(value).__name__, _by_value(vars(value), seen)
 
 
 def test_a_missing_stamp_does_not_reset_the_time_order():
