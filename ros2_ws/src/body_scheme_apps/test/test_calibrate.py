@@ -19,6 +19,7 @@ from body_scheme_core.world import Marker, load_markers_yaml, make_session, reso
 from body_scheme_sim.robots import load_robot, robot_files
 
 
+@pytest.mark.slow
 def test_a_saved_state_gives_a_urdf_and_a_report_in_text_json_and_png(tmp_path, capsys):
     """From scheme_node's state file and the shipped URDF + markers: learned.urdf parses, the report is small."""
     urdf_path, markers_path = robot_files("planar_2dof")

@@ -62,6 +62,7 @@ def test_yaml_holds_every_parameter_at_its_declared_default():
     assert joint_names == ("joint1", "joint2", "joint3", "joint4", "joint5", "joint6")
 
 
+@pytest.mark.slow
 def test_the_driver_refuses_goals_past_the_margin_in_collision_or_outside_the_box():
     """Joint limits less the margin, the workspace box (every link origin under 0.9 m: the upright arm is not) and
     the collision screen (a 7-joint arm from pybullet_data, with its meshes) each refuse a goal, by name; a goal that

@@ -162,7 +162,9 @@ def _head_arm():
 EAGER = BodySchemeConfig()  # the defaults
 
 
-@pytest.mark.parametrize("make", [powercube_6dof, branching_tree, _head_arm], ids=["serial", "branching", "layer2"])
+@pytest.mark.parametrize("make", [pytest.param(powercube_6dof, marks=pytest.mark.slow),
+                                  pytest.param(branching_tree, marks=pytest.mark.slow), _head_arm],
+                         ids=["serial", "branching", "layer2"])
 def test_lazy_layers_and_racing_learn_the_tree_of_the_eager_search(make):
     robot = make()
     lazy, eager = _learn(robot, LAZY), _learn(robot, EAGER)

@@ -128,6 +128,7 @@ def test_a_blocked_joint_is_named_by_the_replacement_without_it():
     assert best.actions == tuple(a for a in model.actions if a != 2) and best.rms_ < 2.0
 
 
+@pytest.mark.slow
 def test_the_learner_bootstraps_a_tool_past_four_joints_adapts_to_a_block_and_saves_it(tmp_path):
     """Tool-only (a base plate and a tool plate, nothing between): the learner identifies the chain from its
     excursions, ends bootstrapping with it, detects a blocked middle joint, names it, and its state loads again."""

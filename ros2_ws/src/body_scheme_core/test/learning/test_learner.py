@@ -55,8 +55,9 @@ def _position_error(learner, session, steps, part):
                                          - session.true_poses[t, column, :3, 3]) for t in steps]))
 
 
-@pytest.mark.parametrize("robot, above_ground", [(planar_2dof(), None), (powercube_6dof(), True),
-                                                 (branching_tree(0), True)],
+@pytest.mark.parametrize("robot, above_ground", [(planar_2dof(), None),
+                                                 pytest.param(powercube_6dof(), True, marks=pytest.mark.slow),
+                                                 pytest.param(branching_tree(0), True, marks=pytest.mark.slow)],
                          ids=["2dof-chain", "6dof-7-markers", "branching"])
 def test_structure_recovered_exactly_from_scratch(robot, above_ground):
     """Bootstrapping from scratch finds the true marker tree (noise at the paper's level, 10 % dropout)."""
@@ -103,6 +104,7 @@ def test_no_false_alarms_on_a_long_clean_run():
     assert all(status["valid"] for status in learner.edge_status())
 
 
+@pytest.mark.slow
 def test_no_false_alarms_after_bootstrapping():
     """A scheme learned from scratch stays quiet on 600 further clean steps of the branching robot."""
     robot = branching_tree(0)
@@ -134,6 +136,7 @@ def _check_failure_cycle(session, events, learner_at):
     assert not _kinds(events, "model_sampled", 200, 400)
 
 
+@pytest.mark.slow
 def test_blocked_joint_detected_replaced_repaired_and_reused():
     """Paper Sec. IV-B on the engineered 6-DOF scheme: detect, replace, reinstate on repair, reuse on recurrence."""
     session = joint_blocked_protocol(0)
@@ -299,7 +302,7 @@ def test_root_pose_is_a_robust_mean_of_root_observations():
     assert np.linalg.norm(learner.root_pose[:3, 3] - true_root[:3, 3]) < 0.03
 
 
-@pytest.mark.parametrize("cut", [20, pytest.param(103, marks=pytest.mark.slow),
+@pytest.mark.parametrize("cut", [pytest.param(20, marks=pytest.mark.slow), pytest.param(103, marks=pytest.mark.slow),
                                  pytest.param(150, marks=pytest.mark.slow)])
 def test_restored_learner_continues_bit_identically(cut):
     """Save mid-bootstrap, mid-adaptation or in steady state; both learners then produce identical output."""
@@ -358,6 +361,7 @@ def test_a_rigid_challenger_takes_a_gp_edge_that_a_joint_describes():
     assert learner.n_candidates == 0
 
 
+@pytest.mark.slow
 def test_memory_is_bounded_per_pair():
     """With memory_size 1 only the most recently retired model of a pair is kept."""
     robot = powercube_6dof()
@@ -374,6 +378,7 @@ def test_memory_is_bounded_per_pair():
     assert REPAIR.kind == "repair"
 
 
+@pytest.mark.slow
 def test_rigid_joints_where_they_fit_and_a_gp_where_none_does():
     """From scratch: revolute joints on the plain arm; with the nonlinear transmission a GP takes the second edge
     shortly after bootstrapping (relative observations could not tell them apart; the chain-consistent targets of
@@ -475,6 +480,7 @@ def test_commands_beyond_the_joint_limits_are_refused():
 
 
 # ---------------------------------------------------------------------- a learner that never breaks (issue 19)
+@pytest.mark.slow
 def test_a_wrongly_static_edge_is_caught_by_the_consistency_test_and_repaired():
     """A given scheme whose elbow edge is static, at a noise where that static edge stays valid (its errors are
     within three sigma): the residuals of the parts below it depend on the elbow's command, so the scheme is not
@@ -525,6 +531,7 @@ def test_a_flipped_orientation_is_corrected_where_the_scheme_places_the_part_and
     assert not BodySchemeLearner.from_state(state).corrected
 
 
+@pytest.mark.slow
 def test_at_a_real_cameras_flip_rate_the_calibrated_learner_uses_the_flips_and_corrects_nothing_else():
     """Known truth: the paper's arm at a camera's noise (10 mm, 3 deg); after 150 clean steps 30 % of the
     orientations are mirrored about the ray for 150 steps. Of the flips that matter (mirror more than the rotation
@@ -554,6 +561,7 @@ def test_at_a_real_cameras_flip_rate_the_calibrated_learner_uses_the_flips_and_c
         {frozenset(e) for e in robot.marker_tree_edges()}
 
 
+@pytest.mark.slow
 def test_the_noise_is_learnt_across_and_along_the_ray():
     """Given no noise value, a camera 3 mm across the ray, 20 mm along it and 3 deg is estimated within 15 %
     per channel after 200 steps, and the thresholds follow."""
@@ -582,6 +590,7 @@ def test_the_root_is_the_part_that_moves_least_whatever_its_id():
     assert learner.trusted and len(learner.body_scheme.models) == 6
 
 
+@pytest.mark.slow
 def test_a_moved_root_marker_is_detected_and_the_scheme_recovers():
     """The base marker is knocked 10 cm after bootstrapping: the root's own detector finds it within 10 steps, the
     edges at the root learn their new relation, and every part is predicted within the noise again."""
