@@ -2,7 +2,7 @@
 #
 #   make test    set up (if needed), build, run every test and ruff   <- the README's test command, run by CI
 #   make test-loaded  make test with a busy loop on every core (tests must hold on a busy machine)
-#   make test-fast  the inner loop: every test but the DDS system tests and the slow ones (under 90 s)
+#   make test-fast  the inner loop: every test but the DDS system tests and the slow ones (about a minute)
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make your-robot URDF=robot.urdf   plan markers on any URDF, learn it in the simulator, write learned URDF + report
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json; UPDATE_RESULTS=1 also
@@ -75,7 +75,7 @@ test-loaded: build
 	cores=$$(nproc); pids=(); for _ in $$(seq $$cores); do $(PYTHON) -c "while True: pass" & pids+=($$!); done; \
 	  trap 'kill $${pids[@]} 2>/dev/null' EXIT; echo "test-loaded: $$cores busy loops"; $(MAKE) --no-print-directory test
 
-# The inner loop: every test but the DDS system tests and the ones marked slow, on every core (target: under 90 s).
+# The inner loop: every test but the DDS system tests and the ones marked slow, on every core (target: under 60 s).
 test-fast: build
 	$(RUN) python -m pytest -q -m "not system and not slow" -n auto
 
