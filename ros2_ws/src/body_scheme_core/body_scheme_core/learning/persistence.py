@@ -191,5 +191,5 @@ def load_state(path):
     except ModelFileError as exc:
         raise ModelFileError(f"state file {path!r}: {exc}") from exc
     except (RecursionError, MemoryError, ArithmeticError, LookupError, TypeError, ValueError) as exc:
-        # learner_from_state checks every field; anything it lets through is still a bad file, never a crash
+        # state_file.from_dict checks every field; anything it lets through is still a bad file, never a crash
         raise ModelFileError(f"state file {path!r}: bad learner state: {type(exc).__name__}: {exc}") from exc

@@ -44,7 +44,7 @@ from .validity import ValidityMonitor
 
 __all__ = ["STATE_VERSION", "to_dict", "from_dict", "pool_from_dict", "monitor_to_dict", "monitor_from_dict"]
 
-#: Version of the dict layout of :func:`learner_to_state`.
+#: Version of the dict layout of :func:`to_dict`.
 STATE_VERSION = 4  # 4: the learned noise and the lack-of-fit test; 3: rigid-joint models, two candidate batches, the
 #                    joint fit; 2: GP-only learner
 
