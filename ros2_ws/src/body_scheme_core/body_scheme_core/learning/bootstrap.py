@@ -27,25 +27,22 @@ gives the rules and defaults.
 from __future__ import annotations
 
 import itertools
-import math
 
 import networkx as nx
 import numpy as np
 
 from ..events import Event, format_errors
-from .chain_search import ChainNotIdentified, identify_chain, order_decided
+from .bootstrap_chains import Chains
+from .chain_search import order_decided
 from .quality import model_cost
 from .structure import enumerate_candidates, kinds_for, select_spanning_tree
-from .tracked import CANDIDATE, TREE, nested_models
+from .tracked import TREE, nested_models
 
 __all__ = ["Bootstrap", "SUSPECT_RATIO"]
 
 #: A tree model whose window mean error ratio exceeds this in either channel when bootstrapping would end has its
 #: pair's next layer instantiated first (:meth:`Bootstrap.expand_suspects`); right models stay below about half.
 SUSPECT_RATIO = 0.6
-#: A pair's chain is identified again once the samples that observed both its parts grew by this fraction, and by
-#: at least CHAIN_RETRY_MIN (excursions of other joints may have come, and a chain found learns from more data).
-CHAIN_RETRY, CHAIN_RETRY_MIN = 0.25, 2
 
 
 class Bootstrap:
@@ -84,16 +81,16 @@ class Bootstrap:
         self.raced = 0
         self._pair_index = None
         self._layers = None  # {(parent, child): highest complexity instantiated}, see _instantiated_layers
-        self._chain_tried = {}  # (parent, child) -> samples of both parts at the last identification
+        self.chains = Chains(config, pool, pairs, history)  # the chains that connect what no layer connects
 
     def snapshot(self):
         """What :meth:`restore` needs to undo a learner's step."""
         return (self.found, self.tree_since, dict(self.vetoed), self.raced,
-                None if self._layers is None else dict(self._layers), dict(self._chain_tried))
+                None if self._layers is None else dict(self._layers), dict(self.chains.tried))
 
     def restore(self, saved):
         """Undo every change since :meth:`snapshot` returned ``saved``."""
-        self.found, self.tree_since, self.vetoed, self.raced, self._layers, self._chain_tried = saved
+        self.found, self.tree_since, self.vetoed, self.raced, self._layers, self.chains.tried = saved
         self._pair_index = None
 
     @staticmethod
@@ -140,52 +137,23 @@ class Bootstrap:
             return tree, False
         # Candidates are enumerated in the canonical direction of their pair, so the targets need no flip.
         pool.train(ls.ids[sel], a, relative.targets(pair[sel]), step)
-        self._test_fitted(a, relative, step)
+        self.chains.test(a, relative, step)
         self.race(tree)
         tree = self.search(tree, step, events)
         if tree is None and self.expand(step, events):
             tree = self.search(tree, step, events)
-        if (tree is None or self._undecided(tree)) and self.connect_with_chains(tree, step, events):
+        if (tree is None or self.chains.undecided(tree)) and self.connect_with_chains(tree, step, events):
             tree = self.search(tree, step, events)
-            self._drop_superseded_chains(tree)
+            self.chains.drop_superseded(tree)
         return tree, True
-
-    def _drop_superseded_chains(self, tree):
-        """Chains of a pair identified again that the tree does not hold: only the newest of a pair is kept."""
-        newest = {}
-        for entry in self._fitted():
-            newest[frozenset((entry.parent, entry.child))] = entry.id
-        old = [e for e in self._fitted() if e.id != newest[frozenset((e.parent, e.child))] and e.id not in (tree or ())]
-        if old:
-            self.pool.remove(*old)
-
-    def _undecided(self, tree):
-        """Whether the tree holds a chain whose joints' order the data has not decided yet."""
-        return any(not order_decided(self.pool.tracked[i].model) for i in tree
-                   if self.pool.tracked[i].slot < 0)
-
-    def _fitted(self):
-        """Candidates with a fitted model (chains), in pool order."""
-        return [e for e in self.pool.tracked.values() if e.role == CANDIDATE and e.slot < 0]
-
-    def _test_fitted(self, a, relative, step):
-        """Fitted candidates predict this step's relative observation of their pair (prequential: they were
-        identified from earlier samples), in its canonical direction."""
-        fitted = self._fitted()
-        if not fitted:
-            return
-        pair = np.array([self.pairs.index(e.parent, e.child) for e in fitted], dtype=np.intp)
-        sel = np.flatnonzero(relative.row[pair] >= 0)
-        if sel.size:
-            self.pool.evaluate([fitted[k] for k in sel], a, relative.targets(pair[sel]), step,
-                               cusum=np.zeros(sel.size, dtype=bool))
 
     def connect_with_chains(self, tree, step, events):
         """Where the eligible candidates (chains whose joints' order is not decided yet left out) cannot connect the
         parts, identify a chain between the two parts of each pair of components that were observed together most
-        (:func:`identify_chain`), from the recorded steps, once that pair's candidates of every layer were tested on
-        a full test window; a chain found is tracked as a fitted candidate of the pair (:meth:`identify_pair_chain`).
-        Up to ``config.max_chain_joints`` joints; 0 or 1 turns chains off. Returns whether a chain was added."""
+        (:func:`~body_scheme_core.learning.chain_search.identify_chain`), from the recorded steps, once that pair's
+        candidates of every layer were tested on a full test window; a chain found is tracked as a fitted candidate
+        of the pair (:meth:`~body_scheme_core.learning.bootstrap_chains.Chains.identify`). Up to
+        ``config.max_chain_joints`` joints; 0 or 1 turns chains off. Returns whether a chain was added."""
         c = self.config
         if c.max_chain_joints < 2 or len(self.history) == 0:
             return False
@@ -195,7 +163,7 @@ class Bootstrap:
         graph = nx.Graph()
         graph.add_nodes_from(self.pairs.part_ids)
         graph.add_edges_from((pool.tracked[int(i)].parent, pool.tracked[int(i)].child) for i in ls.ids[valid])
-        graph.add_edges_from((p, q) for p, q, key, _, _ in self._eligible_fitted()
+        graph.add_edges_from((p, q) for p, q, key, _, _ in self.chains.eligible()
                              if order_decided(pool.tracked[key].model))
         components = [sorted(members) for members in nx.connected_components(graph)]
         if len(components) < 2:
@@ -210,7 +178,7 @@ class Bootstrap:
             if layers.get(pair, 0) < c.max_complexity or tested.get(pair, c.test_window) < c.test_window:
                 continue  # the layers have not had their chance yet
             why = f"parts {u} and {v} are not connected by the candidates of layers up to {c.max_complexity}"
-            added |= self.identify_pair_chain(u, v, tree, step, events, why)
+            added |= self.chains.identify(u, v, tree, step, events, why)
         return added
 
     def _tested(self, ls):
@@ -222,72 +190,10 @@ class Bootstrap:
             tested[key] = min(tested.get(key, count), count)
         return tested
 
-    def identify_pair_chain(self, u, v, tree, step, events, why, growth=CHAIN_RETRY):
-        """Identify a chain between parts ``u`` and ``v`` (:func:`identify_chain`) from the recorded steps, when the
-        samples that observed both grew enough since the last try (by the fraction ``growth``, at least
-        ``CHAIN_RETRY_MIN``); a chain of 2 to ``config.max_chain_joints`` joints is tracked as a fitted candidate of
-        the pair in its canonical direction, replacing the pair's earlier chain unless the tree holds it. ``why``
-        opens the event's reason. Returns whether a chain was added."""
-        c = self.config
-        pool = self.pool
-        parent, child = (u, v) if self.pairs.part_index[u] < self.pairs.part_index[v] else (v, u)
-        tried = self._chain_tried.get((parent, child), 0)
-        n = sum(parent in obs and child in obs for _, _, obs in self.history)
-        if c.max_chain_joints < 2 or n < tried + max(CHAIN_RETRY_MIN, math.ceil(growth * tried)):
-            return False
-        self._chain_tried[(parent, child)] = n
-        index = self.pairs.index(parent, child)
-        A, Z, S, recorded = [], [], [], []
-        for rec_step, a, obs in self.history:
-            relative = self.pairs.observe({p: obs[p] for p in (parent, child) if p in obs})
-            if relative.row[index] >= 0:
-                targets = relative.targets(np.array([index]))
-                A.append(a)
-                Z.append(targets.Z[0])
-                S.append(targets.sigma[0])
-                recorded.append((rec_step, a, targets))
-        try:
-            model = identify_chain(np.array(A), np.array(Z), np.array(S), parent, child, range(pool.n_actions),
-                                   sigma_trans=c.prior_sigma_trans, sigma_rot=c.prior_sigma_rot)
-        except ChainNotIdentified:
-            return False
-        if not 2 <= len(model.actions) <= c.max_chain_joints:
-            return False  # one action: the layers' own candidates of that pair say it better
-        old = [e for e in self._fitted() if {e.parent, e.child} == {parent, child} and e.id not in (tree or ())]
-        if old:  # (one in the tree stays until the search replaced it: _drop_superseded_chains)
-            pool.remove(*old)
-        entry = pool.add_fitted([model], CANDIDATE, origin="chain", last_used=step)[0]
-        entry.n_train = len(A)
-        # Its test window starts with the last recorded samples, which it was fitted on (a little optimistic: a
-        # chain's parameters are few against a window of 6-dimensional samples), so that the last poses of a finite
-        # recording need not wait for more; the next samples replace them.
-        for rec_step, a, targets in recorded[-c.test_window:]:
-            pool.evaluate([entry], a, targets, rec_step, cusum=np.zeros(1, dtype=bool))
-        events.append(Event(step, "model_sampled",
-                            f"{why}: identified {entry.describe()} from {len(A)} recorded steps "
-                            f"({', '.join(model.types)}; fit rms {model.rms_:.2f} sigma)",
-                            parent=parent, child=child, model=entry.describe()))
-        return True
-
-    def _eligible_fitted(self, exclude=()):
-        """``(parent, child, id, layer, cost)`` of the valid fitted candidates (chains) that no other one dominates,
-        for the tree search."""
-        fitted = [e for e in self._fitted() if e.id not in set(exclude)]
-        if not fitted:
-            return []
-        pool = self.pool
-        rows, sizes = [e.row for e in fitted], [e.n_train for e in fitted]
-        st, valid = pool.window_stats(rows, sizes)
-        valid &= ~pool.dominated(rows, sizes, *nested_models(fitted), valid)  # a chain of fewer of its joints
-        layer = np.array([e.complexity for e in fitted], dtype=float)
-        cost = model_cost(layer, st.trans_ratio, st.rot_ratio, np.array([e.rank for e in fitted]))
-        return [(e.parent, e.child, e.id, int(layer[k]), float(cost[k])) for k, e in enumerate(fitted) if valid[k]]
-
     def race(self, tree):
         """Drop the candidates that are invalid with high confidence
         (:meth:`~body_scheme_core.learning.validity.ValidityMonitor.hopeless`), except those of the current tree (the
-        search
-        drops them first); counted in :attr:`raced`."""
+        search drops them first); counted in :attr:`raced`."""
         c = self.config
         if c.race_samples < 1:
             return
@@ -424,7 +330,7 @@ class Bootstrap:
         cost = model_cost(ls.layer, st.trans_ratio, st.rot_ratio, ls.rank)
         eligible = [(pool.tracked[i].parent, pool.tracked[i].child, int(i), int(ls.layer[k]), float(cost[k]))
                     for k, i in enumerate(ls.ids) if valid[k]]
-        eligible += self._eligible_fitted(exclude)
+        eligible += self.chains.eligible(exclude)
         cost_of = {key: c for _, _, key, _, c in eligible}
         keys = select_spanning_tree(parts, eligible)
         if events is None:
@@ -482,7 +388,7 @@ class Bootstrap:
         """Mask over the learning candidates ``ls``: valid ones that a valid fitted candidate of their pair nests and
         beats by the dominance rule (a chain on actions that include theirs, clearly better: the actions it adds
         matter). No fitted candidates, no cost."""
-        fitted = self._fitted()
+        fitted = self.chains.fitted()
         out = np.zeros(ls.ids.size, dtype=bool)
         if not fitted:
             return out

@@ -89,7 +89,7 @@ def _veto_inconsistent_edges(s, step, events, rounds=3):
         s.bootstrap.veto(entry.id)
         # Its two parts may be joined by more joints than any layer holds (a tool seen past six of them): their
         # chain, identified again every few samples while an edge of theirs leaves a part unexplained.
-        s.bootstrap.identify_pair_chain(entry.parent, entry.child, s.tree, step, events,
+        s.bootstrap.chains.identify(entry.parent, entry.child, s.tree, step, events,
                                         f"{entry.describe()} leaves part {far_part} unexplained", growth=0.0)
         why = (f" (vetoed {entry.describe()}: without it the calibrated body scheme explains the absolute "
                f"observations best)")
