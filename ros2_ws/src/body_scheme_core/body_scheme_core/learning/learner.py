@@ -394,11 +394,11 @@ class BodySchemeLearner:
         is raised as ``LearnerStepError`` with it as the ``__cause__``, anything else (``KeyboardInterrupt``) as it
         is."""
         with Journal() as journal:
-            saved = snapshot(self._state, journal)
+            saved = snapshot(self._state)
             try:
                 return run()
             except BaseException as error:
-                restore(self._state, saved)
+                restore(self._state, saved, journal)
                 if not isinstance(error, Exception):
                     raise
                 raise LearnerStepError(f"{what} failed and was undone: {type(error).__name__}: {error}") from error

@@ -153,14 +153,14 @@ class LearnerState:
         return chain_at
 
 
-def snapshot(state, journal):
+def snapshot(state):
     """Everything one :meth:`~body_scheme_core.learning.learner.BodySchemeLearner.update` may change, copied.
 
     Local models, the calibrated scheme and the recorded observations are never changed in place (a step replaces
     them), so they are shared, not copied; what is copied is the book-keeping around them, field by field as each
-    field's ``undo`` says. Changes to the tracked models' entries go into ``journal`` (an open
-    :class:`~body_scheme_core.learning.tracked.Journal`), which is far cheaper than copying thousands of entries every
-    step.
+    field's ``undo`` says. Changes to the tracked models' entries are not copied: an open
+    :class:`~body_scheme_core.learning.tracked.Journal` records them (far cheaper than copying thousands of entries
+    every step), and :func:`restore` undoes it.
     """
     saved = {}
     for f in dataclasses.fields(state):
@@ -171,13 +171,13 @@ def snapshot(state, journal):
             saved[f.name] = None if value is None else value.copy()
         elif undo == "own":
             saved[f.name] = value.snapshot()
-    return saved, journal
+    return saved
 
 
-def restore(state, saved):
-    """Put back a :func:`snapshot`: the state is as it was when it was taken."""
-    fields, journal = saved
-    journal.undo()  # the tracked models' entries
+def restore(state, fields, journal):
+    """Put back a :func:`snapshot` ``fields`` and undo ``journal`` (the tracked models' entries, journaled since the
+    snapshot): the state is as it was when it was taken."""
+    journal.undo()
     for f in dataclasses.fields(state):
         undo = f.metadata["undo"]
         if undo in ("value", "copy"):

@@ -67,8 +67,7 @@ def _accept(s, a, observations, step, events):
     """The valid observations ``{part: world2part}``, the parts taken in as their mirror image and the parts whose
     mirror image the body scheme holds (:class:`~body_scheme_core.learning.mirrors.MirrorWatch`); rejected ones
     are counted and reported."""
-    valid, rejections = filter_observations(observations, s.part_ids, s.config.max_distance,
-                                            workspace(s))
+    valid, rejections = filter_observations(observations, s.part_ids, s.config.max_distance, workspace(s))
     for part, reason, detail in rejections:
         s.rejected[reason] += 1
         events.append(Event(step, "input_rejected", f"observation rejected ({reason}): {detail}", child=part))

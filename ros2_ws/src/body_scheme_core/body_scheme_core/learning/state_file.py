@@ -29,8 +29,6 @@ from ..state_values import (
     optional_number,
     part_id,
 )
-from .adaptation import Adaptation
-from .bootstrap import Bootstrap
 from .config import BodySchemeConfig
 from .detection import mismatch_from_state, mismatch_state
 from .inputs import check_action_vector, check_n_actions, check_part_ids, filter_covariances, rigidity_problem
@@ -183,19 +181,18 @@ def _state_from_dict(data):
                              integer(offset["n"], "root_offset n")),
         root_since=integer(data["root_since"], "root_since"),
         mirror_watch=MirrorWatch.from_list(data.get("mirror_watch", []), parts))  # (older files: none)
-    state.bootstrap = Bootstrap(config, pool, state.pairs, boolean(data["found"], "found"),
-                                integer(data["tree_since"], "tree_since"),
-                                {integer(k, "vetoed id"): integer(v, "vetoed size")
-                                 for k, v in (listing(item, "vetoed item", 2)
-                                              for item in listing(data["vetoed"], "vetoed"))}, history)
-    state.adaptation = Adaptation(config, pool, history, part_ids, mismatch_from_state(data["mismatch"], pool.tracked),
-                                  refining_from_state(data["refining"], pool.tracked, pool.next_id),
-                                  failed_from_state(data["failed"], parts))
+    boot, adapt = state.bootstrap, state.adaptation  # the phase objects' saved book-keeping
+    boot.found, boot.tree_since = boolean(data["found"], "found"), integer(data["tree_since"], "tree_since")
+    boot.vetoed = {integer(k, "vetoed id"): integer(v, "vetoed size")
+                   for k, v in (listing(item, "vetoed item", 2) for item in listing(data["vetoed"], "vetoed"))}
+    adapt.mismatch = mismatch_from_state(data["mismatch"], pool.tracked)
+    adapt.refining = refining_from_state(data["refining"], pool.tracked, pool.next_id)
+    adapt.failed = failed_from_state(data["failed"], parts)
     state.calibrated = _calibrated_from_state(data["calibration"], state, pool)
     state.noise.load_dict(data["noise"])
     state.share_thresholds()
     if tree is not None and (state.calibrated is None or state.calibrated.tree != tuple(tree)):
-        BodyScheme(part_ids, root, [pool.model_of(pool.tracked[i]) for i in tree])  # a spanning tree of fitted models
+        state.raw_scheme()  # raises unless the tree is a spanning tree of fitted models
     return state
 
 

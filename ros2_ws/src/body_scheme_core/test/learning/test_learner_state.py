@@ -129,14 +129,14 @@ def test_a_restored_snapshot_is_the_state_it_was_taken_of():
     before, fields = json.dumps(learner.to_state(), sort_keys=True), fingerprint()
     transient = (s.just_finished, s.reach, s.prediction, s.pairs, s.history, s.noise)
     with Journal() as journal:
-        saved = snapshot(s, journal)
+        saved = snapshot(s)
         for t in range(20, 80):
             observations = {**session.observations[t], **({2: np.full((4, 4), np.nan)} if t == 30 else {})}
             time_step(s, session.actions[t], observations, None)
         assert s.step == 80 and learner.phase == "steady" and s.rejected["not_finite"] == 1
         changed = {name for name, value in fingerprint().items() if value != fields[name]}
         assert {"step", "bootstrapping", "rejected", "history", "pool", "root_pose", "calibrated", "noise"} <= changed
-        restore(s, saved)
+        restore(s, saved, journal)
     assert json.dumps(learner.to_state(), sort_keys=True) == before and fingerprint() == fields
     assert (s.just_finished, s.reach, s.prediction, s.pairs, s.history, s.noise) == transient
     assert s.bootstrap.history is s.history and s.adaptation.history is s.history and s.pairs.noise is s.noise
