@@ -66,9 +66,9 @@ from body_scheme_core.models import (  # noqa: E402
     GPModel,
     squared_exponential,
 )
+from body_scheme_core.rotations import project_to_rotation  # noqa: E402
 from body_scheme_core.transforms import (  # noqa: E402
     concat,
-    project_to_rotation,
     relative_transform,
     rotational_error,
     transform_from_rotvec,

@@ -42,7 +42,8 @@ import cv2
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.transforms import skew, transform_from_rotvec
+from body_scheme_core.rotations import skew
+from body_scheme_core.transforms import transform_from_rotvec
 
 __all__ = [
     "MarkerTracker",

@@ -18,18 +18,15 @@ import hashlib
 import math
 import os
 import pathlib
-import sys
 import tempfile
-import xml.etree.ElementTree as ET
 
 import cv2
 import numpy as np
 import pybullet
-from pybullet_utils.bullet_client import BulletClient
 from scipy.spatial.transform import Rotation
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.transforms import check_transform, invert_transform, xyz_rpy_from_transform
+from body_scheme_core.transforms import check_transform, invert_transform
 from body_scheme_core.world import (
     FAULT_KINDS,
     PAPER_SIGMA_ROT,
@@ -38,52 +35,25 @@ from body_scheme_core.world import (
     Fault,
     KinematicTree,
     ObservationModel,
-    resolve_meshes,
 )
 
 from .camera import Camera
-from .markers import MARKER_CELLS, PLATE_THICKNESS, marker_corners, write_plate_obj
+from .collisions import pairs_always_in_contact, pairs_in_contact
+from .markers import marker_corners
 from .robots import ROBOT_BUILDERS, load_robot, robot_files
-from .sheet import pieces, plate_face
+from .scene import create_ground, create_marker_plates, direct_client, link_poses, patched_urdf, render, render_ground
 
-__all__ = ["SimWorld", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS", "COLLISION_TOLERANCE", "ALWAYS_SAMPLES",
-           "ALWAYS_FRACTION"]
+__all__ = ["SimWorld", "MAX_VIEW_ANGLE", "MIN_MARKER_PIXELS"]
 
 #: A marker counts as visible only if its normal is within this angle of the direction to the camera, rad.
 MAX_VIEW_ANGLE = math.radians(70.0)
 #: A marker counts as visible only if each edge of its square spans at least this many pixels in the image (2 pixels
 #: per cell of the 6-cell ArUco square; below that cv2.aruco rarely decodes a marker).
 MIN_MARKER_PIXELS = 12.0
-#: Penetrations shallower than this (m) are not collisions (contact-margin noise).
-COLLISION_TOLERANCE = 1e-3
-#: Random postures sampled at start-up to find link pairs that touch in (almost) every posture, and the fraction of
-#: them in which a pair must touch to be left unchecked (MoveIt's "always in collision").
-ALWAYS_SAMPLES = 200
-ALWAYS_FRACTION = 0.95
-_ALWAYS_IN_CONTACT = {}  # (URDF digest, limits, samples, fraction) -> pairs: the sampling is 0.5 s per start
 #: Visible marker corners must lie this many pixels inside the image border.
 IMAGE_MARGIN = 2.0
-# Collision filter group of the marker plates: rays hit them, the robot and the ground never collide with them.
-_MARKER_GROUP = 2
 # Rays stop this far (m) in front of a marker point, so they never hit the marker's own plate.
 _RAY_STANDOFF = 2e-3
-_GROUND_HALF_SIZE = 1.4  # m; the floor ends behind the robot (a white wall beyond)
-_GROUND_RGBA = (0.55, 0.6, 0.5, 1.0)
-_PLAIN_PLATE_RGBA = (0.9, 0.9, 0.9, 1.0)
-_PIXELS_PER_CELL = 16  # texture resolution of the smallest marker of a plate
-
-
-def direct_client():
-    """A pybullet ``DIRECT`` client, without the bare ``argv[0]=`` line pybullet's C code prints on stdout."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 1)
-            return BulletClient(connection_mode=pybullet.DIRECT)
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
 
 
 class SimWorld:
@@ -153,8 +123,8 @@ class SimWorld:
             self._pb = direct_client()
             self._robot_id = self._load_robot(tree)
             self._index_links(tree)
-            self._ground_id = self._create_ground()
-            self._marker_bodies = self._create_markers(tree, marker_texture)
+            self._ground_id = create_ground(self._pb)
+            self._marker_bodies = create_marker_plates(self._pb, self._dir, tree.markers, marker_texture)
             self._command = np.clip(np.zeros(tree.n_actions), tree.action_lower, tree.action_upper)
             self._set_configuration(self._body.execute(self._command))
             self._ignored_pairs = self._pairs_in_contact() | self._pairs_always_in_contact()
@@ -174,7 +144,7 @@ class SimWorld:
                 text = tree.to_urdf("body_scheme_sim_robot")
             else:
                 urdf = self._urdf_path.read_text(encoding="utf-8", errors="replace")
-                text, self.missing_meshes = _patched_urdf(urdf, self._urdf_path.resolve().parent, tree,
+                text, self.missing_meshes = patched_urdf(urdf, self._urdf_path.resolve().parent, tree,
                                                           self._package_path)
             path.write_text(text, encoding="utf-8")
         if self._n_loads == 1:
@@ -200,92 +170,30 @@ class SimWorld:
         self._link_index = link_index
         self._parent_index = {link_index[j.child]: link_index[j.parent] for j in tree.joints}
 
-    def _create_ground(self):
-        """The ground plane for collisions and lines of sight; it is drawn by :meth:`_backdrop`."""
-        pb = self._pb
-        # A body without a visual shape would be drawn from its collision shape (an endless plane); give it an
-        # invisible speck instead.
-        speck = pb.createVisualShape(pybullet.GEOM_SPHERE, radius=1e-4, rgbaColor=(0.0, 0.0, 0.0, 0.0),
-                                     visualFramePosition=(0.0, 0.0, -1.0))
-        return pb.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=pb.createCollisionShape(pybullet.GEOM_PLANE),
-                                  baseVisualShapeIndex=speck)
-
-    def _create_markers(self, tree, textured):
-        """One textured plate body per piece of :func:`.sheet.pieces` (a marker, or a flat plate of several tags drawn
-        as printed); ``{id of the marker or plate: (body, marker2body)}``."""
-        pb = self._pb
-        obj_path = str(write_plate_obj(self._dir))
-        bodies = {}
-        for piece_id, members, centres in pieces(tree.markers):
-            pixels_per_m = _PIXELS_PER_CELL * MARKER_CELLS / min(m.size for m in members)
-            face, _, (cx, cy) = plate_face(members, centres, pixels_per_m, patterns=textured)
-            width, height = face.shape[1] / pixels_per_m, face.shape[0] / pixels_per_m
-            visual = pb.createVisualShape(pybullet.GEOM_MESH, fileName=obj_path,
-                                          meshScale=(width, height, PLATE_THICKNESS),
-                                          rgbaColor=(1.0, 1.0, 1.0, 1.0) if textured else _PLAIN_PLATE_RGBA)
-            shape = pb.createCollisionShape(pybullet.GEOM_BOX, halfExtents=(0.5 * width, 0.5 * height,
-                                                                            0.5 * PLATE_THICKNESS),
-                                            collisionFramePosition=(0.0, 0.0, -0.5 * PLATE_THICKNESS))
-            body = pb.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=shape, baseVisualShapeIndex=visual)
-            pb.setCollisionFilterGroupMask(body, -1, _MARKER_GROUP, 0)
-            if textured:
-                texture_path = self._dir / f"aruco_{piece_id}.png"
-                cv2.imwrite(str(texture_path), cv2.cvtColor(face, cv2.COLOR_GRAY2BGR))
-                pb.changeVisualShape(body, -1, textureUniqueId=pb.loadTexture(str(texture_path)))
-            marker2body = np.eye(4)
-            marker2body[:2, 3] = (cx, cy)
-            bodies[piece_id] = (body, marker2body)
-        return bodies
-
     def _pairs_in_contact(self):
-        """Link pairs (``(a, b)`` by pybullet link index, or ``(a, "ground")``) penetrating each other now.
+        return pairs_in_contact(self._pb, self._robot_id, self._ground_id, self._link_index.values(),
+                                self._parent_index)
 
-        Evaluated at start-up in the reference configuration (all actions 0, clipped to the limits) and in random
-        postures, to find the pairs that touch by design (a base standing on the ground, overlapping neighbours,
-        covers that overlap in every posture); :meth:`in_collision` ignores those, like the "default" and "always"
-        disabled pairs of a MoveIt configuration (:attr:`ignored_collision_pairs`). Adjacent links are never checked.
-        """
-        pb = self._pb
-        pairs = set()
-        links = sorted(self._link_index.values())
-        for a_index, link_a in enumerate(links):
-            if _deeper_than(pb.getClosestPoints(self._robot_id, self._ground_id, 0.0, linkIndexA=link_a)):
-                pairs.add((link_a, "ground"))
-            for link_b in links[a_index + 1:]:
-                if self._parent_index.get(link_b) == link_a or self._parent_index.get(link_a) == link_b:
-                    continue  # adjacent links share a joint and always touch
-                if _deeper_than(pb.getClosestPoints(self._robot_id, self._robot_id, 0.0, linkIndexA=link_a,
-                                                    linkIndexB=link_b)):
-                    pairs.add((link_a, link_b))
-        return pairs
-
-    def _pairs_always_in_contact(self, samples=ALWAYS_SAMPLES, fraction=ALWAYS_FRACTION):
-        """Link pairs in contact in at least ``fraction`` of ``samples`` random postures within the limits (a fixed
-        seed): meshes that overlap wherever the joints are, such as a shoulder's cover and the elbow two joints on.
-        MoveIt's set-up assistant disables such "always in collision" pairs the same way; checking them would refuse
-        every command. The world's own random generator is not used, and the reference posture is restored. The
-        result is kept per process for the same URDF and limits (a world starts in 0.5 s less the second time)."""
+    def _pairs_always_in_contact(self):
+        """The pairs that touch in (almost) every posture (:func:`.collisions.pairs_always_in_contact`), for this
+        robot's URDF and limits; the reference posture is restored."""
         tree = self._nominal.tree
-        key = (hashlib.sha256(self._nominal_urdf).hexdigest(), tuple(tree.action_lower), tuple(tree.action_upper),
-               samples, fraction)
-        if key not in _ALWAYS_IN_CONTACT:
-            _ALWAYS_IN_CONTACT[key] = frozenset(self._sample_pairs_in_contact(samples, fraction))
-        return _ALWAYS_IN_CONTACT[key]
+        key = (hashlib.sha256(self._nominal_urdf).hexdigest(), tuple(tree.action_lower), tuple(tree.action_upper))
 
-    def _sample_pairs_in_contact(self, samples, fraction):
-        tree, rng, counts = self._nominal.tree, np.random.default_rng(0), {}
-        for _ in range(samples):
-            self._set_configuration(self._body.execute(rng.uniform(tree.action_lower, tree.action_upper)))
-            for pair in self._pairs_in_contact():
-                counts[pair] = counts.get(pair, 0) + 1
-        self._set_configuration(self._body.execute(self._command))
-        return {pair for pair, count in counts.items() if count >= fraction * samples}
+        def contacts_at(a):
+            self._set_configuration(self._body.execute(a))
+            return self._pairs_in_contact()
+
+        try:
+            return pairs_always_in_contact(key, contacts_at, tree.action_lower, tree.action_upper)
+        finally:
+            self._set_configuration(self._body.execute(self._command))
 
     @property
     def ignored_collision_pairs(self):
         """``[(link, link or "ground")]`` by name: the pairs :meth:`in_collision` does not check, because they touch
-        in the reference posture or in (almost) every posture (:data:`ALWAYS_FRACTION` of :data:`ALWAYS_SAMPLES`
-        random ones). Adjacent links are never checked and not listed."""
+        in the reference posture or in (almost) every posture (:mod:`.collisions`). Adjacent links are never checked
+        and not listed."""
         names = {index: name for name, index in self._link_index.items()}
         return sorted((names[a], b if b == "ground" else names[b]) for a, b in self._ignored_pairs)
 
@@ -374,22 +282,7 @@ class SimWorld:
 
     def drawn_link_poses(self):
         """Link poses as pybullet holds them, ``{link: world2link (4, 4)}`` (a check against ``robot.link_poses``)."""
-        pb = self._pb
-        poses = {}
-        for link, index in self._link_index.items():
-            if index < 0:
-                position, orientation = pb.getBasePositionAndOrientation(self._robot_id)
-                # pybullet's base pose is its inertial frame; the URDF link frame is that times inertial^-1.
-                inertial = pb.getDynamicsInfo(self._robot_id, -1)[3:5]
-                position, orientation = pb.multiplyTransforms(
-                    position, orientation, *pb.invertTransform(*inertial))
-            else:
-                position, orientation = pb.getLinkState(self._robot_id, index, computeForwardKinematics=True)[4:6]
-            pose = np.eye(4)
-            pose[:3, :3] = Rotation.from_quat(orientation).as_matrix()
-            pose[:3, 3] = position
-            poses[link] = pose
-        return poses
+        return link_poses(self._pb, self._robot_id, self._link_index)
 
     # ------------------------------------------------------------------ perception
     def render(self):
@@ -405,7 +298,7 @@ class SimWorld:
             RGB, top row first.
         """
         backdrop_rgb, backdrop_depth = self._backdrop()
-        rgb, depth = _render(self._pb, self.camera)
+        rgb, depth = render(self._pb, self.camera)
         image = backdrop_rgb.copy()
         cv2.copyTo(rgb, (depth < backdrop_depth).view(np.uint8), image)  # in place, 30x faster than np.where
         return image
@@ -413,15 +306,7 @@ class SimWorld:
     def _backdrop(self):
         key = (self.camera.width, self.camera.height, self.camera.view_matrix, self.camera.projection_matrix)
         if self._backdrop_cache is None or self._backdrop_cache[0] != key:
-            scene = direct_client()
-            try:
-                half = _GROUND_HALF_SIZE
-                visual = scene.createVisualShape(pybullet.GEOM_BOX, halfExtents=(half, half, 0.0005),
-                                                 visualFramePosition=(0.0, 0.0, -0.0005), rgbaColor=_GROUND_RGBA)
-                scene.createMultiBody(baseMass=0.0, baseVisualShapeIndex=visual)
-                self._backdrop_cache = (key, _render(scene, self.camera))
-            finally:
-                scene.disconnect()
+            self._backdrop_cache = (key, render_ground(self.camera))
         return self._backdrop_cache[1]
 
     def true_marker_poses(self):
@@ -605,36 +490,3 @@ class SimWorld:
     def __repr__(self):
         return f"<SimWorld {self._nominal.tree!r} faults={self._faults}>"
 
-
-def _render(pb, camera):
-    """Colour (height, width, 3) uint8 and depth-buffer (height, width) float images of a pybullet scene."""
-    light = camera.position / max(np.linalg.norm(camera.position), 1e-9)
-    _, _, rgba, depth, _ = pb.getCameraImage(
-        camera.width, camera.height, viewMatrix=camera.view_matrix, projectionMatrix=camera.projection_matrix,
-        renderer=pybullet.ER_TINY_RENDERER, flags=pybullet.ER_NO_SEGMENTATION_MASK, shadow=0,
-        lightDirection=light, lightAmbientCoeff=0.6, lightDiffuseCoeff=0.4, lightSpecularCoeff=0.0)
-    shape = (camera.height, camera.width)
-    rgb = np.asarray(rgba, dtype=np.uint8).reshape(*shape, 4)[..., :3]
-    return rgb, np.asarray(depth, dtype=np.float32).reshape(shape)
-
-
-def _deeper_than(points, tolerance=COLLISION_TOLERANCE):
-    """Whether pybullet closest points contain a penetration deeper than ``tolerance``."""
-    return any(point[8] < -tolerance for point in points)
-
-
-def _patched_urdf(urdf_text, urdf_dir, tree, package_path=()):
-    """URDF text with every joint's ``<origin>`` set from ``tree`` and its meshes resolved (``resolve_meshes``);
-    returns ``(text, missing mesh URIs)``."""
-    root = ET.fromstring(urdf_text)
-    for element in root.iter("joint"):
-        name = element.get("name")
-        if name is None or element.find("parent") is None:
-            continue  # transmission joints etc.
-        origin = element.find("origin")
-        if origin is None:
-            origin = ET.SubElement(element, "origin")
-        xyz, rpy = xyz_rpy_from_transform(tree.joint(name).origin)
-        origin.set("xyz", " ".join(repr(float(v)) for v in xyz))
-        origin.set("rpy", " ".join(repr(float(v)) for v in rpy))
-    return resolve_meshes(ET.tostring(root, encoding="unicode"), urdf_dir, package_path)

@@ -12,7 +12,7 @@ from pybullet_utils.bullet_client import BulletClient
 
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_sim.camera import DEFAULT_EYE, DEFAULT_TARGET, Camera, look_at
-from body_scheme_sim.world import _render
+from body_scheme_sim.scene import render
 
 
 def rendered_centroids(camera, points, radius=0.015):
@@ -22,7 +22,7 @@ def rendered_centroids(camera, points, radius=0.015):
         for point in points:
             visual = scene.createVisualShape(pybullet.GEOM_SPHERE, radius=radius, rgbaColor=(1.0, 0.0, 0.0, 1.0))
             scene.createMultiBody(baseMass=0.0, baseVisualShapeIndex=visual, basePosition=point)
-        rgb, _ = _render(scene, camera)
+        rgb, _ = render(scene, camera)
     finally:
         scene.disconnect()
     red = ((rgb[..., 0] > 120) & (rgb[..., 1] < 60)).astype(np.uint8)

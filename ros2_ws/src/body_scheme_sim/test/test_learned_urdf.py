@@ -12,8 +12,8 @@ from body_scheme_core.transforms import transform_from_pose
 from body_scheme_core.world.robot_files import tree_to_urdf
 from body_scheme_core.world.tree import KinematicTree
 from body_scheme_sim.robots import ROBOT_BUILDERS, load_robot, robot_files
+from body_scheme_sim.scene import direct_client
 from body_scheme_sim.sessions import RENDERED_SIGMA_ROT, RENDERED_SIGMA_TRANS, record_session
-from body_scheme_sim.world import direct_client
 
 pytestmark = pytest.mark.slow  # each robot records a rendered session first
 

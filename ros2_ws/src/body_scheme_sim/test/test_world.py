@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from body_scheme_core.errors import InvalidInputError
 from body_scheme_core.transforms import invert_transform, transform_from_rotvec, transform_from_xyz_rpy
 from body_scheme_core.world import Body, Joint, KinematicTree, Marker, deform_limb
-from body_scheme_sim import world as world_module
+from body_scheme_sim import collisions
 from body_scheme_sim.camera import Camera, look_at
 from body_scheme_sim.markers import aruco_dictionary, marker_corners, plate_side
 from body_scheme_sim.world import SimWorld
@@ -384,21 +384,28 @@ def test_links_that_touch_in_almost_every_posture_are_not_checked_and_the_others
 
 
 def test_a_second_world_of_the_same_robot_reuses_the_sampled_pairs(tmp_path, monkeypatch):
-    monkeypatch.setattr(world_module, "_ALWAYS_IN_CONTACT", {})  # not what another test's world left
+    monkeypatch.setattr(collisions, "_ALWAYS_IN_CONTACT", {})  # not what another test's world left
     path = tmp_path / "covered.urdf"
     path.write_text(COVER_URDF)
+    screened = []
+    pairs_in_contact = SimWorld._pairs_in_contact
+
+    def counted(world):
+        screened.append(1)
+        return pairs_in_contact(world)
+
+    monkeypatch.setattr(SimWorld, "_pairs_in_contact", counted)
     with SimWorld(path, markers=(), marker_texture=False) as world:
         first = world.ignored_collision_pairs
-
-    def no_sampling(*_args):
-        raise AssertionError("sampled again")
-
-    monkeypatch.setattr(SimWorld, "_sample_pairs_in_contact", no_sampling)
+    assert len(screened) == 1 + collisions.ALWAYS_SAMPLES  # the reference posture, then the samples
+    screened.clear()
     with SimWorld(path, markers=(), marker_texture=False) as world:
         assert world.ignored_collision_pairs == first
+    assert len(screened) == 1  # the reference posture only
+    screened.clear()
     path.write_text(COVER_URDF.replace('upper="0.5"', 'upper="0.4"'))  # another robot: sampled
-    with pytest.raises(AssertionError, match="sampled again"):
-        SimWorld(path, markers=(), marker_texture=False)
+    SimWorld(path, markers=(), marker_texture=False).close()
+    assert len(screened) == 1 + collisions.ALWAYS_SAMPLES
 
 
 def test_a_flat_plate_of_tags_is_drawn_as_one_piece_and_tracked_as_one_pose():

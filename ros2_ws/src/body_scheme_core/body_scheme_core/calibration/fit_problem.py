@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..models import GPModel
-from ..transforms import invert_transform, rotation_log, skew
+from ..rotations import rotation_log, skew
+from ..transforms import invert_transform
 
 __all__ = ["FitProblem", "covariance_whitening", "inverse_sqrt", "parts_below_gp",
            "models_below_gp"]

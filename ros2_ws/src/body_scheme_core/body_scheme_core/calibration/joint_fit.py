@@ -43,7 +43,8 @@ import numpy as np
 from ..errors import InvalidInputError
 from ..models import DEFAULT_F_SCALE, GPModel, RigidJointModel, huber_weights, robust_cost
 from ..prediction import BodyScheme
-from ..transforms import invert_transform, rotvec_matrix
+from ..rotations import rotvec_matrix
+from ..transforms import invert_transform
 from .fit_problem import FitProblem, models_below_gp
 
 __all__ = ["Calibration", "calibrate", "chain_targets", "edge_consistency"]

@@ -11,7 +11,8 @@ from scipy.optimize import least_squares
 
 from ..errors import BodySchemeError
 from ..models import ChainModel, chain_form, increment_jacobian, pose_residuals
-from ..transforms import rotation_log, rotvec_matrix, transform_from_rotvec
+from ..rotations import rotation_log, rotvec_matrix
+from ..transforms import transform_from_rotvec
 from .chain_search import JointScrew, stored_screw
 
 __all__ = ["register_chain", "chain_replacements"]

@@ -24,7 +24,8 @@ import numpy as np
 
 from ..errors import BodySchemeError
 from ..models import ChainModel, PrismaticModel, RevoluteModel, chain_form, pose_residuals
-from ..transforms import chordal_mean, invert_transform, rotation_log
+from ..rotations import chordal_mean, rotation_log
+from ..transforms import invert_transform
 
 __all__ = ["Excursions", "find_excursions", "JointScrew", "identify_chain", "best_order", "same_chain",
            "order_decided", "ORDER_SAMPLES", "ChainNotIdentified", "stored_screw"]

@@ -18,7 +18,8 @@ from collections import deque
 
 import numpy as np
 
-from ..transforms import invert_transform, project_to_rotation, rotational_error
+from ..rotations import project_to_rotation
+from ..transforms import invert_transform, rotational_error
 from .validity import ValidityMonitor
 
 __all__ = ["still_part", "RootPoseEstimator", "RootWatch", "register_points", "point_spread", "MIN_SPREAD",

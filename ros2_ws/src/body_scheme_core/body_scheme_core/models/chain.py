@@ -45,7 +45,7 @@ import numpy as np
 
 from ..errors import InvalidInputError, ModelFileError
 from ..limits import MAX_CHAIN_JOINTS
-from ..transforms import cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew
+from ..rotations import cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew
 from .base import check_observations
 from .rigid import RigidJointModel, _sigmas
 from .rigid_fit import fit_rms, least_squares_fit

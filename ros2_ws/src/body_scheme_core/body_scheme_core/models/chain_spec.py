@@ -18,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..transforms import axis_angle_matrix, rotation_log, rotvec_matrix, transform_from_rotvec
+from ..rotations import axis_angle_matrix, rotation_log, rotvec_matrix
+from ..transforms import transform_from_rotvec
 from .chain import ChainModel
 
 __all__ = ["chain_from_engineered", "specification_covariance", "increment_jacobian"]

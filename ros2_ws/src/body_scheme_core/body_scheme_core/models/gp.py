@@ -16,7 +16,8 @@ from scipy.linalg import cho_solve, solve_triangular
 
 from ..errors import BodySchemeError, InvalidInputError, ModelFileError
 from ..limits import MAX_ACTION, MAX_COORDINATE
-from ..transforms import polar_derivative, transform_from_vector12, vector12_from_transform
+from ..rotations import polar_derivative
+from ..transforms import transform_from_vector12, vector12_from_transform
 from .base import LocalModel, check_action_batch, check_observations
 from .gp_kernel import (
     ROT_OUTPUTS,

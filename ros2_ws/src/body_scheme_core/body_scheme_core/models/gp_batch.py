@@ -13,8 +13,9 @@ import numpy as np
 
 from ..errors import BodySchemeError, InvalidInputError, ModelFileError
 from ..limits import MAX_ACTIONS
+from ..rotations import project_to_rotation_batch
 from ..state_values import integer, mapping, number
-from ..transforms import check_transform, project_to_rotation_batch, vector12_from_transform
+from ..transforms import check_transform, vector12_from_transform
 from .gp import GPModel, _training_arrays
 from .gp_kernel import ROT_OUTPUTS, TRANS_OUTPUTS, GPHyperparameters, _clamp_variance, summarise_std
 from .slots import SlotArrays, read_batch_header

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..transforms import chordal_mean, perpendicular_basis, rotation_log, rotvec_matrix
+from ..rotations import chordal_mean, perpendicular_basis, rotation_log, rotvec_matrix
 from .rigid import OneActionJointModel
 
 __all__ = ["PrismaticModel", "PrismaticForm", "UnitPrismaticForm"]

@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from ..transforms import axis_angle_matrix, chordal_mean, cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew
+from ..rotations import axis_angle_matrix, chordal_mean, cross3, perpendicular_basis, rotation_log, rotvec_matrix, skew
 from .rigid import OneActionJointModel
 
 __all__ = ["RevoluteModel", "RevoluteForm", "UnitRevoluteForm"]

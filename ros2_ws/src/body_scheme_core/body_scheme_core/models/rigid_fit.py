@@ -25,7 +25,7 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..transforms import rotation_log
+from ..rotations import rotation_log
 
 __all__ = ["pose_residuals", "huber_weights", "robust_cost", "fit_stack", "gauss_newton", "fit_rms", "covariance",
            "least_squares_fit", "DEFAULT_F_SCALE"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..transforms import chordal_mean, rotation_log, rotvec_matrix
+from ..rotations import chordal_mean, rotation_log, rotvec_matrix
 from .rigid import RigidJointModel
 
 __all__ = ["StaticModel", "StaticForm"]

@@ -1,10 +1,10 @@
 """The body scheme and what it predicts (paper Sec. III-C/D, Eq. 8).
 
 :class:`BodyScheme` chains the local models of a spanning tree from the root part to predict every part's pose for
-an action vector, with its propagated uncertainty (:mod:`.scheme`); :mod:`.uncertainty` carries the joint fit's
-covariance to a part's position; :mod:`.learned_body` writes the learned body as a robot description (URDF) and
-compares it with the robot's specification; :mod:`.calibrated_urdf` writes the robot's own URDF with the learned
-joint axes (a drop-in replacement).
+an action vector, with its propagated uncertainty (:mod:`.scheme`), and its Jacobian (Eq. 10, :mod:`.jacobian`);
+:mod:`.uncertainty` carries the joint fit's covariance to a part's position; :mod:`.learned_body` writes the learned
+body as a robot description (URDF) and compares it with the robot's specification; :mod:`.calibrated_urdf` writes the
+robot's own URDF with the learned joint axes (a drop-in replacement).
 """
 
 from __future__ import annotations

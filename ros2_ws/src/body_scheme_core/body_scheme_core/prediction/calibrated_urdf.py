@@ -34,7 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..transforms import invert_transform, rotational_error, rotvec_matrix, xyz_rpy_from_transform
+from ..rotations import rotvec_matrix
+from ..transforms import invert_transform, rotational_error, xyz_rpy_from_transform
 from .learned_body import _aligned
 
 __all__ = ["CalibratedURDF", "calibrated_urdf", "format_diff"]

@@ -38,14 +38,8 @@ import numpy as np
 
 from ..errors import InvalidInputError
 from ..models import ChainModel
-from ..transforms import (
-    cross3,
-    invert_transform,
-    rotation_log,
-    rotational_error,
-    rotvec_matrix,
-    translational_error,
-)
+from ..rotations import cross3, rotation_log, rotvec_matrix
+from ..transforms import invert_transform, rotational_error, translational_error
 from ..world import Joint, KinematicTree, Marker, tree_to_urdf
 from .scheme import BodyScheme
 

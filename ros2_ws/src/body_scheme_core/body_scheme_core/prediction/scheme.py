@@ -19,6 +19,7 @@ import numpy as np
 from ..errors import InvalidInputError, ModelFileError, NotFittedError
 from ..models import LocalModel, check_action_batch
 from ..transforms import invert_transform
+from .jacobian import jacobian, position_jacobian
 
 __all__ = ["BodyScheme"]
 
@@ -230,7 +231,8 @@ class BodyScheme:
         return "\n".join(lines)
 
     # ------------------------------------------------------------------ prediction
-    def _check_action_vector(self, a):
+    def check_action_vector(self, a):
+        """``a`` as one finite action vector (m,) long enough for this scheme's models, or InvalidInputError."""
         a = np.asarray(a, dtype=float)
         if a.ndim == 2 and a.shape[0] == 1:
             a = a[0]
@@ -274,7 +276,7 @@ class BodyScheme:
         std : dict of int to ndarray, shape (2,)
             ``[trans (m), rot (rad)]``; only if ``return_std``. Zero for the root.
         """
-        a = self._check_action_vector(a)
+        a = self.check_action_vector(a)
         if return_std:
             out, std = self.predict_batch(a[None, :], return_std=True)
             return ({p: out[0, k] for k, p in enumerate(self.parts)},
@@ -370,7 +372,7 @@ class BodyScheme:
             Only if ``derivative_step`` is given: per edge ``dT/da`` for the edge model's actions, shape
             ``(len(model.actions), 4, 4)`` in ``model.actions`` order, or ``None`` for a model without actions.
         """
-        a = self._check_action_vector(a)
+        a = self.check_action_vector(a)
         chain = self._chains[self._check_part(part)]
         T = np.empty((len(chain), 4, 4))
         if derivative_step is None:
@@ -402,100 +404,13 @@ class BodyScheme:
             root2part = root2part @ Ti
         return root2part
 
-    def _check_chain(self, a, part, local_transforms, local_derivatives):
-        """Validated ``a``, ``part``, local transforms (k, 4, 4) and per-edge ``(actions, dT)`` pairs."""
-        a = self._check_action_vector(a)
-        part = self._check_part(part)
-        chain = self._chains[part]
-        if local_transforms is None:
-            if local_derivatives is not None:
-                raise InvalidInputError("local_derivatives needs the matching local_transforms")
-            T = self.chain_transforms(a, part)
-        else:
-            T = np.asarray(local_transforms, dtype=float)
-            if T.shape != (len(chain), 4, 4):
-                raise InvalidInputError(
-                    f"local_transforms for part {part} must have shape ({len(chain)}, 4, 4), got {T.shape}")
-        if local_derivatives is not None:
-            if len(local_derivatives) != len(chain):
-                raise InvalidInputError(f"local_derivatives for part {part} must have {len(chain)} entries, got "
-                                        f"{len(local_derivatives)}")
-            return a, part, T, [(acts, dT) for (_, _, acts), dT in zip(chain, local_derivatives, strict=True)]
-        derivatives = []
-        for Ti, (model, inverted, acts) in zip(T, chain, strict=True):
-            if not acts:
-                derivatives.append((acts, None))
-                continue
-            dZ = np.asarray(model.jacobian(a))[acts]
-            if inverted:
-                # d(Z^-1) = -Z^-1 dZ Z^-1, and Ti already is Z^-1.
-                dZ = -(Ti @ dZ @ Ti)
-            derivatives.append((acts, dZ))
-        return a, part, T, derivatives
-
     def jacobian(self, a, part, local_transforms=None, local_derivatives=None):
-        """Derivative of ``root2part`` with respect to every action (Eq. 10), by the product rule along the path.
-
-        Parameters
-        ----------
-        a : array-like, shape (m,)
-        part : int
-        local_transforms : ndarray, shape (k, 4, 4), optional
-            Output of :meth:`chain_transforms` at the same ``a``, to skip recomputing it.
-        local_derivatives : list, optional
-            Per-edge derivatives from ``chain_transforms(..., derivative_step=h)`` to use instead of the models'
-            analytic ``jacobian``; requires ``local_transforms``.
-
-        Returns
-        -------
-        J : ndarray, shape (m, 4, 4)
-            ``J[k] = d root2part / d a_k``; zero for actions that do not influence ``part``.
-        """
-        a, part, T, derivatives = self._check_chain(a, part, local_transforms, local_derivatives)
-        k = T.shape[0]
-        prefix = np.empty((k + 1, 4, 4))
-        suffix = np.empty((k + 1, 4, 4))
-        prefix[0] = suffix[k] = np.eye(4)
-        for i in range(k):
-            prefix[i + 1] = prefix[i] @ T[i]
-            suffix[k - 1 - i] = T[k - 1 - i] @ suffix[k - i]
-        J = np.zeros((a.shape[0], 4, 4))
-        for i, (acts, dT) in enumerate(derivatives):
-            if acts:
-                J[acts] += prefix[i] @ dT @ suffix[i + 1]
-        return J
+        """``d root2part / d a`` (m, 4, 4), Eq. 10: :func:`~body_scheme_core.prediction.jacobian.jacobian`."""
+        return jacobian(self, a, part, local_transforms, local_derivatives)
 
     def position_jacobian(self, a, part, local_transforms=None, local_derivatives=None):
-        """Derivative of the position of ``part`` in the root frame with respect to every action.
-
-        Parameters
-        ----------
-        a : array-like, shape (m,)
-        part : int
-        local_transforms : ndarray, shape (k, 4, 4), optional
-            Output of :meth:`chain_transforms` at the same ``a``, to skip recomputing it.
-        local_derivatives : list, optional
-            Per-edge derivatives from ``chain_transforms(..., derivative_step=h)`` to use instead of the models'
-            analytic ``jacobian``; requires ``local_transforms``.
-
-        Returns
-        -------
-        J : ndarray, shape (3, m)
-        """
-        a, part, T, derivatives = self._check_chain(a, part, local_transforms, local_derivatives)
-        k = T.shape[0]
-        # Only the last column of the suffix products matters: the part origin expressed after each edge.
-        origin = np.empty((k + 1, 4))
-        origin[k] = (0.0, 0.0, 0.0, 1.0)
-        for i in range(k - 1, -1, -1):
-            origin[i] = T[i] @ origin[i + 1]
-        Jt = np.zeros((a.shape[0], 3))
-        prefix = np.eye(4)
-        for i, (acts, dT) in enumerate(derivatives):
-            if acts:
-                Jt[acts] += (dT @ origin[i + 1]) @ prefix[:3].T
-            prefix = prefix @ T[i]
-        return Jt.T
+        """``d position(part) / d a`` (3, m): :func:`~body_scheme_core.prediction.jacobian.position_jacobian`."""
+        return position_jacobian(self, a, part, local_transforms, local_derivatives)
 
     # ------------------------------------------------------------------ persistence
     def to_dict(self):

@@ -9,7 +9,8 @@ import pytest
 
 from body_scheme_core.errors import InvalidInputError, ModelFileError
 from body_scheme_core.models import ChainModel, EngineeredModel, chain_form, chain_from_engineered, model_from_dict
-from body_scheme_core.transforms import rotation_log, transform_from_xyz_rpy
+from body_scheme_core.rotations import rotation_log
+from body_scheme_core.transforms import transform_from_xyz_rpy
 from body_scheme_core.world import KinematicTree, Marker, random_tree
 
 TYPES = ("revolute", "prismatic", "revolute", "revolute")

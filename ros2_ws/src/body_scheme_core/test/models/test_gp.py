@@ -20,14 +20,8 @@ from body_scheme_core.models.gp_kernel import (
     squared_exponential,
     squared_exponential_gradient,
 )
-from body_scheme_core.transforms import (
-    check_transform,
-    concat,
-    polar_derivative,
-    project_to_rotation,
-    transform_from_rotvec,
-    vector12_from_transform,
-)
+from body_scheme_core.rotations import polar_derivative, project_to_rotation
+from body_scheme_core.transforms import check_transform, concat, transform_from_rotvec, vector12_from_transform
 
 HYPER = dict(length_scale=0.8, signal_std_trans=0.3, signal_std_rot=0.7, noise_std_trans=0.06, noise_std_rot=0.14)
 

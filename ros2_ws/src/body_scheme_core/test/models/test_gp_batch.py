@@ -14,12 +14,8 @@ from body_scheme_core.errors import BodySchemeError, InvalidInputError, ModelFil
 from body_scheme_core.learning.config import BodySchemeConfig
 from body_scheme_core.models import GPBatch, GPModel
 from body_scheme_core.models.gp_kernel import squared_exponential
-from body_scheme_core.transforms import (
-    check_transform,
-    project_to_rotation,
-    project_to_rotation_batch,
-    transform_from_rotvec,
-)
+from body_scheme_core.rotations import project_to_rotation, project_to_rotation_batch
+from body_scheme_core.transforms import check_transform, transform_from_rotvec
 
 HYPER = dict(length_scale=0.8, signal_std_trans=0.3, signal_std_rot=0.7, noise_std_trans=0.06, noise_std_rot=0.14)
 M = 5

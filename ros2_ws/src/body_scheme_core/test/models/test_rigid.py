@@ -13,13 +13,8 @@ from body_scheme_core.models.prismatic import PrismaticForm, UnitPrismaticForm
 from body_scheme_core.models.revolute import RevoluteForm, UnitRevoluteForm
 from body_scheme_core.models.rigid_fit import gauss_newton, least_squares_fit
 from body_scheme_core.models.static import StaticForm
-from body_scheme_core.transforms import (
-    rotation_log,
-    rotational_error,
-    rotvec_matrix,
-    transform_from_rotvec,
-    translational_error,
-)
+from body_scheme_core.rotations import rotation_log, rotvec_matrix
+from body_scheme_core.transforms import rotational_error, transform_from_rotvec, translational_error
 
 #: Per-axis noise of a relative observation at the paper's noise, 0.3 m from the parent (two markers + lever arm).
 SIGMA_T = math.sqrt((2 * 0.044**2 + (2 / 3) * math.radians(15) ** 2 * 0.3**2) / 3)
