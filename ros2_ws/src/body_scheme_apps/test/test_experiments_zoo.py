@@ -36,6 +36,7 @@ def test_a_quick_run_reports_its_judgements():
     json.dumps({k: result[k] for k in zoo.RUN_FIELDS})  # plain numbers: zoo_runs.json is written from them
 
 
+@pytest.mark.heavy(seconds=22)
 def test_a_run_with_flips_judges_the_learners_flip_decisions():
     """30 % mirrored orientations: the run counts flips after bootstrapping, and the judged decisions, as ints."""
     result = zoo.run(3, "flips30", quick=True)

@@ -147,6 +147,7 @@ def test_the_learner_checks_flips_eagerly_only_when_told_its_tracker_flips(told,
     assert seen and set(seen) == {told}
 
 
+@pytest.mark.heavy(seconds=20)
 @pytest.mark.slow  # two 400-step zoo bodies, with and without the hypotheses
 @pytest.mark.parametrize("seed", [24, 36])
 def test_with_mirror_hypotheses_a_body_whose_poses_flip_often_is_learned_while_without_it_is_not(seed):

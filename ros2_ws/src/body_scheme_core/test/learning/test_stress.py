@@ -113,6 +113,7 @@ def _corrupt(observations, tree, s, rng, expected):
     return obs
 
 
+@pytest.mark.heavy(seconds=20)
 @pytest.mark.timeout(1200)  # CPU-bound and always advancing: on a busy machine several times 300 s
 @pytest.mark.slow
 @settings(settings.get_profile(PROFILE))
