@@ -42,6 +42,7 @@ import numpy as np
 
 from ..errors import InvalidInputError
 from ..models import DEFAULT_F_SCALE, GPModel, RigidJointModel, huber_weights, robust_cost
+from ..models.rigid_fit import INITIAL_DAMPING, damped_increment, next_damping
 from ..prediction import BodyScheme
 from ..rotations import rotvec_matrix
 from ..transforms import invert_transform
@@ -49,8 +50,9 @@ from .fit_problem import FitProblem, models_below_gp
 
 __all__ = ["Calibration", "calibrate", "chain_targets", "edge_consistency"]
 
-#: Levenberg-Marquardt damping relative to the diagonal and its bounds.
-_DAMPING, _DAMPING_MIN, _DAMPING_MAX = 1e-3, 1e-9, 1e6
+#: Bounds of the Levenberg-Marquardt damping (relative to the diagonal; it starts at ``INITIAL_DAMPING``), and the
+#: constant added to the diagonal.
+_DAMPING_MIN, _DAMPING_MAX, _DAMPING_FLOOR = 1e-9, 1e6, 1e-12
 #: An iteration that lowers the cost (chi-square, in sigma units) by less than this ends the fit: its step moved the
 #: parameters by about a third of their standard deviation, and Gauss-Newton's next step would move them far less.
 _MIN_DECREASE = 0.1
@@ -348,8 +350,8 @@ def _unstack(problem, models, params):
 
 def _solve(problem, params, W, priors, f_scale, max_iterations):
     """Levenberg-Marquardt with Huber re-weighting on stacked parameters; returns (params, W, information matrix,
-    cost, iterations, residuals)."""
-    n = problem.n_params
+    cost, iterations, residuals); its step is the Levenberg-Marquardt step of the rigid-joint fits
+    (:func:`~body_scheme_core.models.rigid_fit.damped_increment`)."""
     # Prior residuals L^T (offset + delta), with L L^T = cov^-1; offsets accumulate the accepted increments.
     prior_L = {k: np.linalg.cholesky(np.linalg.pinv(np.asarray(cov, dtype=float), hermitian=True)
                                      + 1e-12 * np.eye(len(cov)))
@@ -380,7 +382,7 @@ def _solve(problem, params, W, priors, f_scale, max_iterations):
         return g
 
     r, J, w, cost = total(params, W, prior_offset, True)
-    damping = _DAMPING
+    damping = INITIAL_DAMPING
     iterations = 0
     info = information(J, w)
     g = gradient(J, w, r, prior_offset)
@@ -388,8 +390,7 @@ def _solve(problem, params, W, priors, f_scale, max_iterations):
         iterations += 1
         improved = False
         while damping < _DAMPING_MAX:
-            H = info + (damping * np.diag(info) + 1e-12) * np.eye(n)
-            delta = -np.linalg.solve(H, g)
+            delta = damped_increment(info, g, damping, _DAMPING_FLOOR)
             trial = problem.retract(params, delta)
             trial_W = _retract_pose(W, delta[0:6])
             trial_offset = {k: prior_offset[k] + delta[problem.offset[k]:problem.offset[k] + L.shape[0]]
@@ -398,16 +399,16 @@ def _solve(problem, params, W, priors, f_scale, max_iterations):
             if cost_t <= cost:
                 decrease = cost - cost_t
                 params, W, prior_offset, r, w, cost = trial, trial_W, trial_offset, r_t, w_t, cost_t
-                damping = max(damping / 3.0, _DAMPING_MIN)
+                damping = float(next_damping(True, damping, _DAMPING_MIN))
                 improved = True
                 break
-            damping *= 10.0
+            damping = float(next_damping(False, damping, _DAMPING_MIN))
         if not improved or decrease < _MIN_DECREASE:
             break  # the covariance uses the last Jacobian, a step away from this point at most
         # Converged if even the Gauss-Newton step of the last Jacobian (a step away) would lower the cost by less
         # than _MIN_DECREASE: that saves the Jacobian of a warm start's second iteration.
         g = gradient(J, w, r, prior_offset)
-        if float(g @ np.linalg.solve(info + 1e-12 * np.eye(n), g)) < _MIN_DECREASE:
+        if -float(g @ damped_increment(info, g, 0.0, _DAMPING_FLOOR)) < _MIN_DECREASE:
             break
         _, J = problem.evaluate(params, W, True)
         info = information(J, w)

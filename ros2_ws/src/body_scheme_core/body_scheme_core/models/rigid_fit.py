@@ -15,7 +15,9 @@
   ``(J^T W J)^-1``, inflated by the residual variance when that exceeds the assumed noise;
 - :func:`gauss_newton`: the same problem for a stack of models at once (damped Gauss-Newton with iteratively
   re-weighted residuals, pure numpy), used by :class:`~body_scheme_core.models.rigid_batch.RigidBatch` for hundreds of
-  candidates per time step and checked against :func:`least_squares_fit` in the tests.
+  candidates per time step and checked against :func:`least_squares_fit` in the tests;
+- the **Levenberg-Marquardt step** (:func:`damped_increment`, :func:`next_damping`, :data:`INITIAL_DAMPING`) of
+  :func:`gauss_newton` and of the body scheme's joint fit (:mod:`body_scheme_core.calibration.joint_fit`).
 """
 
 from __future__ import annotations
@@ -28,13 +30,15 @@ from scipy.optimize import least_squares
 from ..rotations import rotation_log
 
 __all__ = ["pose_residuals", "huber_weights", "robust_cost", "fit_stack", "gauss_newton", "fit_rms", "covariance",
-           "least_squares_fit", "DEFAULT_F_SCALE"]
+           "least_squares_fit", "DEFAULT_F_SCALE", "INITIAL_DAMPING", "damped_increment", "next_damping"]
 
 #: Huber threshold of the robust loss, in sigmas of one residual component: a component beyond 3 sigma counts
 #: linearly instead of quadratically (0.3 % of the components of a correct model under Gaussian noise).
 DEFAULT_F_SCALE = 3.0
-#: Levenberg-Marquardt damping of :func:`gauss_newton`, relative to the diagonal of ``J^T W J``, and its floor.
-_DAMPING = 1e-3
+#: Levenberg-Marquardt damping at the start of a fit, relative to the diagonal of ``J^T W J``.
+INITIAL_DAMPING = 1e-3
+#: :func:`gauss_newton`'s smallest damping, and the constant it adds to the diagonal.
+_DAMPING_MIN = 1e-7
 _DAMPING_FLOOR = 1e-9
 
 
@@ -82,6 +86,24 @@ def fit_stack(form, params, x, Z, S, mask, iterations, f_scale=DEFAULT_F_SCALE):
     return params, robust_cost(pose_residuals(form.transforms(params, x), Z, S), f_scale, mask)
 
 
+def damped_increment(info, g, damping, floor):
+    """The Levenberg-Marquardt increment ``-(info + diag(damping * diag(info) + floor))^-1 g``.
+
+    Gauss-Newton's step, damped towards gradient descent scaled by the information's diagonal (Marquardt). One
+    problem: ``info`` (p, p), ``g`` (p,), ``damping`` a float; or a stack of problems, each with its own damping:
+    (k, p, p), (k, p), (k,).
+    """
+    diag = np.einsum("...ii->...i", info)
+    H = info + (np.asarray(damping)[..., None] * diag + floor)[..., :, None] * np.eye(info.shape[-1])
+    return -np.linalg.solve(H, g[..., None])[..., 0]
+
+
+def next_damping(improved, damping, minimum):
+    """The damping after a trial step: a third of it (not below ``minimum``) where the step lowered the cost, ten
+    times where it did not (the step is then tried again, shorter and nearer the gradient)."""
+    return np.where(improved, np.maximum(damping / 3.0, minimum), damping * 10.0)
+
+
 def _component_sigmas(S):
     """Per-component sigmas (..., 6) of per-sample ``[s_t, s_r]`` (..., 2)."""
     return np.repeat(S, 3, axis=-1)
@@ -122,7 +144,7 @@ def gauss_newton(form, params, x, Z, S, mask, iterations=2, f_scale=DEFAULT_F_SC
     p = form.N_PARAMS
     k = x.shape[0]
     w_mask = mask.astype(float)[..., None]
-    damping = np.full(k, _DAMPING)
+    damping = np.full(k, INITIAL_DAMPING)
     inv_sigma = 1.0 / _component_sigmas(S)  # (k, n, 6)
     # J = twists / sigma, so J^T W J = twists^T (w / sigma^2) twists and J^T W r = twists^T (w / sigma) r.
     ws2 = (inv_sigma * inv_sigma).reshape(k, -1, 1)
@@ -142,9 +164,7 @@ def gauss_newton(form, params, x, Z, S, mask, iterations=2, f_scale=DEFAULT_F_SC
     r, w, cost, T = evaluate(params)
     for _ in range(iterations):
         JtWJ, g = normal_equations(T, r, w)
-        diag = np.einsum("kpp->kp", JtWJ)
-        H = JtWJ + (damping[:, None] * diag + _DAMPING_FLOOR)[:, :, None] * np.eye(p)
-        delta = -np.linalg.solve(H, g[..., None])[..., 0]
+        delta = damped_increment(JtWJ, g, damping, _DAMPING_FLOOR)
         trial = form.retract(params, delta)
         r_new, w_new, cost_new, T_new = evaluate(trial)
         better = cost_new <= cost
@@ -153,7 +173,7 @@ def gauss_newton(form, params, x, Z, S, mask, iterations=2, f_scale=DEFAULT_F_SC
         w = np.where(better[:, None, None], w_new, w)
         T = np.where(better[:, None, None], T_new, T)
         cost = np.where(better, cost_new, cost)
-        damping = np.where(better, np.maximum(damping / 3.0, 1e-7), damping * 10.0)
+        damping = next_damping(better, damping, _DAMPING_MIN)
     JtWJ = normal_equations(T, r, w)[0] if information else None
     return params, cost, JtWJ
 
