@@ -71,6 +71,7 @@ CORE_LAYERS = {
     "errors": 0, "limits": 0, "rotations": 0,  # named exceptions, the sizes every input check shares, rotation maths
     "threads": 1,  # one math-library thread per process
     "transforms": 1, "state_values": 1, "events": 1,  # rigid-transform maths, saved-value readers, the learner's events
+    "levenberg_marquardt": 1,  # the one damped Gauss-Newton step of every nonlinear fit
     "models": 2, "perception": 2, "pairing": 2,  # local models (Sec. III-A/B); the camera and the commands
     "world": 3,  # kinematic trees, robots, faults and sessions: the bodies we learn
     "plates": 3,  # several tags on one rigid plate: one pose (perception)

@@ -41,8 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidInputError
+from ..levenberg_marquardt import INITIAL_DAMPING, damped_increment, next_damping
 from ..models import DEFAULT_F_SCALE, GPModel, RigidJointModel, huber_weights, robust_cost
-from ..models.rigid_fit import INITIAL_DAMPING, damped_increment, next_damping
 from ..prediction import BodyScheme
 from ..rotations import rotvec_matrix
 from ..transforms import invert_transform
@@ -350,8 +350,7 @@ def _unstack(problem, models, params):
 
 def _solve(problem, params, W, priors, f_scale, max_iterations):
     """Levenberg-Marquardt with Huber re-weighting on stacked parameters; returns (params, W, information matrix,
-    cost, iterations, residuals); its step is the Levenberg-Marquardt step of the rigid-joint fits
-    (:func:`~body_scheme_core.models.rigid_fit.damped_increment`)."""
+    cost, iterations, residuals); the step of :mod:`~body_scheme_core.levenberg_marquardt`."""
     # Prior residuals L^T (offset + delta), with L L^T = cov^-1; offsets accumulate the accepted increments.
     prior_L = {k: np.linalg.cholesky(np.linalg.pinv(np.asarray(cov, dtype=float), hermitian=True)
                                      + 1e-12 * np.eye(len(cov)))

@@ -16,8 +16,7 @@
 - :func:`gauss_newton`: the same problem for a stack of models at once (damped Gauss-Newton with iteratively
   re-weighted residuals, pure numpy), used by :class:`~body_scheme_core.models.rigid_batch.RigidBatch` for hundreds of
   candidates per time step and checked against :func:`least_squares_fit` in the tests;
-- the **Levenberg-Marquardt step** (:func:`damped_increment`, :func:`next_damping`, :data:`INITIAL_DAMPING`) of
-  :func:`gauss_newton` and of the body scheme's joint fit (:mod:`body_scheme_core.calibration.joint_fit`).
+  its step is :mod:`body_scheme_core.levenberg_marquardt`'s, as the joint fit's.
 """
 
 from __future__ import annotations
@@ -27,16 +26,15 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..levenberg_marquardt import INITIAL_DAMPING, damped_increment, next_damping
 from ..rotations import rotation_log
 
 __all__ = ["pose_residuals", "huber_weights", "robust_cost", "fit_stack", "gauss_newton", "fit_rms", "covariance",
-           "least_squares_fit", "DEFAULT_F_SCALE", "INITIAL_DAMPING", "damped_increment", "next_damping"]
+           "least_squares_fit", "DEFAULT_F_SCALE"]
 
 #: Huber threshold of the robust loss, in sigmas of one residual component: a component beyond 3 sigma counts
 #: linearly instead of quadratically (0.3 % of the components of a correct model under Gaussian noise).
 DEFAULT_F_SCALE = 3.0
-#: Levenberg-Marquardt damping at the start of a fit, relative to the diagonal of ``J^T W J``.
-INITIAL_DAMPING = 1e-3
 #: :func:`gauss_newton`'s smallest damping, and the constant it adds to the diagonal.
 _DAMPING_MIN = 1e-7
 _DAMPING_FLOOR = 1e-9
@@ -84,24 +82,6 @@ def fit_stack(form, params, x, Z, S, mask, iterations, f_scale=DEFAULT_F_SCALE):
         r = pose_residuals(form.transforms(params, x), Z, S)
         params = form.initial(x, Z, S, mask, weights=huber_weights(r, f_scale) * w_mask)
     return params, robust_cost(pose_residuals(form.transforms(params, x), Z, S), f_scale, mask)
-
-
-def damped_increment(info, g, damping, floor):
-    """The Levenberg-Marquardt increment ``-(info + diag(damping * diag(info) + floor))^-1 g``.
-
-    Gauss-Newton's step, damped towards gradient descent scaled by the information's diagonal (Marquardt). One
-    problem: ``info`` (p, p), ``g`` (p,), ``damping`` a float; or a stack of problems, each with its own damping:
-    (k, p, p), (k, p), (k,).
-    """
-    diag = np.einsum("...ii->...i", info)
-    H = info + (np.asarray(damping)[..., None] * diag + floor)[..., :, None] * np.eye(info.shape[-1])
-    return -np.linalg.solve(H, g[..., None])[..., 0]
-
-
-def next_damping(improved, damping, minimum):
-    """The damping after a trial step: a third of it (not below ``minimum``) where the step lowered the cost, ten
-    times where it did not (the step is then tried again, shorter and nearer the gradient)."""
-    return np.where(improved, np.maximum(damping / 3.0, minimum), damping * 10.0)
 
 
 def _component_sigmas(S):
