@@ -3,9 +3,11 @@
 import subprocess
 import sys
 
+import pytest
 from workspace import REPO
 
 
+@pytest.mark.slow  # 2 s: a pytest collection; make test's order
 def test_heavy_system_tests_are_collected_first_the_longest_first():
     """pytest-xdist hands tests out in collection order: the heavy ones first (tests/conftest.py), or the your-robot
     rehearsal, collected last by name, runs alone at the end of ``make test`` while the other worker idles."""

@@ -186,6 +186,7 @@ def test_every_failure_to_load_a_robot_is_one_line(tmp_path, capsys):
     assert err[0].endswith('--camera auto or --camera "x y z roll pitch yaw" does without it'), err
 
 
+@pytest.mark.slow  # 2 s: two sessions learnt
 def test_the_accuracy_report_cross_validates_and_two_sessions_give_the_repeatability(tmp_path, capsys):
     """accuracy.json: held-out errors at the sensor's noise and close to the true robot's, small joint stds, an
     error curve that falls with the poses; repeatability.json: two sessions' learned bodies agree per joint."""

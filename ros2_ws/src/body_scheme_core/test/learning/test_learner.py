@@ -163,6 +163,7 @@ def test_blocked_joint_detected_replaced_repaired_and_reused():
     assert _position_error(learner, session, range(370, 400), 7) < learner.noise.theta_trans
 
 
+@pytest.mark.slow  # 2 s: a whole deform, repair and reuse
 def test_deformed_limb_detected_replaced_repaired_and_reused():
     """Paper Sec. IV-C: a displaced tool is detected, relearned, and both models are reused later."""
     session = limb_deformed_protocol(1)
@@ -578,6 +579,7 @@ def test_the_noise_is_learnt_across_and_along_the_ray():
     assert learner.trusted and _edges(learner) == _truth(robot)
 
 
+@pytest.mark.slow  # 2 s: bootstraps under three numberings
 def test_the_root_is_the_part_that_moves_least_whatever_its_id():
     """With the base marker carrying the highest id, the learner still roots its scheme there."""
     robot = powercube_6dof()
