@@ -48,7 +48,7 @@ class SlotArrays:
 
     def size(self, slots):
         """Number of training samples of each slot, shape (k,)."""
-        return self._n[self._check_slots(slots)].copy()
+        return self._n[self._check_slots(slots)]  # an index array: a copy
 
     def _grow(self, storage):
         """Grow every per-slot array to ``storage`` rows of empty slots."""
@@ -86,9 +86,9 @@ class SlotArrays:
         """What :meth:`restore` needs to undo any change from now on: the attributes and a copy of the allocated
         slots' rows (free slots are reset when they are taken, so their contents do not matter; after racing most of
         the storage is free, and copying it whole was a large part of a bootstrapping step)."""
-        rows = self.allocated_slots
-        return (dict(vars(self)), rows, {name: getattr(self, name)[rows].copy() for name in self._slot_fills()},
-                self._allocated.copy())
+        rows = self.allocated_slots  # an index array: indexing with it copies the rows
+        kept = {name: getattr(self, name)[rows] for name in self._slot_fills()} if rows.size else {}
+        return dict(vars(self)), rows, kept, self._allocated.copy()
 
     def restore(self, saved):
         """Undo every change since :meth:`snapshot` returned ``saved``."""
