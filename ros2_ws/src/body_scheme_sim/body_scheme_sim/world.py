@@ -145,7 +145,7 @@ class SimWorld:
             else:
                 urdf = self._urdf_path.read_text(encoding="utf-8", errors="replace")
                 text, self.missing_meshes = patched_urdf(urdf, self._urdf_path.resolve().parent, tree,
-                                                          self._package_path)
+                                                         self._package_path)
             path.write_text(text, encoding="utf-8")
         if self._n_loads == 1:
             self._nominal_urdf = pathlib.Path(path).read_bytes()  # the key of the "always in contact" cache
