@@ -1,4 +1,4 @@
-"""The suite's own scheduling: what ``make test`` runs first."""
+"""How the suite itself runs: what ``make test`` runs first, and on how many math threads."""
 
 import subprocess
 import sys
@@ -18,3 +18,12 @@ def test_heavy_system_tests_are_collected_first_the_longest_first():
     assert [name.split("::")[1][:40] for name in collected[:3]] == [
         "test_the_simulated_rehearsal_runs_the_gr", "test_the_rehearsal_plans_babbles_over_th",
         "test_babbling_a_controller_learns_the_tr"], done.stdout[-2000:]
+
+
+def test_a_test_process_runs_its_math_library_on_one_thread():
+    """conftest.py pins BLAS to one thread in every test process (two workers on two cores each with a thread per
+    core ran the CPU-bound tests at half speed)."""
+    import numpy  # noqa: F401  (its BLAS loaded, whenever it was first imported)
+    from threadpoolctl import threadpool_info
+
+    assert {pool["num_threads"] for pool in threadpool_info()} == {1}
