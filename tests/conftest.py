@@ -51,16 +51,6 @@ def pytest_sessionfinish(session, exitstatus):
 _STATUS = pytest.StashKey()
 
 
-def pytest_collection_modifyitems(config, items):
-    """The tests marked ``heavy(seconds)`` first, the longest first: pytest-xdist hands tests out in collection order,
-    so a long test collected last (the your-robot rehearsal, 2 min) ran alone at the end while the other worker
-    idled."""
-    def seconds(item):
-        heavy = item.get_closest_marker("heavy")
-        return heavy.kwargs["seconds"] if heavy else 0
-    items.sort(key=lambda item: -seconds(item))
-
-
 @pytest.fixture
 def domain_id():
     """A ROS domain id of this test alone (localhost-only discovery): random within this pytest-xdist worker's share of

@@ -64,7 +64,6 @@ def _call(ros_node, spin_until, service):
     return future.result()
 
 
-@pytest.mark.heavy(seconds=55)
 def test_babbling_a_controller_learns_the_true_tree_safely_and_obeys_pause_stop_and_error(start_node, ros_node,
                                                                                          spin_until):
     """From scratch through the controller interface: the true tree; every goal sim_node received was inside the

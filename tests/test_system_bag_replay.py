@@ -60,7 +60,6 @@ def _offline(params_file):
             [(e.kind, e.step, e.model or "") for e in offline.events], len(offline.steps), offline.learner.phase)
 
 
-@pytest.mark.heavy(seconds=45)
 def test_replay_through_the_graph_equals_the_offline_replay(start_node, ros_node, spin_until):
     """bag_replay (rate 0, backpressure) into scheme_node gives the offline command's final structure and events."""
     params_file = default_params_file()

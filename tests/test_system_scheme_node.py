@@ -444,7 +444,6 @@ def test_bad_parameters_are_refused_in_one_line_without_a_traceback(bad, message
     assert message in output and "FATAL" in output and "Traceback" not in output, output
 
 
-@pytest.mark.heavy(seconds=40)
 def test_fuzz_every_hostile_message_is_counted_exactly_and_learning_is_unharmed(domain_id, ros_env, monkeypatch,
                                                                                 tmp_path):
     """About 3,000 messages over DDS (``make fuzz`` runs 11,000): a babbling session with every kind of hostile

@@ -79,7 +79,6 @@ def planned(ros_env, tmp_path, monkeypatch):
     return env, [int(i) for i in parameters["part_ids"]], {frozenset(edge) for edge in tree.marker_tree_edges()}
 
 
-@pytest.mark.heavy(seconds=130)
 def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shipped_arms_faults(planned, tmp_path):
     """Step 3's live_demo as written: the whole graph on the planned markers, the camera where the plan put it; no
     fault of the shipped arm (its default blocked a joint of another robot); exit 0 exactly when the true tree was
@@ -112,7 +111,6 @@ def test_the_simulated_rehearsal_runs_the_graph_on_your_robot_without_the_shippe
         in printed, printed  # true or not is measured (the closing notes), as for live_demo
 
 
-@pytest.mark.heavy(seconds=70)
 def test_the_rehearsal_plans_babbles_over_the_controller_learns_and_reports(planned, start_node, ros_node, spin_until,
                                                                              tmp_path):
     env, part_ids, true_edges = planned
