@@ -99,8 +99,9 @@ def bootstrap_body(name, eager, seed=0, max_steps=600):
         peak = max(peak, _rss_mb())
         step += 1
     seconds = time.perf_counter() - start
-    if marked and _peak_rss_mb() is not None:
-        peak = max(peak, _peak_rss_mb())
+    high_water = _peak_rss_mb() if marked else None
+    if high_water is not None:
+        peak = max(peak, high_water)
     return {"updates_per_s": step / seconds, "max_update_ms": 1000.0 * worst, "peak_mb": peak - base,
             "candidates_max": int(most), "raced": int(learner.n_raced), "steps": step,
             "finished": learner.phase != "bootstrapping",
