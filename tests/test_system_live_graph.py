@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import pathlib
+import signal
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -81,3 +86,37 @@ def test_live_graph_with_rendered_images_learns_detects_recovers_and_moves_the_a
     # twin of this test, 45 mm at 10 mm / 3 deg, went in CI time's cuts).
     assert np.mean([e for s, e in result.prediction_error if s >= 260]) < 0.03, format_summary(result)
     assert_recording_decodes(tmp_path / "session", result.recorded)
+
+
+def _processes_using(path):
+    """PIDs of the processes whose command line names ``path`` (a node started with a parameter file in it)."""
+    pids = []
+    for proc in pathlib.Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and str(path).encode() in (proc / "cmdline").read_bytes():
+                pids.append(int(proc.name))
+        except OSError:  # gone meanwhile
+            pass
+    return pids
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_demo_stops_its_nodes_and_says_so(sig, ros_env, tmp_path):
+    """Ctrl-C (SIGINT) or a ``kill`` (SIGTERM) while the demo babbles: it stops every node it started (none babbles on
+    in the domain), prints one line and exits 130. (rclpy's own handlers let a Ctrl-C run the demo to its end, and a
+    SIGTERM leave the nodes running.)"""
+    out = tmp_path / "demo"
+    demo = subprocess.Popen([sys.executable, "-m", "body_scheme_apps.live_demo", "--perception", "noise", "--out",
+                             str(out)], env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    printed = []
+    for line in demo.stdout:  # until the graph is up and babbling (or the demo ended: then the asserts say why)
+        printed.append(line)
+        if line.startswith("babbling"):
+            break
+    assert len(set(_processes_using(out)) - {demo.pid}) == 3, printed  # scheme_node, control_node and sim_node
+    demo.send_signal(sig)
+    stdout, stderr = demo.communicate(timeout=120)
+    assert demo.returncode == 130, (printed, stdout, stderr)
+    assert stderr.splitlines()[-1] == f"live_demo: interrupted ({sig.name})", stderr
+    assert _processes_using(out) == [], (printed, stdout, stderr)
+    assert not (out / "summary.json").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import pathlib
 import sys
 
 from body_scheme_core.errors import BodySchemeError
@@ -13,15 +14,23 @@ __all__ = ["command"]
 
 def command(main):
     """Wrap a console ``main(argv=None)``: limit the math threads first (:func:`limit_math_threads`); a bad
-    ``BODY_SCHEME_MATH_THREADS`` is one line on stderr and exit code 2, not a traceback."""
-
+    ``BODY_SCHEME_MATH_THREADS`` is one line on stderr and exit code 2, not a traceback. An interrupt (Ctrl-C; SIGTERM
+    while nodes run, see :mod:`body_scheme_nodes.graph`) is one line and exit code 130, after the ``finally`` blocks
+    stopped what the command started."""
     @functools.wraps(main)
     def run(argv=None):
+        name = main.__module__.rsplit(".", 1)[-1]
+        if name == "__main__":  # python -m body_scheme_apps.<name>
+            name = pathlib.Path(sys.argv[0]).stem
         try:
             limit_math_threads()
         except BodySchemeError as error:
-            print(f"{main.__module__.rsplit('.', 1)[-1]}: {error}", file=sys.stderr)
+            print(f"{name}: {error}", file=sys.stderr)
             return 2
-        return main(argv)
+        try:
+            return main(argv)
+        except KeyboardInterrupt as interrupt:
+            print(f"{name}: interrupted{f' ({interrupt})' if str(interrupt) else ''}", file=sys.stderr)
+            return 130
 
     return run

@@ -16,3 +16,22 @@ def test_a_bad_thread_count_is_one_line_and_exit_code_2(module, monkeypatch, cap
     assert main(["--help"]) == 2  # refused before the arguments are read
     err = capsys.readouterr().err
     assert err == f"{module}: BODY_SCHEME_MATH_THREADS must be a positive integer, got 'many'\n"
+
+
+def test_an_interrupt_is_one_line_and_exit_code_130(capsys):
+    """Ctrl-C (or SIGTERM while nodes run: body_scheme_nodes.graph makes it an interrupt) is one line naming the
+    signal, after the command's finally blocks ran; no traceback."""
+    from body_scheme_apps.entry import command
+
+    stopped = []
+
+    @command
+    def main(argv=None):
+        try:
+            raise KeyboardInterrupt("SIGTERM")
+        finally:
+            stopped.append(True)
+
+    main.__wrapped__.__module__ = "body_scheme_apps.live_demo"
+    assert main([]) == 130 and stopped == [True]
+    assert capsys.readouterr().err == "live_demo: interrupted (SIGTERM)\n"

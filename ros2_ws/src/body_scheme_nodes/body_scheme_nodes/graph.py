@@ -2,7 +2,10 @@
 
 The PyPI route has no ``ros2cli`` and no ``launch``, so the live demo and the system tests start the very files
 ``ros2 run <package> <executable>`` would execute (``<install>/<package>/lib/<package>/<executable>``) with a
-generated parameter file, and stop them with SIGINT (SIGKILL if they hang).
+generated parameter file, and stop them with SIGINT (SIGKILL if they hang). The nodes run in sessions of their own
+(a Ctrl-C at the terminal reaches only the program that started them); while a :func:`monitor_node` is open, SIGINT
+and SIGTERM raise ``KeyboardInterrupt`` in that program, so its ``finally`` blocks stop them: no node outlives it to
+babble on in the domain.
 """
 
 from __future__ import annotations
@@ -13,11 +16,13 @@ import os
 import pathlib
 import signal
 import subprocess
+import threading
 
 import rclpy
 import yaml
 from ament_index_python.packages import PackageNotFoundError, get_package_prefix
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 
 __all__ = ["NodeProcess", "executable", "monitor_node"]
 
@@ -101,15 +106,40 @@ class NodeProcess:
 def monitor_node(name, domain):
     """``(node, executor)``: an rclpy node of this process in a context of its own on ROS domain ``domain``, with a
     single-threaded executor; both are shut down on exit. The demo, the benchmarks and the fuzz watch the graph
-    through one."""
+    through one.
+
+    While it is open, SIGINT and SIGTERM raise ``KeyboardInterrupt`` (in the main thread; rclpy's own handler would
+    shut the context down under a wait, and the program would go on, or SIGTERM would end it at once with its nodes
+    still running)."""
     context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain)
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(name, context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
-        yield node, executor
+        with _interrupted_by_signals():
+            yield node, executor
     finally:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+@contextlib.contextmanager
+def _interrupted_by_signals():
+    """SIGINT and SIGTERM raise ``KeyboardInterrupt`` inside the block (the previous handlers after it); nothing
+    outside the main thread, where Python cannot set handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            if handler is not None:  # None: set outside Python (not restorable from here)
+                signal.signal(sig, handler)
