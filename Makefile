@@ -6,7 +6,7 @@
 #   make demo    set up (if needed), build, run the live graph demo (make demo-core: without ROS)
 #   make your-robot URDF=robot.urdf   plan markers on any URDF, learn it in the simulator, write learned URDF + report
 #   make bench   set up (if needed), build, run the benchmarks (writes out/bench/*.json; UPDATE_RESULTS=1 also
-#                copies out/bench/core.json over the committed docs/results/bench.json)
+#                copies core.json and sim.json over the committed docs/results/bench.json and sim.json)
 #   make docs    the API reference of body_scheme_core, HTML from its numpydoc docstrings (out/docs/html; warnings fail)
 #   make stress  the learner's property-based stress test on random bodies, >= 100,000 steps (out/stress/stress.json)
 #   make fuzz    scheme_node under 10,000+ hostile and valid messages over DDS (writes out/fuzz/fuzz.json), and
@@ -103,7 +103,7 @@ demo-core: build
 
 bench: build
 	$(RUN) python -m body_scheme_apps.learning_bench --out out/bench/core.json $(if $(UPDATE_RESULTS),--copy docs/results/bench.json,)
-	$(RUN) python -m body_scheme_apps.perception_bench --out out/bench/sim.json
+	$(RUN) python -m body_scheme_apps.perception_bench --out out/bench/sim.json $(if $(UPDATE_RESULTS),--copy docs/results/sim.json,)
 	$(RUN) python -m body_scheme_apps.load_bench --out out/bench/load.json
 
 # The learner under random bodies, noise, dropout, outliers and faults (CI runs a small profile of the same test).

@@ -242,8 +242,12 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trials", type=int, default=300,
                         help="poses per cell of the corner-noise study (default: %(default)s)")
+    parser.add_argument("--copy", default=None, help="also write the JSON here (make bench UPDATE_RESULTS=1: "
+                        "docs/results/sim.json, which docs/sim.md quotes)")
     args = parser.parse_args(argv)
     result = run_benchmarks(n_frames=args.frames, n_steps=args.steps, seed=args.seed, trials=args.trials)
+    if args.copy:
+        report(result, "", args.copy)
     return report(result, _table(result), args.out)
 
 
