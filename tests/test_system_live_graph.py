@@ -6,6 +6,7 @@ import pathlib
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -113,7 +114,12 @@ def test_an_interrupted_demo_stops_its_nodes_and_says_so(sig, ros_env, tmp_path)
         printed.append(line)
         if line.startswith("babbling"):
             break
-    assert len(set(_processes_using(out)) - {demo.pid}) == 3, printed  # scheme_node, control_node and sim_node
+    deadline = time.monotonic() + 60  # a node just started may still be exec'ing its interpreter
+    while len(set(_processes_using(out)) - {demo.pid}) < 3 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    nodes = {pid: pathlib.Path(f"/proc/{pid}/cmdline").read_bytes()[:200] for pid in _processes_using(out)
+             if pid != demo.pid}
+    assert len(nodes) == 3, (printed, nodes)  # scheme_node, control_node and sim_node
     demo.send_signal(sig)
     stdout, stderr = demo.communicate(timeout=120)
     assert demo.returncode == 130, (printed, stdout, stderr)
