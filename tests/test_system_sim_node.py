@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_msgs.msg import UInt64
 
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import InjectFault
@@ -161,3 +162,33 @@ def test_as_a_controller_it_follows_the_cubic_of_a_partial_trajectory_and_reject
     quarter = min(readings, key=lambda r: abs(r[0] - t0 - duration / 4))
     assert quarter[1][1] == pytest.approx(goal * 5 / 32, abs=0.03 * goal)
     assert all(np.all(p[[0, 2, 3, 4, 5]] == 0.0) for _, p in readings)
+
+
+def test_babbling_waits_for_scheme_nodes_progress_with_max_in_flight(start_node, ros_node, spin_until):
+    """``max_in_flight`` 2: two pictures undecided and sim_node babbles no more (its timeout is far away) until
+    body_scheme/progress moves: each decided picture lets one more command go."""
+    process = start_node("body_scheme_nodes", "sim_node", {
+        "robot": "arm_4dof", "perception_mode": "noise", "babbling": True, "babbling_period": 0.05,
+        "max_in_flight": 2, "in_flight_timeout": 600.0, "wait_for_subscribers": 1})  # none of them lost
+    recorder = Recorder(ros_node, [("joint_commands", JointState, 100), ("observations", MarkerPoses, 100),
+                                   ("ground_truth/marker_poses", MarkerPoses, 100)])
+    progress = ros_node.create_publisher(UInt64, "body_scheme/progress", 10)
+    assert spin_until(lambda: recorder.count("joint_commands") >= 2, timeout=60), process.output()
+    spin_until(lambda: False, timeout=1.0)  # 20 babbling periods
+    assert recorder.count("joint_commands") == 2
+    assert spin_until(lambda: progress.get_subscription_count() >= 1, timeout=60)
+    for decided, expected in ((1, 3), (3, 5)):
+        progress.publish(UInt64(data=decided))
+        assert spin_until(lambda n=expected: recorder.count("joint_commands") >= n, timeout=60), process.output()
+        spin_until(lambda: False, timeout=1.0)
+        assert recorder.count("joint_commands") == expected
+
+
+def test_babbling_goes_on_when_pictures_in_flight_are_never_decided(start_node, ros_node, spin_until):
+    """With no scheme_node at all, each picture in flight counts as lost after ``in_flight_timeout`` and babbling
+    goes on; the end of babbling says how many were lost."""
+    process = start_node("body_scheme_nodes", "sim_node", {
+        "robot": "arm_4dof", "perception_mode": "noise", "babbling": True, "babbling_period": 0.05,
+        "babbling_steps": 5, "max_in_flight": 1, "in_flight_timeout": 0.3})
+    assert spin_until(lambda: "now executing joint_commands" in process.output(), timeout=60), process.output()
+    assert "babbled 5 commands (4 of their pictures never decided by scheme_node)" in process.output()

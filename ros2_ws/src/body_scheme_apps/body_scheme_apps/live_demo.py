@@ -186,6 +186,9 @@ def _spin(executor, predicate, timeout, during=None):
 
 #: The demo's faults on the shipped 6-DOF arm: its sixth joint (action 5) blocked at 0.8 rad, then repaired.
 DEMO_FAULTS = ("120:block_joint:5:0.8", "220:repair")
+#: sim_node's ``max_in_flight`` in the demo: about twice the pictures in flight on an idle machine (the pipeline's
+#: latency, about 0.3 s, at 13 commands/s).
+DEMO_MAX_IN_FLIGHT = 10
 
 
 def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=None, perception="noise",
@@ -277,7 +280,10 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             if controller:  # babble_node drives sim_node as a real arm's controller; faults are expected here
                 start_node("body_scheme_nodes", "babble_node", {**arm, "steps": steps, "seed": seed, "dwell": 0.05,
                                                                 "error_hold": 600.0})
+            # At most 10 pictures in flight: a busy machine slows the babbling down instead of shedding the samples
+            # the demo's story is told in (bootstrapped before the block at command 120).
             start_node("body_scheme_nodes", "sim_node", {"wait_for_subscribers": 0 if controller else 2,
+                "max_in_flight": 0 if controller else DEMO_MAX_IN_FLIGHT,
                 **({} if camera is None else camera_parameters(camera)), "camera_period": 0.05,
                 "markers_path": str(markers_path), "package_path": list(package_path),
                 "robot": str(robot), "perception_mode": perception, "babbling": not controller,

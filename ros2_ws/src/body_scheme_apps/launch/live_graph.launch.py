@@ -40,6 +40,6 @@ def generate_launch_description():
         Node(package="body_scheme_nodes", executable="sim_node", output="screen",
              parameters=[config(nodes_share, "sim_node"),
                          {"babbling": True, "babbling_period": 0.05, "babbling_steps": 300,
-                          "wait_for_subscribers": 2, "markers_of_interest": [6, 7],
+                          "wait_for_subscribers": 2, "max_in_flight": 10, "markers_of_interest": [6, 7],
                           "fault_schedule": ["120:block_joint:5:0.8", "220:repair"]}]),
     ])

@@ -30,6 +30,11 @@ ground_truth/marker_poses : body_scheme_msgs/MarkerPoses  (reliable, depth 100)
 /joint_states : sensor_msgs/JointState  (depth 10)
     The joints' positions (as executed: clipped, blocked joints held) every ``joint_state_period``.
 
+Subscriptions (``max_in_flight`` > 0)
+--------------------------------------
+body_scheme/progress : std_msgs/UInt64
+    scheme_node's count of observation messages decided: babbling waits for it (as bag_replay's rate 0 does).
+
 Services
 --------
 ~/inject_fault : body_scheme_msgs/InjectFault
@@ -53,6 +58,11 @@ babbling_steps : int 0               stop babbling after this many commands and 
 wait_for_subscribers : int 0         babble only once joint_commands has this many subscriptions and the image (or
                                      observations) and ground-truth topics one each, then 1 s more: messages sent
                                      before discovery matched them are lost (volatile QoS)
+max_in_flight : int 0                babbling: the next command waits while more pictures than this are not yet
+                                     decided by scheme_node (body_scheme/progress); a simulator's way to have every
+                                     command learnt on a busy machine (a real arm waits for no one). 0: never waits
+in_flight_timeout : double 1.0 s     max_in_flight: after this long without progress the pictures in flight count as
+                                     lost (a tracker drops those it has no time for) and babbling goes on
 markers_of_interest : int[] []       markers that must be visible in babbled configurations
 fault_schedule : string[] []         "step:kind:args" entries (core world.faults); steps count executed commands
 update_period : double 0.01 s        period of the timer executing subscribed commands
@@ -74,6 +84,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.interpolate import CubicHermiteSpline, make_interp_spline
 from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_msgs.msg import UInt64
 from trajectory_msgs.msg import JointTrajectory
 
 from body_scheme_core.errors import BodySchemeError, InvalidInputError
@@ -127,6 +138,10 @@ class SimNode(Node):
         self.babbling_steps = self.declare_parameter("babbling_steps", 0).value
         self.wait_for_subscribers = self.declare_parameter("wait_for_subscribers", 0).value
         self._ready_at = None  # monotonic time babbling may start, once the subscribers are there
+        self.max_in_flight = self.declare_parameter("max_in_flight", 0).value
+        self.in_flight_timeout = self.declare_parameter("in_flight_timeout", 1.0).value
+        self._progress, self._progress_at = 0, None  # scheme_node's body_scheme/progress, and when it last moved
+        self._progress_start, self._lost = None, 0  # progress at the first babbled command; pictures never decided
         self.markers_of_interest = declare_list_parameter(self, "markers_of_interest", int)
         fault_schedule = declare_list_parameter(self, "fault_schedule", str)
         update_period = self.declare_parameter("update_period", 0.01).value
@@ -142,6 +157,9 @@ class SimNode(Node):
                                     "> 0 s")
         if self.babbling_steps < 0:
             raise InvalidInputError(f"babbling_steps must be >= 0, got {self.babbling_steps}")
+        if self.max_in_flight < 0 or not self.in_flight_timeout > 0:
+            raise InvalidInputError(f"max_in_flight must be >= 0 and in_flight_timeout > 0 s, got "
+                                    f"{self.max_in_flight} and {self.in_flight_timeout}")
         ObservationModel(self.sigma_trans, self.sigma_rot, self.visibility)  # validates the noise settings now
 
         self.schedule = parse_fault_schedule(fault_schedule)
@@ -171,6 +189,8 @@ class SimNode(Node):
         if self.babbling:
             self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
             self.babbling_timer = self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
+            if self.max_in_flight:
+                self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, 10)
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
         self.sub_trajectory = self.create_subscription(JointTrajectory, f"{controller}/joint_trajectory",
                                                        self._on_trajectory, 10)
@@ -250,8 +270,28 @@ class SimNode(Node):
                 self.get_logger().info("waiting for subscribers before babbling", throttle_duration_sec=2.0)
         return self._ready_at is not None and now >= self._ready_at
 
+    def _on_progress(self, msg):
+        self._progress, self._progress_at = int(msg.data), time.monotonic()
+
+    def _learner_behind(self):
+        """``max_in_flight``: whether more of the babbled pictures than that are not yet decided by scheme_node, and
+        it made progress within ``in_flight_timeout`` (else those in flight count as lost and babbling goes on)."""
+        if self.max_in_flight <= 0:
+            return False
+        now = time.monotonic()
+        if self._progress_start is None:
+            self._progress_start, self._progress_at = self._progress, now
+        in_flight = self.n_babbled - self._lost - (self._progress - self._progress_start)
+        if in_flight < self.max_in_flight:
+            return False
+        if now - self._progress_at < self.in_flight_timeout:
+            return True
+        self._lost += in_flight
+        self._progress_at = now
+        return False
+
     def _on_babbling_timer(self):
-        if not self._subscribers_ready():
+        if not self._subscribers_ready() or self._learner_behind():
             return
         self._apply_due_faults()
         try:
@@ -269,7 +309,8 @@ class SimNode(Node):
                 self.babbling = False
                 self.last_babbled_stamp = stamp
             self.babbling_timer.cancel()
-            self.get_logger().info(f"babbled {self.n_babbled} commands: now executing joint_commands")
+            waited = f" ({self._lost} of their pictures never decided by scheme_node)" if self.max_in_flight else ""
+            self.get_logger().info(f"babbled {self.n_babbled} commands{waited}: now executing joint_commands")
 
     def _start_trajectory(self, msg, now):
         """Begin executing a JointTrajectory from where the arm is, as a ``JointTrajectoryController`` does: joints

@@ -74,7 +74,8 @@ def test_camera_parameters_build_the_camera():
     ("perception_mode", "magic", "perception_mode"), ("robot", "no_robot", "unknown robot"),
     ("fault_schedule", ["5:explode"], "unknown kind"), ("markers_of_interest", [1, 99], "markers_of_interest"),
     ("babbling_period", 0.0, "babbling_period"), ("visibility", 1.5, "visibility"),
-    ("fault_schedule", [1, 2], "list of str")])
+    ("fault_schedule", [1, 2], "list of str"), ("max_in_flight", -1, "max_in_flight"),
+    ("in_flight_timeout", 0.0, "in_flight_timeout")])
 def test_bad_parameters_stop_the_node_with_a_reason(name, value, message):
     """Invalid settings raise at start-up naming the parameter or value."""
     with pytest.raises(InvalidInputError, match=message):
