@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
 import signal
 import subprocess
@@ -104,25 +105,31 @@ def _processes_using(path):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_an_interrupted_demo_stops_its_nodes_and_says_so(sig, ros_env, tmp_path):
     """Ctrl-C (SIGINT) or a ``kill`` (SIGTERM) while the demo babbles: it stops every node it started (none babbles on
-    in the domain), prints one line and exits 130. (rclpy's own handlers let a Ctrl-C run the demo to its end, and a
-    SIGTERM leave the nodes running.)"""
+    in the domain), prints one line and exits 128 + the signal. (rclpy's own handlers let a Ctrl-C run the demo to
+    its end, and a SIGTERM leave the nodes running.)"""
     out = tmp_path / "demo"
+    env = {k: v for k, v in ros_env.items() if k != "PYTHONUNBUFFERED"}  # the demo's lines come as they are printed
     demo = subprocess.Popen([sys.executable, "-m", "body_scheme_apps.live_demo", "--perception", "noise", "--out",
-                             str(out)], env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    printed = []
-    for line in demo.stdout:  # until the graph is up and babbling (or the demo ended: then the asserts say why)
-        printed.append(line)
-        if line.startswith("babbling"):
-            break
-    deadline = time.monotonic() + 60  # a node just started may still be exec'ing its interpreter
-    while len(set(_processes_using(out)) - {demo.pid}) < 3 and time.monotonic() < deadline:
-        time.sleep(0.1)
-    nodes = {pid: pathlib.Path(f"/proc/{pid}/cmdline").read_bytes()[:200] for pid in _processes_using(out)
-             if pid != demo.pid}
-    assert len(nodes) == 3, (printed, nodes)  # scheme_node, control_node and sim_node
-    demo.send_signal(sig)
-    stdout, stderr = demo.communicate(timeout=120)
-    assert demo.returncode == 130, (printed, stdout, stderr)
-    assert stderr.splitlines()[-1] == f"live_demo: interrupted ({sig.name})", stderr
-    assert _processes_using(out) == [], (printed, stdout, stderr)
-    assert not (out / "summary.json").exists()
+                             str(out)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        printed = []
+        for line in demo.stdout:  # until the graph is up and babbling (or the demo ended: then the asserts say why)
+            printed.append(line)
+            if line.startswith("babbling"):
+                break
+        deadline = time.monotonic() + 60  # the demo printed its line right after starting sim_node
+        while len(set(_processes_using(out)) - {demo.pid}) < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        nodes = {pid: pathlib.Path(f"/proc/{pid}/cmdline").read_bytes()[:200] for pid in _processes_using(out)
+                 if pid != demo.pid}
+        assert len(nodes) == 3, (printed, nodes)  # scheme_node, control_node and sim_node
+        demo.send_signal(sig)
+        stdout, stderr = demo.communicate(timeout=120)
+        assert demo.returncode == 128 + sig, (printed, stdout, stderr)
+        assert f"live_demo: interrupted ({sig.name})" in stderr.splitlines() and "Traceback" not in stderr, stderr
+        assert _processes_using(out) == [], (printed, stdout, stderr)
+        assert not (out / "summary.json").exists()
+    finally:  # never leave a demo or a node of it behind, pass or fail
+        demo.kill()
+        for pid in _processes_using(out):
+            os.kill(pid, signal.SIGKILL)

@@ -504,7 +504,8 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
     ros_node.create_subscription(UInt64, "body_scheme/progress", lambda msg: progress.append(msg.data), 10)
     assert spin_until(lambda: collector.structure is not None, timeout=60), process.output()
     babbler = Babbler(ros_node, session, period=0.0, depth=n)  # as fast as this process publishes
-    assert spin_until(lambda: babbler.k == n, timeout=60, during=lambda: [babbler() for _ in range(50)])
+    assert spin_until(lambda: babbler.k == n, timeout=60, during=lambda: [babbler() for _ in range(50)],
+                      progress=lambda: babbler.k)
 
     def count(key):
         return int(_values(collector).get(key, 0))
@@ -513,7 +514,9 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
         return (count("received.observations") == n and count("pending_samples") == 0
                 and _values(collector).get("pairing_waiting") == "0" and bool(progress) and progress[-1] == n)
 
-    assert spin_until(settled, timeout=60), (_values(collector), progress[-1:], process.output())
+    # 60 s without progress (make test-loaded on a fresh clone gave up at 4937 of 5000 decided after a fixed 60 s)
+    assert spin_until(settled, timeout=60, progress=lambda: (progress[-1:], count("received.observations"))), \
+        (_values(collector), progress[-1:], process.output())
     assert count("received.command") == n
     assert count("shed.stale_samples") > 0 and 0 < count("step") < n
     # Each observation message became one sample (learnt or shed), was refused by the pairer, or was shed from the
@@ -522,8 +525,7 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
                           ("duplicate", "stale", "settling", "no_command", "out_of_order_observation"))
     learnt_or_shed = (count("step") + count("shed.stale_samples") + count("shed.samples")
                       + count("shed.observations_messages"))
-    assert learnt_or_shed + pairer_refusals == n, str({k: v for k, v in _values(collector).items()
-                                                       if k.split(".")[0] in ("rejected", "shed", "step", "received")})
+    assert learnt_or_shed + pairer_refusals == n, str(_values(collector))
     # How far learning is behind its input: each learnt sample was at most max_sample_age old when it was taken.
     values = _values(collector)
     assert 0.0 <= float(values["learning_lag_max_ms"]) <= 50.0 + 1e-6

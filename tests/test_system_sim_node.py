@@ -13,6 +13,7 @@ from std_msgs.msg import UInt64
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_msgs.srv import InjectFault
 from body_scheme_nodes import conversions
+from body_scheme_nodes.qos import LATCHED
 from body_scheme_sim.camera import Camera
 from body_scheme_sim.robots import load_robot
 
@@ -165,19 +166,19 @@ def test_as_a_controller_it_follows_the_cubic_of_a_partial_trajectory_and_reject
 
 
 def test_babbling_waits_for_scheme_nodes_progress_with_max_in_flight(start_node, ros_node, spin_until):
-    """``max_in_flight`` 2: two pictures undecided and sim_node babbles no more (its timeout is far away) until
-    body_scheme/progress moves: each decided picture lets one more command go."""
+    """``max_in_flight`` 2: from scheme_node's first count on, two pictures undecided and sim_node babbles no more
+    (its timeout is far away) until body_scheme/progress moves: each decided picture lets one more command go."""
     process = start_node("body_scheme_nodes", "sim_node", {
         "robot": "arm_4dof", "perception_mode": "noise", "babbling": True, "babbling_period": 0.05,
         "max_in_flight": 2, "in_flight_timeout": 600.0, "wait_for_subscribers": 1})  # none of them lost
     recorder = Recorder(ros_node, [("joint_commands", JointState, 100), ("observations", MarkerPoses, 100),
                                    ("ground_truth/marker_poses", MarkerPoses, 100)])
-    progress = ros_node.create_publisher(UInt64, "body_scheme/progress", 10)
+    progress = ros_node.create_publisher(UInt64, "body_scheme/progress", LATCHED)
+    progress.publish(UInt64(data=7))  # a scheme_node that has decided 7 observations already (transient local)
     assert spin_until(lambda: recorder.count("joint_commands") >= 2, timeout=60), process.output()
     spin_until(lambda: False, timeout=1.0)  # 20 babbling periods
     assert recorder.count("joint_commands") == 2
-    assert spin_until(lambda: progress.get_subscription_count() >= 1, timeout=60)
-    for decided, expected in ((1, 3), (3, 5)):
+    for decided, expected in ((8, 3), (10, 5)):
         progress.publish(UInt64(data=decided))
         assert spin_until(lambda n=expected: recorder.count("joint_commands") >= n, timeout=60), process.output()
         spin_until(lambda: False, timeout=1.0)
@@ -185,10 +186,15 @@ def test_babbling_waits_for_scheme_nodes_progress_with_max_in_flight(start_node,
 
 
 def test_babbling_goes_on_when_pictures_in_flight_are_never_decided(start_node, ros_node, spin_until):
-    """With no scheme_node at all, each picture in flight counts as lost after ``in_flight_timeout`` and babbling
-    goes on; the end of babbling says how many were lost."""
+    """Without scheme_node's count sim_node does not babble; with a count that never moves each picture in flight
+    counts as lost after ``in_flight_timeout`` and babbling goes on; the end of babbling says how many were lost."""
     process = start_node("body_scheme_nodes", "sim_node", {
         "robot": "arm_4dof", "perception_mode": "noise", "babbling": True, "babbling_period": 0.05,
         "babbling_steps": 5, "max_in_flight": 1, "in_flight_timeout": 0.3})
+    recorder = Recorder(ros_node, [("joint_commands", JointState, 100)])
+    waiting = "waiting for scheme_node's body_scheme/progress before babbling"
+    assert spin_until(lambda: waiting in process.output(), timeout=60), process.output()
+    assert recorder.count("joint_commands") == 0
+    ros_node.create_publisher(UInt64, "body_scheme/progress", LATCHED).publish(UInt64(data=0))
     assert spin_until(lambda: "now executing joint_commands" in process.output(), timeout=60), process.output()
     assert "babbled 5 commands (4 of their pictures never decided by scheme_node)" in process.output()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import pathlib
+import signal
 import sys
 
 from body_scheme_core.errors import BodySchemeError
@@ -15,8 +16,8 @@ __all__ = ["command"]
 def command(main):
     """Wrap a console ``main(argv=None)``: limit the math threads first (:func:`limit_math_threads`); a bad
     ``BODY_SCHEME_MATH_THREADS`` is one line on stderr and exit code 2, not a traceback. An interrupt (Ctrl-C; SIGTERM
-    while nodes run, see :mod:`body_scheme_nodes.graph`) is one line and exit code 130, after the ``finally`` blocks
-    stopped what the command started."""
+    while nodes run, see :mod:`body_scheme_nodes.graph`) is one line and the shell's exit code, 128 + the signal
+    (130, 143), after the ``finally`` blocks stopped what the command started."""
     @functools.wraps(main)
     def run(argv=None):
         name = main.__module__.rsplit(".", 1)[-1]
@@ -29,8 +30,9 @@ def command(main):
             return 2
         try:
             return main(argv)
-        except KeyboardInterrupt as interrupt:
-            print(f"{name}: interrupted{f' ({interrupt})' if str(interrupt) else ''}", file=sys.stderr)
-            return 130
+        except KeyboardInterrupt as interrupt:  # named after its signal by body_scheme_nodes.graph, else Ctrl-C's
+            signum = signal.Signals.__members__.get(str(interrupt), signal.SIGINT)
+            print(f"{name}: interrupted ({signum.name})", file=sys.stderr)
+            return 128 + signum
 
     return run

@@ -15,6 +15,7 @@ the ``launch`` package it starts the installed node executables as processes (``
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import pathlib
@@ -173,26 +174,29 @@ def _number(text):
     return text
 
 
-def _spin(executor, predicate, timeout, during=None):
-    deadline = time.monotonic() + timeout
+def _spin(executor, predicate, timeout, during=None, progress=None):
+    """Spin until ``predicate()``, at most ``timeout`` s (since ``progress()`` last changed, if given)."""
+    deadline, last = time.monotonic() + timeout, progress() if progress else None
     while time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.02)
         if during is not None:
             during()
         if predicate():
             return True
+        if progress is not None and progress() != last:
+            deadline, last = time.monotonic() + timeout, progress()
     return bool(predicate())
 
 
 #: The demo's faults on the shipped 6-DOF arm: its sixth joint (action 5) blocked at 0.8 rad, then repaired.
 DEMO_FAULTS = ("120:block_joint:5:0.8", "220:repair")
-#: sim_node's ``max_in_flight`` in the demo: about twice the pictures in flight on an idle machine (the pipeline's
-#: latency, about 0.3 s, at 13 commands/s).
+#: sim_node's ``max_in_flight`` in the demo: twice those in flight on an idle machine (0.3 s latency at 13 commands/s);
+#: under load they wait well under scheme_node's ``max_sample_age`` (a bootstrapping step takes 20-60 ms).
 DEMO_MAX_IN_FLIGHT = 10
 
 
 def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, faults=None, perception="noise",
-                  n_targets=5, seed=0, sigma_trans=None, sigma_rot=None, env=None, log=print, markers_path=None,
+                  n_targets=5, seed=0, sigma_trans=None, sigma_rot=None, env=None, log=None, markers_path=None,
                   camera=None, package_path=(), babble="sim"):
     """Start the graph, babble ``steps`` commands with the scheduled ``faults``, then test IK; returns a DemoResult.
 
@@ -221,8 +225,11 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
         IK targets: end-effector positions the healthy arm reached while babbling (reachable by construction).
     env : dict, optional
         Environment of the node processes (e.g. ROS_DOMAIN_ID); also applied to this process's rclpy context.
+    log : callable, optional
+        Called with each progress line (default: printed at once, also into a pipe).
     babble : {"sim", "controller"}
-        ``sim``: sim_node babbles by itself every ``period``. ``controller``: the graph a real robot uses,
+        ``sim``: sim_node babbles by itself every ``period`` (at most: it waits while :data:`DEMO_MAX_IN_FLIGHT`
+        pictures are undecided). ``controller``: the graph a real robot uses,
         babble_node -> sim_node as a JointTrajectoryController (moves at 12 rad/s, 100 rad/s^2, each settled before
         the next) -> camera; control_node executes the IK answers through the same interface (``period`` unused).
     markers_path, camera, package_path
@@ -235,6 +242,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
         raise ValueError(f"babble must be 'sim' or 'controller', got {babble!r}")
     controller = babble == "controller"
     rendered = perception == "rendered"
+    log = functools.partial(print, flush=True) if log is None else log
     sigma_trans = (RENDERED_SIGMA_TRANS if rendered else PAPER_SIGMA_TRANS) if sigma_trans is None else sigma_trans
     sigma_rot = (RENDERED_SIGMA_ROT if rendered else PAPER_SIGMA_ROT) if sigma_rot is None else sigma_rot
     out_dir = pathlib.Path(out_dir)
@@ -280,8 +288,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             if controller:  # babble_node drives sim_node as a real arm's controller; faults are expected here
                 start_node("body_scheme_nodes", "babble_node", {**arm, "steps": steps, "seed": seed, "dwell": 0.05,
                                                                 "error_hold": 600.0})
-            # At most 10 pictures in flight: a busy machine slows the babbling down instead of shedding the samples
-            # the demo's story is told in (bootstrapped before the block at command 120).
+            # A busy machine slows the babbling down instead of shedding the samples the story is told in.
             start_node("body_scheme_nodes", "sim_node", {"wait_for_subscribers": 0 if controller else 2,
                 "max_in_flight": 0 if controller else DEMO_MAX_IN_FLIGHT,
                 **({} if camera is None else camera_parameters(camera)), "camera_period": 0.05,
@@ -302,9 +309,10 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             how = "through the controller interface" if controller else f"{period:.2f} s apart"
             log(f"babbling {steps} commands ({how}) with faults {list(faults)} ...")
             babble_start = time.monotonic()
-            if not _spin(executor, lambda: len(monitor.truth) >= steps,
-                         timeout=steps * (2.0 if controller else period * 4) + 60, during=alive):
-                raise RuntimeError(f"only {len(monitor.truth)} of {steps} commands executed")
+            # The sim's pace is scheme_node's when it waits for it (max_in_flight): give up after a minute without one.
+            if not _spin(executor, lambda: len(monitor.truth) >= steps, timeout=60, during=alive,
+                         progress=lambda: len(monitor.truth)):
+                raise RuntimeError(f"only {len(monitor.truth)} of {steps} commands executed (none for 60 s)")
             babble_time = time.monotonic() - babble_start
             _spin(executor, lambda: False, timeout=1.0)  # let scheme_node drain its queue
 
@@ -339,11 +347,11 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                 log(f"IK target {np.round(target, 3).tolist()}: {record['reason']} (predicted std "
                     f"{record['position_std'] * 1e3:.1f} mm); true end effector {reached_mm} from the target")
             _spin(executor, lambda: False, timeout=1.5)  # a last diagnostics message
-        finally:
+        finally:  # the nodes first: nothing may keep one running in the domain
             result.wall_time_s = time.monotonic() - start
-            recorder.close()
             for process in reversed(processes):
                 process.stop()
+            recorder.close()
 
     if monitor.structure is not None:
         result.learned_edges = [[e.parent_id, e.child_id] for e in monitor.structure.edges]

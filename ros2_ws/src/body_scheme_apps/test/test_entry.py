@@ -18,9 +18,11 @@ def test_a_bad_thread_count_is_one_line_and_exit_code_2(module, monkeypatch, cap
     assert err == f"{module}: BODY_SCHEME_MATH_THREADS must be a positive integer, got 'many'\n"
 
 
-def test_an_interrupt_is_one_line_and_exit_code_130(capsys):
-    """Ctrl-C (or SIGTERM while nodes run: body_scheme_nodes.graph makes it an interrupt) is one line naming the
-    signal, after the command's finally blocks ran; no traceback."""
+@pytest.mark.parametrize("interrupt, code, line", [(KeyboardInterrupt(), 130, "SIGINT"),
+                                                    (KeyboardInterrupt("SIGTERM"), 143, "SIGTERM")])
+def test_an_interrupt_is_one_line_and_the_shells_exit_code(interrupt, code, line, capsys):
+    """Ctrl-C (or SIGTERM while nodes run: body_scheme_nodes.graph makes it an interrupt named after it) is one line
+    naming the signal and exit code 128 + its number, after the command's finally blocks ran; no traceback."""
     from body_scheme_apps.entry import command
 
     stopped = []
@@ -28,10 +30,10 @@ def test_an_interrupt_is_one_line_and_exit_code_130(capsys):
     @command
     def main(argv=None):
         try:
-            raise KeyboardInterrupt("SIGTERM")
+            raise interrupt
         finally:
             stopped.append(True)
 
     main.__wrapped__.__module__ = "body_scheme_apps.live_demo"
-    assert main([]) == 130 and stopped == [True]
-    assert capsys.readouterr().err == "live_demo: interrupted (SIGTERM)\n"
+    assert main([]) == code and stopped == [True]
+    assert capsys.readouterr().err == f"live_demo: interrupted ({line})\n"

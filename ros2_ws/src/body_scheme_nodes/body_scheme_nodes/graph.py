@@ -108,9 +108,9 @@ def monitor_node(name, domain):
     single-threaded executor; both are shut down on exit. The demo, the benchmarks and the fuzz watch the graph
     through one.
 
-    While it is open, SIGINT and SIGTERM raise ``KeyboardInterrupt`` (in the main thread; rclpy's own handler would
-    shut the context down under a wait, and the program would go on, or SIGTERM would end it at once with its nodes
-    still running)."""
+    While it is open, the first SIGINT or SIGTERM raises ``KeyboardInterrupt`` (in the main thread; rclpy's own
+    handler would shut the context down under a wait, and the program would go on, or SIGTERM would end it at once
+    with its nodes still running)."""
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(name, context=context)
@@ -125,21 +125,26 @@ def monitor_node(name, domain):
         rclpy.try_shutdown(context=context)
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt(signal.Signals(signum).name)
-
-
 @contextlib.contextmanager
 def _interrupted_by_signals():
-    """SIGINT and SIGTERM raise ``KeyboardInterrupt`` inside the block (the previous handlers after it); nothing
-    outside the main thread, where Python cannot set handlers."""
+    """The first SIGINT or SIGTERM inside the block raises ``KeyboardInterrupt`` (named after the signal); later
+    ones are ignored, so that the ``finally`` blocks it unwinds stop every node (a second Ctrl-C would cut them
+    short). Also when the signal was ignored (a job of a non-interactive shell). The previous Python handlers after
+    the block (the default where none was set from Python); nothing outside the main thread, where Python cannot set
+    handlers."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    received = []
+
+    def interrupt(signum, frame):
+        if not received:
+            received.append(signum)
+            raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
         for sig, handler in previous.items():
-            if handler is not None:  # None: set outside Python (not restorable from here)
-                signal.signal(sig, handler)
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)

@@ -20,7 +20,7 @@ body_scheme/snapshot : body_scheme_msgs/ModelSnapshot  (transient local)
     The body scheme for control_node: with the structure, and within a second of a joint fit that changed it.
 body_scheme/events : body_scheme_msgs/SchemeEvent  (transient local, the latest 100)
 /diagnostics : diagnostic_msgs/DiagnosticArray
-body_scheme/progress : std_msgs/UInt64
+body_scheme/progress : std_msgs/UInt64  (transient local, the latest)
     Number of observation messages decided so far: learnt, refused or shed (bag_replay's backpressure signal).
 body_scheme/markers : visualization_msgs/MarkerArray, body_scheme/poses : geometry_msgs/PoseArray, /tf
     The latest prediction for RViz, Foxglove and tf2 (at most every ``view_period``; see body_scheme_nodes.view).
@@ -162,7 +162,7 @@ class SchemeNode(Node):
         self.explorer = SchemeExplorer(self, self.settings, self.learner.config.prior_sigma_trans / math.sqrt(3.0),
                                        self._publish_snapshot)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", 10)
+        self.pub_progress = self.create_publisher(UInt64, "body_scheme/progress", LATCHED)  # a late joiner: the count
         self.pub_markers = self.create_publisher(MarkerArray, "body_scheme/markers", 10)
         self.pub_poses = self.create_publisher(PoseArray, "body_scheme/poses", 10)
         self.pub_tf = self.create_publisher(TFMessage, "/tf", 100)

@@ -30,10 +30,11 @@ ground_truth/marker_poses : body_scheme_msgs/MarkerPoses  (reliable, depth 100)
 /joint_states : sensor_msgs/JointState  (depth 10)
     The joints' positions (as executed: clipped, blocked joints held) every ``joint_state_period``.
 
-Subscriptions (``max_in_flight`` > 0)
---------------------------------------
-body_scheme/progress : std_msgs/UInt64
-    scheme_node's count of observation messages decided: babbling waits for it (as bag_replay's rate 0 does).
+Subscriptions (babbling with ``max_in_flight`` > 0)
+---------------------------------------------------
+body_scheme/progress : std_msgs/UInt64  (reliable, transient local, depth 1)
+    scheme_node's count of observation messages decided: babbling waits for its first value, then for it to keep up
+    (as bag_replay's rate 0 does).
 
 Services
 --------
@@ -58,9 +59,9 @@ babbling_steps : int 0               stop babbling after this many commands and 
 wait_for_subscribers : int 0         babble only once joint_commands has this many subscriptions and the image (or
                                      observations) and ground-truth topics one each, then 1 s more: messages sent
                                      before discovery matched them are lost (volatile QoS)
-max_in_flight : int 0                babbling: the next command waits while more pictures than this are not yet
-                                     decided by scheme_node (body_scheme/progress); a simulator's way to have every
-                                     command learnt on a busy machine (a real arm waits for no one). 0: never waits
+max_in_flight : int 0                babbling: the next command waits while this many of its pictures are not
+                                     yet decided by scheme_node (body_scheme/progress); a simulator's way to have
+                                     every command learnt on a busy machine (a real arm waits for no one). 0: never
 in_flight_timeout : double 1.0 s     max_in_flight: after this long without progress the pictures in flight count as
                                      lost (a tracker drops those it has no time for) and babbling goes on
 markers_of_interest : int[] []       markers that must be visible in babbled configurations
@@ -96,6 +97,7 @@ from body_scheme_sim.camera import CAMERA_KEYS, Camera, camera_from_values, came
 from body_scheme_sim.world import SimWorld
 
 from . import conversions
+from .qos import LATCHED
 from .ros_parameters import declare_list_parameter, refuse_parameter_changes
 from .spin import run_node
 
@@ -140,7 +142,7 @@ class SimNode(Node):
         self._ready_at = None  # monotonic time babbling may start, once the subscribers are there
         self.max_in_flight = self.declare_parameter("max_in_flight", 0).value
         self.in_flight_timeout = self.declare_parameter("in_flight_timeout", 1.0).value
-        self._progress, self._progress_at = 0, None  # scheme_node's body_scheme/progress, and when it last moved
+        self._progress, self._progress_at = None, None  # scheme_node's body_scheme/progress, and when it last moved
         self._progress_start, self._lost = None, 0  # progress at the first babbled command; pictures never decided
         self.markers_of_interest = declare_list_parameter(self, "markers_of_interest", int)
         fault_schedule = declare_list_parameter(self, "fault_schedule", str)
@@ -157,9 +159,10 @@ class SimNode(Node):
                                     "> 0 s")
         if self.babbling_steps < 0:
             raise InvalidInputError(f"babbling_steps must be >= 0, got {self.babbling_steps}")
-        if self.max_in_flight < 0 or not self.in_flight_timeout > 0:
-            raise InvalidInputError(f"max_in_flight must be >= 0 and in_flight_timeout > 0 s, got "
-                                    f"{self.max_in_flight} and {self.in_flight_timeout}")
+        if self.max_in_flight < 0:
+            raise InvalidInputError(f"max_in_flight must be >= 0, got {self.max_in_flight}")
+        if not self.in_flight_timeout > 0:
+            raise InvalidInputError(f"in_flight_timeout must be > 0 s, got {self.in_flight_timeout}")
         ObservationModel(self.sigma_trans, self.sigma_rot, self.visibility)  # validates the noise settings now
 
         self.schedule = parse_fault_schedule(fault_schedule)
@@ -189,8 +192,9 @@ class SimNode(Node):
         if self.babbling:
             self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
             self.babbling_timer = self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
-            if self.max_in_flight:
-                self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, 10)
+            if self.max_in_flight:  # in the babbling timer's group: the two never run at once
+                self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, LATCHED,
+                                         callback_group=work)
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
         self.sub_trajectory = self.create_subscription(JointTrajectory, f"{controller}/joint_trajectory",
                                                        self._on_trajectory, 10)
@@ -257,7 +261,12 @@ class SimNode(Node):
                                                                   self.world.joint_positions()))
 
     def _subscribers_ready(self):
-        """Whether babbling may start (see ``wait_for_subscribers``); logs while waiting."""
+        """Whether babbling may start (see ``wait_for_subscribers``; with ``max_in_flight``, once scheme_node's
+        progress is known); logs while waiting."""
+        if self.max_in_flight > 0 and self._progress is None:
+            self.get_logger().info("waiting for scheme_node's body_scheme/progress before babbling",
+                                   throttle_duration_sec=2.0)
+            return False
         if self.wait_for_subscribers <= 0:
             return True
         now = time.monotonic()
@@ -274,14 +283,17 @@ class SimNode(Node):
         self._progress, self._progress_at = int(msg.data), time.monotonic()
 
     def _learner_behind(self):
-        """``max_in_flight``: whether more of the babbled pictures than that are not yet decided by scheme_node, and
-        it made progress within ``in_flight_timeout`` (else those in flight count as lost and babbling goes on)."""
+        """``max_in_flight``: whether that many babbled pictures are not yet decided by scheme_node, and it made
+        progress within ``in_flight_timeout`` (else those in flight count as lost and babbling goes on; a picture
+        decided after all is taken back from the lost)."""
         if self.max_in_flight <= 0:
             return False
         now = time.monotonic()
         if self._progress_start is None:
             self._progress_start, self._progress_at = self._progress, now
-        in_flight = self.n_babbled - self._lost - (self._progress - self._progress_start)
+        decided = self._progress - self._progress_start
+        self._lost = min(self._lost, max(0, self.n_babbled - decided))
+        in_flight = self.n_babbled - self._lost - decided
         if in_flight < self.max_in_flight:
             return False
         if now - self._progress_at < self.in_flight_timeout:
