@@ -54,7 +54,7 @@ _STATUS = pytest.StashKey()
 @pytest.fixture
 def domain_id():
     """A ROS domain id of this test alone (localhost-only discovery): random within this pytest-xdist worker's share of
-    1-100, so that tests running at once (``pytest -m system -n 3``) never meet."""
+    1-100, so that tests running at once (``pytest -m system -n 2``) never meet."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     index = int(worker[2:]) if worker[2:].isdigit() else 0
