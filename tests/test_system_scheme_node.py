@@ -510,14 +510,19 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
     def count(key):
         return int(_values(collector).get(key, 0))
 
-    def settled():  # in one diagnostics message: all taken in, none waiting to be paired or learnt
-        return (count("received.observations") == n and count("pending_samples") == 0
-                and _values(collector).get("pairing_waiting") == "0" and bool(progress) and progress[-1] == n)
+    def arrived(kind):  # received by scheme_node, or lost inside DDS before it (counted from sequence numbers)
+        return count(f"received.{kind}") + count(f"lost.{kind}_messages")
+
+    def settled():  # in one diagnostics message: every message arrived, all taken in, none waiting to be paired or
+        # learnt (make test-loaded: the commands' intake can lag the observations', and DDS may overwrite some)
+        values = _values(collector)
+        return (arrived("observations") == n and arrived("command") == n and values.get("inbox") == "0"
+                and count("pending_samples") == 0 and values.get("pairing_waiting") == "0"
+                and bool(progress) and progress[-1] == count("received.observations"))
 
     # 60 s without progress (make test-loaded on a fresh clone gave up at 4937 of 5000 decided after a fixed 60 s)
     assert spin_until(settled, timeout=60, progress=lambda: (progress[-1:], count("received.observations"))), \
         (_values(collector), progress[-1:], process.output())
-    assert count("received.command") == n
     assert count("shed.stale_samples") > 0 and 0 < count("step") < n
     # Each observation message became one sample (learnt or shed), was refused by the pairer, or was shed from the
     # inbox before pairing (a loaded machine lets the inbox overflow: CI once had 184 such).
@@ -525,7 +530,7 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
                           ("duplicate", "stale", "settling", "no_command", "out_of_order_observation"))
     learnt_or_shed = (count("step") + count("shed.stale_samples") + count("shed.samples")
                       + count("shed.observations_messages"))
-    assert learnt_or_shed + pairer_refusals == n, str(_values(collector))
+    assert learnt_or_shed + pairer_refusals == count("received.observations"), str(_values(collector))
     # How far learning is behind its input: each learnt sample was at most max_sample_age old when it was taken.
     values = _values(collector)
     assert 0.0 <= float(values["learning_lag_max_ms"]) <= 50.0 + 1e-6
@@ -533,8 +538,9 @@ def test_under_overload_every_observation_is_accounted_for_and_learning_keeps_to
     # Refused unread for its size, an observation message is decided too (rate-0 replays waited forever after one).
     huge = MarkerPoses()
     huge.header.frame_id = "x" * (2 << 20)
+    decided = count("received.observations")
     babbler.observations.publish(huge)
-    assert spin_until(lambda: progress[-1] == n + 1, timeout=60), (progress[-1:], _values(collector))
+    assert spin_until(lambda: progress[-1] == decided + 1, timeout=60), (progress[-1:], _values(collector))
     assert process.process.poll() is None
 
 

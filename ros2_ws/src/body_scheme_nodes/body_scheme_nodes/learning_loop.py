@@ -74,6 +74,13 @@ class LearningLoop:
         with self._lock:
             return Counter(self.refused_at_intake)
 
+    def intake_snapshot(self):
+        """``(received, shed, inbox)``: copies of the counts and the number of messages in the inbox, read at one
+        instant (the executor's thread puts meanwhile). Under the lock the learning thread works under, every
+        message received is then in the inbox, shed, or taken in (decided, waiting in the pairer, or pending)."""
+        with self._lock:
+            return Counter(self.received), Counter(self.shed), len(self._inbox)
+
     # -- the learning thread ------------------------------------------------------------------------------------
     def start(self, lock, on_failure, after_step=lambda: None):
         """Start the learning thread: take the inbox in and :meth:`work` on it under ``lock``, then ``after_step()``
@@ -99,9 +106,8 @@ class LearningLoop:
                 if not self.pending:
                     self._wake.wait(self.settings.update_period)
                     self._wake.clear()
-                inbox = self.take_inbox()
-                with lock:
-                    self.work(inbox)
+                with lock:  # taken under it: a diagnostics message (under it too) sees each message once
+                    self.work(self.take_inbox())
                 after_step()
         except Exception as error:  # any error: handed over, never lost with the thread
             on_failure(error)

@@ -380,15 +380,17 @@ class SchemeNode(Node):
                     + loop.intake_counts() + explored_rejected)
         values = scheme_diagnostics.learner_values(learner, edges, self.latency, loop.lag)
         values["rejected_total"] = sum(rejected.values())
+        received, shed, inbox = loop.intake_snapshot()
         # Events are cumulative, so a mismatch that was repaired between two diagnostics messages still shows.
         values.update(scheme_diagnostics.counter_values({
             "rejected": rejected, "events": {k: n for k, n in self.event_counts.items() if k != "input_rejected"},
-            "restamped": loop.restamped, "shed": loop.shed, "received": loop.received,
+            "restamped": loop.restamped, "shed": shed, "received": received,
             "corrected": learner.corrected}))
         for kind, intake in self._intake.items():  # inside DDS, before the node saw them (body_scheme_nodes.intake)
             values[f"lost.{kind}_messages"] = intake.lost
             values[f"lost.{kind}_full_queue_takes"] = intake.full_queue_takes
         values.update(scheme_diagnostics.counter_values({"services": self._service_worker.counters()}))
+        values["inbox"] = inbox  # received, not yet taken in by the learning thread
         values["pending_samples"] = len(loop.pending)
         values["pairing_waiting"] = loop.pairer.waiting  # observations waiting for their command
         values.update(explored)

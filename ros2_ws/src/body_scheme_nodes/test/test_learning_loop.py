@@ -72,6 +72,20 @@ def test_a_sample_older_than_max_sample_age_when_its_turn_comes_is_shed_and_the_
     assert list(loop.loop.lag) == [pytest.approx(0.55), pytest.approx(0.0)]
 
 
+def test_the_intake_snapshot_accounts_for_every_message_received():
+    """Received = in the inbox + shed from it + taken in (decided, waiting in the pairer or pending), at one instant."""
+    loop = Loop(max_inbox=3)
+    loop.put(*_pairs(9.0, 3))
+    received, shed, inbox = loop.loop.intake_snapshot()
+    assert received == {"command": 3, "observations": 3} and inbox == 3
+    assert sum(shed.values()) + inbox == 6
+    loop.work()
+    received, shed, inbox = loop.loop.intake_snapshot()
+    # decided (progress: learnt, refused, or shed from the inbox) + waiting for a command + waiting to be learnt
+    assert inbox == 0 and shed["observations_messages"] == 1
+    assert received["observations"] == loop.loop.progress() + loop.loop.pairer.waiting + len(loop.loop.pending)
+
+
 def test_beyond_max_inbox_the_oldest_messages_are_shed_and_counted_by_kind():
     loop = Loop(max_inbox=3)
     loop.put(*_pairs(9.0, 3))
