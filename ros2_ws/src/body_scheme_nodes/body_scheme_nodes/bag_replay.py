@@ -10,7 +10,8 @@ Timing (``rate``)
 as fast). ``rate = 0``: as fast as the consumer keeps up: at most ``max_in_flight`` ``/observations`` messages are
 ahead of what scheme_node reports on ``body_scheme/progress`` (the number of observation messages it has decided:
 learnt, refused or shed; counted from the start of the replay), so the replay waits for learning. In this mode the
-replay starts only once a subscriber of ``observations`` and a publisher of ``body_scheme/progress`` exist; without
+replay starts only once ``observations`` has a subscriber and scheme_node's count has arrived (it is latched: the
+count it had before the replay is not the replay's); without
 ``/observations`` among the topics there is no backpressure. ``rate > 0`` waits for no one: when scheme_node learns
 slower than the replay, its samples wait and, past its ``max_sample_age``, are shed (counted on /diagnostics); the
 node warns when scheme_node's progress falls more than ``LAG_WARNING`` observation messages behind.
@@ -57,6 +58,7 @@ from std_msgs.msg import Bool, UInt64
 from body_scheme_core.errors import InvalidInputError
 
 from .bag_io import MESSAGE_CLASSES, BagError, bag_topics, read_messages
+from .in_flight import InFlight
 from .qos import LATCHED
 from .ros_parameters import refuse_parameter_changes
 from .sources import SourceMap, translate
@@ -102,7 +104,8 @@ class BagReplay(Node):
 
     Subscriptions
     -------------
-    body_scheme/progress : std_msgs/UInt64   scheme_node's count of observation messages decided (rate 0)
+    body_scheme/progress : std_msgs/UInt64   scheme_node's count of observation messages decided (rate 0; transient
+                                             local)
     """
 
     def __init__(self, **node_options):
@@ -135,18 +138,17 @@ class BagReplay(Node):
             topic: self.create_publisher(MESSAGE_CLASSES[available[topic][0]], topic.lstrip("/"), RELIABLE)
             for topic in self.topics if topic in available}
         self.pub_done = self.create_publisher(Bool, "bag_replay/done", LATCHED)
-        self._progress_subscription = self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, 10)
+        self._progress_subscription = self.create_subscription(UInt64, "body_scheme/progress", self._on_progress,
+                                                               LATCHED)
         refuse_parameter_changes(self)
 
         self.published = dict.fromkeys(self.publishers_by_topic, 0)
-        self.progress = 0                   # latest body_scheme/progress value
-        self._progress_start = None         # progress value when the replay started
+        self.in_flight = InFlight()         # observation messages published and not yet decided by scheme_node
         self._next = None                   # next BagMessage, read ahead
         self._start_at = self._now() + int(self.start_delay * 1e9)
         self._anchor = None                 # (wall ns, log ns) of the first message
         self._last_stamp = None             # rate 0: latest restamped header stamp, ns
         self._waits = 0                     # ticks that ended because of backpressure
-        self._progress_changed = time.monotonic()
         self._finished = False
         self._started_wall = None
         self.timer = self.create_timer(TICK, self._on_timer)
@@ -156,9 +158,7 @@ class BagReplay(Node):
 
     # -- callbacks ----------------------------------------------------------------------------------------------
     def _on_progress(self, msg):
-        if int(msg.data) != self.progress:
-            self._progress_changed = time.monotonic()
-        self.progress = int(msg.data)
+        self.in_flight.on_progress(msg.data, time.monotonic())
 
     def _on_timer(self):
         if self._finished:
@@ -179,7 +179,7 @@ class BagReplay(Node):
             return False
         if self.rate == 0 and BACKPRESSURE_TOPIC in self.publishers_by_topic:
             connected = (self.publishers_by_topic[BACKPRESSURE_TOPIC].get_subscription_count() > 0
-                         and self._progress_subscription.get_publisher_count() > 0)
+                         and self.in_flight.progress is not None)  # scheme_node's count, at once (latched)
             if not connected:
                 self.get_logger().info("rate 0: waiting for a subscriber of observations and a publisher of "
                                        "body_scheme/progress (scheme_node)", throttle_duration_sec=5.0)
@@ -194,7 +194,7 @@ class BagReplay(Node):
                 self._finish(success=True)
                 return
             self._anchor = (now, self._next.log_time)
-            self._progress_start = self.progress
+            self.in_flight.start(time.monotonic())
             self._started_wall = time.monotonic()
         while self._next is not None:
             if self.rate > 0:
@@ -203,11 +203,11 @@ class BagReplay(Node):
                     self._warn_if_falling_behind()
                     return
             else:
-                if self._in_flight() >= self.max_in_flight:
+                if self.in_flight.count() >= self.max_in_flight:
                     self._waits += 1
-                    if time.monotonic() - self._progress_changed > STALL_WARNING:
+                    if self.in_flight.stalled_for(time.monotonic()) > STALL_WARNING:
                         self.get_logger().warn(
-                            f"rate 0: {self._in_flight()} observation messages in flight and no progress for "
+                            f"rate 0: {self.in_flight.count()} observation messages in flight and no progress for "
                             f"{STALL_WARNING:g} s: is scheme_node running?", throttle_duration_sec=STALL_WARNING)
                     return
                 publish_ns = self._now()
@@ -217,15 +217,12 @@ class BagReplay(Node):
 
     def _warn_if_falling_behind(self):
         """rate > 0 does not wait: warn when scheme_node lags so far behind that its samples wait or are shed."""
-        if self._progress_subscription.get_publisher_count() > 0 and self._in_flight() > LAG_WARNING:
+        behind = self.in_flight.count()
+        if self._progress_subscription.get_publisher_count() > 0 and behind > LAG_WARNING:
             self.get_logger().warn(
-                f"scheme_node is {self._in_flight()} observation messages behind at rate {self.rate:g}: its samples "
+                f"scheme_node is {behind} observation messages behind at rate {self.rate:g}: its samples "
                 f"wait, and past its max_sample_age they are shed; lower the rate or use rate 0",
                 throttle_duration_sec=5.0)
-
-    def _in_flight(self):
-        taken_in = self.progress - (self._progress_start or 0)
-        return self.published.get(BACKPRESSURE_TOPIC, 0) - taken_in
 
     def _publish(self, item, publish_ns):
         msg = item.msg
@@ -240,6 +237,7 @@ class BagReplay(Node):
             msg.header.stamp = Time(nanoseconds=stamp).to_msg()
         self.publishers_by_topic[item.topic].publish(msg)
         self.published[item.topic] += 1
+        self.in_flight.sent += item.topic == BACKPRESSURE_TOPIC
 
     def _finish(self, success):
         self._finished = True
@@ -249,7 +247,7 @@ class BagReplay(Node):
         count = sum(self.published.values())
         rate = f", {count / seconds:.0f} messages/s" if seconds > 0 else ""
         by_topic = ", ".join(f"{topic} {n}" for topic, n in self.published.items())
-        taken_in = self.progress - (self._progress_start or 0)
+        taken_in = self.in_flight.decided
         backpressure = f"; waited for scheme_node in {self._waits} ticks" if self.rate == 0 else ""
         if taken_in:
             backpressure += f"; scheme_node has taken in {taken_in} observation messages so far"

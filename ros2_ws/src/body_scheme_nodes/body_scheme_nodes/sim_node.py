@@ -97,6 +97,7 @@ from body_scheme_sim.camera import CAMERA_KEYS, Camera, camera_from_values, came
 from body_scheme_sim.world import SimWorld
 
 from . import conversions
+from .in_flight import InFlight
 from .qos import LATCHED
 from .ros_parameters import declare_list_parameter, refuse_parameter_changes
 from .spin import run_node
@@ -142,8 +143,7 @@ class SimNode(Node):
         self._ready_at = None  # monotonic time babbling may start, once the subscribers are there
         self.max_in_flight = self.declare_parameter("max_in_flight", 0).value
         self.in_flight_timeout = self.declare_parameter("in_flight_timeout", 1.0).value
-        self._progress, self._progress_at = None, None  # scheme_node's body_scheme/progress, and when it last moved
-        self._progress_start, self._lost = None, 0  # progress at the first babbled command; pictures never decided
+        self.in_flight = InFlight()  # max_in_flight: the babbled pictures scheme_node has not decided yet
         self.markers_of_interest = declare_list_parameter(self, "markers_of_interest", int)
         fault_schedule = declare_list_parameter(self, "fault_schedule", str)
         update_period = self.declare_parameter("update_period", 0.01).value
@@ -192,9 +192,9 @@ class SimNode(Node):
         if self.babbling:
             self.pub_commands = self.create_publisher(JointState, "joint_commands", 100)
             self.babbling_timer = self.create_timer(babbling_period, self._on_babbling_timer, callback_group=work)
-            if self.max_in_flight:  # the default group: the count comes in while a picture is rendered (11-12
-                # commands/s against 10-11 in the babbling timer's); a count read half-updated is taken back next tick
-                self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, LATCHED)
+            if self.max_in_flight:  # in the babbling timer's group: one thread at a time updates the count
+                self.create_subscription(UInt64, "body_scheme/progress", self._on_progress, LATCHED,
+                                         callback_group=work)
         self.create_subscription(JointState, "joint_commands", self._on_command, 10)
         self.sub_trajectory = self.create_subscription(JointTrajectory, f"{controller}/joint_trajectory",
                                                        self._on_trajectory, 10)
@@ -263,7 +263,7 @@ class SimNode(Node):
     def _subscribers_ready(self):
         """Whether babbling may start (see ``wait_for_subscribers``; with ``max_in_flight``, once scheme_node's
         progress is known); logs while waiting."""
-        if self.max_in_flight > 0 and self._progress is None:
+        if self.max_in_flight > 0 and self.in_flight.progress is None:
             self.get_logger().info("waiting for scheme_node's body_scheme/progress before babbling",
                                    throttle_duration_sec=2.0)
             return False
@@ -280,26 +280,21 @@ class SimNode(Node):
         return self._ready_at is not None and now >= self._ready_at
 
     def _on_progress(self, msg):
-        self._progress, self._progress_at = int(msg.data), time.monotonic()
+        self.in_flight.on_progress(msg.data, time.monotonic())
 
     def _learner_behind(self):
         """``max_in_flight``: whether that many babbled pictures are not yet decided by scheme_node, and it made
-        progress within ``in_flight_timeout`` (else those in flight count as lost and babbling goes on; a picture
-        decided after all is taken back from the lost)."""
+        progress within ``in_flight_timeout`` (else those in flight count as lost and babbling goes on)."""
         if self.max_in_flight <= 0:
             return False
         now = time.monotonic()
-        if self._progress_start is None:
-            self._progress_start, self._progress_at = self._progress, now
-        decided = self._progress - self._progress_start
-        self._lost = min(self._lost, max(0, self.n_babbled - decided))
-        in_flight = self.n_babbled - self._lost - decided
-        if in_flight < self.max_in_flight:
+        if not self.in_flight.started:
+            self.in_flight.start(now)
+        if self.in_flight.count() < self.max_in_flight:
             return False
-        if now - self._progress_at < self.in_flight_timeout:
+        if self.in_flight.stalled_for(now) < self.in_flight_timeout:
             return True
-        self._lost += in_flight
-        self._progress_at = now
+        self.in_flight.count_as_lost(now)
         return False
 
     def _on_babbling_timer(self):
@@ -316,12 +311,14 @@ class SimNode(Node):
         self.pub_commands.publish(conversions.joint_state_msg(stamp, self.world.action_joint_names, actions))
         self._step(actions, stamp)
         self.n_babbled += 1
+        self.in_flight.sent += 1
         if self.babbling_steps and self.n_babbled >= self.babbling_steps:
             with self._lock:
                 self.babbling = False
                 self.last_babbled_stamp = stamp
             self.babbling_timer.cancel()
-            waited = f" ({self._lost} of their pictures never decided by scheme_node)" if self.max_in_flight else ""
+            lost = self.in_flight.lost
+            waited = f" ({lost} of their pictures never decided by scheme_node)" if self.max_in_flight else ""
             self.get_logger().info(f"babbled {self.n_babbled} commands{waited}: now executing joint_commands")
 
     def _start_trajectory(self, msg, now):

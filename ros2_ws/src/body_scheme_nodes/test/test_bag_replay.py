@@ -36,7 +36,7 @@ class Listener:
         self.node.create_subscription(JointState, "joint_commands", lambda m: self.commands.append(_ns(m)), 100)
         self.node.create_subscription(MarkerPoses, "observations", lambda m: self.observations.append(_ns(m)), 100)
         self.node.create_subscription(Bool, "bag_replay/done", self._done, LATCHED)
-        self.progress = self.node.create_publisher(UInt64, "body_scheme/progress", 10)
+        self.progress = self.node.create_publisher(UInt64, "body_scheme/progress", LATCHED)  # as scheme_node
 
     def _done(self, msg):
         self.done = msg.data
@@ -101,21 +101,25 @@ def test_restamp_false_keeps_the_original_stamps(context, session_and_bag):
 
 
 def test_rate_zero_keeps_at_most_max_in_flight_observations_ahead(context, session_and_bag):
-    """rate 0 publishes only max_in_flight observations beyond the consumer's progress, then all when it keeps up."""
+    """rate 0 waits for the consumer's count, publishes only max_in_flight observations beyond it (counted from the
+    start: a count of 7 from before the replay is not the replay's), then all when it keeps up."""
     _, bag = session_and_bag
     listener = Listener(context)
     replay = _replay(context, bag, rate=0.0, max_in_flight=3)
     executor = _run(context, [listener.node, replay])
+    _spin(executor, lambda: False, 0.5)  # no count yet: no replay
+    assert len(listener.observations) == 0 and listener.done is None
+    listener.progress.publish(UInt64(data=7))
     assert _spin(executor, lambda: len(listener.observations) == 3, 10)
     _spin(executor, lambda: False, 0.3)  # no progress: the gate stays closed
     assert len(listener.observations) == 3 and len(listener.commands) == 3
-    listener.progress.publish(UInt64(data=2))
+    listener.progress.publish(UInt64(data=9))
     assert _spin(executor, lambda: len(listener.observations) == 5, 10)
     _spin(executor, lambda: False, 0.2)
     assert len(listener.observations) == 5
 
     def keep_up():
-        listener.progress.publish(UInt64(data=len(listener.observations)))
+        listener.progress.publish(UInt64(data=7 + len(listener.observations)))
 
     assert _spin(executor, lambda: listener.done is not None and len(listener.observations) == N_STEPS, 20,
                  during=keep_up)
