@@ -20,6 +20,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from workspace import REPO
 
+from body_scheme_nodes import graph
 from body_scheme_nodes.graph import NodeProcess
 
 
@@ -107,24 +108,10 @@ def ros_node(domain_id, monkeypatch):
 
 @pytest.fixture
 def spin_until(ros_node):
-    """``spin_until(predicate, timeout, during=None, progress=None)``: spin the test node until ``predicate()`` holds.
-
-    ``during()`` is called between spins (e.g. to publish the next sample). With ``progress``, ``timeout`` is how
-    long ``progress()`` may keep one value (work that advances is waited for however slow the machine is). Returns
-    the predicate's last value.
-    """
+    """``spin_until(predicate, timeout, during=None, step=0.01, progress=None)``: spin the test node until
+    ``predicate()`` holds (:func:`body_scheme_nodes.graph.spin_until`, which live_demo waits with too)."""
 
     def spin(predicate, timeout, during=None, step=0.01, progress=None):
-        deadline = time.monotonic() + timeout
-        last = progress() if progress is not None else None
-        while time.monotonic() < deadline:
-            if during is not None:
-                during()
-            ros_node.executor_for_test.spin_once(timeout_sec=step)
-            if predicate():
-                return True
-            if progress is not None and (now := progress()) != last:
-                last, deadline = now, time.monotonic() + timeout
-        return bool(predicate())
+        return graph.spin_until(ros_node.executor_for_test, predicate, timeout, during, progress, step)
 
     return spin

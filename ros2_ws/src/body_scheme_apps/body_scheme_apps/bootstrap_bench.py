@@ -32,6 +32,8 @@ import time
 
 from body_scheme_core.threads import limit_math_threads
 
+from .entry import command
+
 __all__ = ["BODIES", "LAZY", "TARGETS", "bootstrap_body", "run", "compare_trees", "main"]
 
 #: Body name -> (constructor name in body_scheme_core.world, keyword arguments).
@@ -172,6 +174,7 @@ def compare_trees(n_zoo=20, n_random=6, n_branching=4, flip_rate=0.02, n_steps=3
     return out
 
 
+@command
 def main(argv=None):
     """``python -m body_scheme_apps.bootstrap_bench [--bodies paper6,dualarm] [--compare]``: print the figures."""
     parser = argparse.ArgumentParser(prog="bootstrap_bench", description=__doc__.split("\n\n")[0])

@@ -20,9 +20,7 @@ def command(main):
     (130, 143), after the ``finally`` blocks stopped what the command started."""
     @functools.wraps(main)
     def run(argv=None):
-        name = main.__module__.rsplit(".", 1)[-1]
-        if name == "__main__":  # python -m body_scheme_apps.<name>
-            name = pathlib.Path(sys.argv[0]).stem
+        name = _name(main.__module__)
         try:
             limit_math_threads()
         except BodySchemeError as error:
@@ -36,3 +34,13 @@ def command(main):
             return 128 + signum
 
     return run
+
+
+def _name(module):
+    """The command's name: its module's (``calibrate``), its package's for a package's ``__main__``
+    (``experiments``), also when run as ``python -m`` (``__main__``: from the path Python ran)."""
+    parts = module.split(".")
+    if parts == ["__main__"]:
+        path = pathlib.Path(sys.argv[0])
+        parts = [path.parent.name, path.stem]
+    return parts[-2] if parts[-1] == "__main__" and len(parts) > 1 else parts[-1]

@@ -105,11 +105,7 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
     baseline = baseline_structure(SchemeSettings.from_parameters(parameters), plan.valid_samples)
     domain = domain_id(env) if domain is None else domain
     with tempfile.TemporaryDirectory() as tmp, monitor_node("fuzz", domain) as (node, executor):
-        processes = {"scheme_node": NodeProcess("body_scheme_nodes", "scheme_node", parameters, log_dir or tmp,
-                                                env=env)}
-        for name, (node_parameters, ros_args) in other_nodes(tree).items():
-            processes[name] = NodeProcess("body_scheme_nodes", name, node_parameters, log_dir or tmp, env=env,
-                                          ros_args=ros_args)
+        processes = {}
         statuses = {name: {} for name in STATUS}
         arrivals = {name: [] for name in STATUS}
         last, structure, answers = statuses["scheme_node"], [], []
@@ -130,7 +126,12 @@ def run_fuzz(n_messages=3000, n_steps=300, seed=0, domain=None, env=None, log_di
         publishers.update({topic: node.create_publisher(msg_type, name, 1000)
                            for topic, (msg_type, name, _) in OTHER_TOPICS.items()})
         published = Counter()
-        try:
+        try:  # every node started is stopped, whatever comes (an interrupt too)
+            processes["scheme_node"] = NodeProcess("body_scheme_nodes", "scheme_node", parameters, log_dir or tmp,
+                                                   env=env)
+            for name, (node_parameters, ros_args) in other_nodes(tree).items():
+                processes[name] = NodeProcess("body_scheme_nodes", name, node_parameters, log_dir or tmp, env=env,
+                                              ros_args=ros_args)
             deadline = time.monotonic() + 60
             while not (all(statuses.values()) and structure and publishers["camera_info"].get_subscription_count()
                        and all(p.get_subscription_count() for p in publishers.values())) \

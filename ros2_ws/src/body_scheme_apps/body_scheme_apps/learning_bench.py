@@ -77,6 +77,8 @@ from body_scheme_core.transforms import (  # noqa: E402
 )
 from body_scheme_core.world import make_session, powercube_6dof  # noqa: E402
 
+from .entry import command  # noqa: E402
+
 __all__ = ["main", "run_benchmarks"]
 
 #: Targets from the project brief, printed next to the measurements.
@@ -329,6 +331,7 @@ def _table(result):
     return "\n".join(lines)
 
 
+@command
 def main(argv=None):
     """Console entry point: run the benchmarks, print a table, write the JSON file."""
     parser = argparse.ArgumentParser(prog="body-scheme-bench", description=__doc__.split("\n\n")[0])

@@ -37,7 +37,7 @@ from body_scheme_core.transforms import translational_error
 from body_scheme_core.world import PAPER_SIGMA_ROT, PAPER_SIGMA_TRANS
 from body_scheme_msgs.msg import BodySchemeStructure, IKResult, IKTarget, MarkerPoses, ModelSnapshot, SchemeEvent
 from body_scheme_nodes import conversions
-from body_scheme_nodes.graph import NodeProcess, monitor_node
+from body_scheme_nodes.graph import NodeProcess, monitor_node, spin_until
 from body_scheme_nodes.qos import LATCHED, RECENT_EVENTS
 from body_scheme_nodes.recorder import GraphRecorder
 from body_scheme_sim.camera import camera_parameters
@@ -174,20 +174,6 @@ def _number(text):
     return text
 
 
-def _spin(executor, predicate, timeout, during=None, progress=None):
-    """Spin until ``predicate()``, at most ``timeout`` s (since ``progress()`` last changed, if given)."""
-    deadline, last = time.monotonic() + timeout, progress() if progress else None
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.02)
-        if during is not None:
-            during()
-        if predicate():
-            return True
-        if progress is not None and progress() != last:
-            deadline, last = time.monotonic() + timeout, progress()
-    return bool(predicate())
-
-
 #: The demo's faults on the shipped 6-DOF arm: its sixth joint (action 5) blocked at 0.8 rad, then repaired.
 DEMO_FAULTS = ("120:block_joint:5:0.8", "220:repair")
 #: sim_node's ``max_in_flight`` in the demo: twice those in flight on an idle machine (0.3 s latency at 13 commands/s);
@@ -281,7 +267,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             if perception == "rendered":
                 start_node("body_scheme_nodes", "tracker_node", {"markers_path": str(markers_path),
                                                                  "image_reliability": "reliable"})
-            if not _spin(executor, lambda: monitor.structure is not None, timeout=60):
+            if not spin_until(executor, lambda: monitor.structure is not None, timeout=60):
                 raise RuntimeError("scheme_node did not come up within 60 s; see " + str(out_dir / "logs"))
             # The sim babbles only once scheme_node and control_node subscribe to its commands (messages sent before
             # discovery matched are lost), and the tracker (or scheme_node) and this monitor to its outputs.
@@ -310,11 +296,11 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
             log(f"babbling {steps} commands ({how}) with faults {list(faults)} ...")
             babble_start = time.monotonic()
             # The sim's pace is scheme_node's when it waits for it (max_in_flight): give up after a minute without one.
-            if not _spin(executor, lambda: len(monitor.truth) >= steps, timeout=60, during=alive,
+            if not spin_until(executor, lambda: len(monitor.truth) >= steps, timeout=60, during=alive,
                          progress=lambda: len(monitor.truth)):
                 raise RuntimeError(f"only {len(monitor.truth)} of {steps} commands executed (none for 60 s)")
             babble_time = time.monotonic() - babble_start
-            _spin(executor, lambda: False, timeout=1.0)  # let scheme_node drain its queue
+            spin_until(executor, lambda: False, timeout=1.0)  # let scheme_node drain its queue
 
             # IK: end-effector positions the arm reached after the last repair, so reachable by the healthy arm.
             last_fault = max([int(f.split(":")[0]) for f in faults] or [0])
@@ -331,14 +317,14 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                 msg.header.frame_id = "camera"
                 msg.position.x, msg.position.y, msg.position.z = (float(v) for v in target)
                 monitor.targets.publish(msg)
-                _spin(executor, lambda n=n_results: len(monitor.ik_results) > n, timeout=20, during=alive)
+                spin_until(executor, lambda n=n_results: len(monitor.ik_results) > n, timeout=20, during=alive)
                 outcome = monitor.ik_results[-1] if len(monitor.ik_results) > n_results else None
                 record = {"target": target.tolist(), "success": bool(outcome and outcome.success),
                           "reason": outcome.reason if outcome else "no IKResult within 20 s",
                           "residual": float(outcome.residual) if outcome else float("nan"),
                           "position_std": float(outcome.position_std) if outcome else float("nan"),
                           "reached_error": None}
-                if outcome is not None and outcome.success and _spin(
+                if outcome is not None and outcome.success and spin_until(
                         executor, lambda n=n_truth: len(monitor.truth) > n, timeout=10, during=alive):
                     reached = monitor.truth[-1][1][end_effector][:3, 3]
                     record["reached_error"] = float(np.linalg.norm(reached - target))
@@ -346,7 +332,7 @@ def run_live_demo(out_dir, robot="powercube_6dof", steps=300, period=0.05, fault
                 reached_mm = "n/a" if record["reached_error"] is None else f"{record['reached_error'] * 1e3:.1f} mm"
                 log(f"IK target {np.round(target, 3).tolist()}: {record['reason']} (predicted std "
                     f"{record['position_std'] * 1e3:.1f} mm); true end effector {reached_mm} from the target")
-            _spin(executor, lambda: False, timeout=1.5)  # a last diagnostics message
+            spin_until(executor, lambda: False, timeout=1.5)  # a last diagnostics message
         finally:  # the nodes first: nothing may keep one running in the domain
             result.wall_time_s = time.monotonic() - start
             for process in reversed(processes):

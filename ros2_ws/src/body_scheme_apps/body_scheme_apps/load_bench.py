@@ -74,7 +74,7 @@ def run_load(rate=1000.0, seconds=60.0, max_sample_age=0.05, seed=0):
                       "action_upper": [float(v) for v in tree.action_upper],
                       "checkpoint_path": str(checkpoint), "checkpoint_period": 1.0,
                       "max_sample_age": float(max_sample_age)}
-        process = NodeProcess("body_scheme_nodes", "scheme_node", parameters, tmp)
+        process = None
         diagnostics, latencies, last = [], [], {}
 
         def on_diagnostics(msg):
@@ -94,7 +94,8 @@ def run_load(rate=1000.0, seconds=60.0, max_sample_age=0.05, seed=0):
         commands = node.create_publisher(JointState, "joint_commands", 100)
         observations = node.create_publisher(MarkerPoses, "observations", 100)
         names = list(tree.action_joint_names)
-        try:
+        try:  # the node started is stopped, whatever comes (an interrupt too)
+            process = NodeProcess("body_scheme_nodes", "scheme_node", parameters, tmp)
             deadline = time.monotonic() + 60
             while not diagnostics and time.monotonic() < deadline:  # the node is up and discovered
                 executor.spin_once(timeout_sec=0.05)
@@ -128,7 +129,8 @@ def run_load(rate=1000.0, seconds=60.0, max_sample_age=0.05, seed=0):
                 executor.spin_once(timeout_sec=0.05)
             alive = process.running()
         finally:
-            process.stop()
+            if process is not None:
+                process.stop()
 
     def gaps(times, until):
         times = [t for t in times if start <= t <= until]

@@ -52,6 +52,8 @@ from body_scheme_sim.babbling import babbling_screen  # noqa: E402
 from body_scheme_sim.sessions import PROTOCOL_MARKERS_OF_INTEREST, record_session  # noqa: E402
 from body_scheme_sim.world import SimWorld  # noqa: E402
 
+from .entry import command  # noqa: E402
+
 __all__ = ["TARGETS", "CAMERAS", "run_benchmarks", "corner_noise_study", "main"]
 
 #: Minimum rates the simulator and the tracker must reach on one core, Hz.
@@ -231,6 +233,7 @@ def _table(result):
     return "\n".join(lines)
 
 
+@command
 def main(argv=None):
     """Console entry point: run, print a table, write the JSON file."""
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.perception_bench",

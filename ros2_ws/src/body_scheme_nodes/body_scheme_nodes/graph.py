@@ -17,6 +17,7 @@ import pathlib
 import signal
 import subprocess
 import threading
+import time
 
 import rclpy
 import yaml
@@ -24,7 +25,7 @@ from ament_index_python.packages import PackageNotFoundError, get_package_prefix
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-__all__ = ["NodeProcess", "executable", "monitor_node"]
+__all__ = ["NodeProcess", "executable", "monitor_node", "spin_until"]
 
 
 def executable(package, name):
@@ -148,3 +149,22 @@ def _interrupted_by_signals():
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+
+
+def spin_until(executor, predicate, timeout, during=None, progress=None, step=0.02):
+    """Spin ``executor`` until ``predicate()`` holds, at most ``timeout`` s; returns the predicate's last value.
+
+    ``during()`` is called before each spin (to publish the next sample, or check the nodes still run). With
+    ``progress``, ``timeout`` is how long ``progress()`` may keep one value: work that advances is waited for however
+    slow the machine is."""
+    deadline = time.monotonic() + timeout
+    last = progress() if progress is not None else None
+    while time.monotonic() < deadline:
+        if during is not None:
+            during()
+        executor.spin_once(timeout_sec=step)
+        if predicate():
+            return True
+        if progress is not None and (now := progress()) != last:
+            last, deadline = now, time.monotonic() + timeout
+    return bool(predicate())

@@ -1,6 +1,5 @@
 """bag_replay in-process: restamping, backpressure, and refusing bad parameters and broken bags."""
 
-import time
 
 import pytest
 import rclpy
@@ -14,6 +13,7 @@ from body_scheme_core.errors import InvalidInputError
 from body_scheme_msgs.msg import MarkerPoses
 from body_scheme_nodes.bag_io import BagError, write_session
 from body_scheme_nodes.bag_replay import BagReplay, main
+from body_scheme_nodes.graph import spin_until
 from body_scheme_nodes.qos import LATCHED
 from body_scheme_sim.sessions import record_session
 
@@ -52,15 +52,6 @@ def _replay(context, bag, **parameters):
     return BagReplay(context=context, parameter_overrides=overrides)
 
 
-def _spin(executor, predicate, timeout, during=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not predicate():
-        if during is not None:
-            during()
-        executor.spin_once(timeout_sec=0.01)
-    return predicate()
-
-
 def _run(context, nodes):
     executor = SingleThreadedExecutor(context=context)
     for node in nodes:
@@ -74,7 +65,7 @@ def test_rate_compresses_the_original_stamps_and_keeps_their_order(context, sess
     listener = Listener(context)
     replay = _replay(context, bag, rate=20.0)
     executor = _run(context, [listener.node, replay])
-    assert _spin(executor, lambda: listener.done is not None and len(listener.observations) == N_STEPS, 10)
+    assert spin_until(executor, lambda: listener.done is not None and len(listener.observations) == N_STEPS, 10)
     assert listener.done is True and len(listener.commands) == N_STEPS
     first = int(session.command_stamps[0])
     expected_commands = [(int(s) - first) / 20 for s in session.command_stamps]
@@ -93,7 +84,7 @@ def test_restamp_false_keeps_the_original_stamps(context, session_and_bag):
     listener = Listener(context)
     replay = _replay(context, bag, rate=50.0, restamp=False)
     executor = _run(context, [listener.node, replay])
-    assert _spin(executor, lambda: listener.done is not None and len(listener.observations) == N_STEPS, 10)
+    assert spin_until(executor, lambda: listener.done is not None and len(listener.observations) == N_STEPS, 10)
     assert listener.commands == [int(s) for s in session.command_stamps]
     assert listener.observations == [int(s) for s in session.observation_stamps]
     replay.destroy_node()
@@ -107,21 +98,21 @@ def test_rate_zero_keeps_at_most_max_in_flight_observations_ahead(context, sessi
     listener = Listener(context)
     replay = _replay(context, bag, rate=0.0, max_in_flight=3)
     executor = _run(context, [listener.node, replay])
-    _spin(executor, lambda: False, 0.5)  # no count yet: no replay
+    spin_until(executor, lambda: False, 0.5)  # no count yet: no replay
     assert len(listener.observations) == 0 and listener.done is None
     listener.progress.publish(UInt64(data=7))
-    assert _spin(executor, lambda: len(listener.observations) == 3, 10)
-    _spin(executor, lambda: False, 0.3)  # no progress: the gate stays closed
+    assert spin_until(executor, lambda: len(listener.observations) == 3, 10)
+    spin_until(executor, lambda: False, 0.3)  # no progress: the gate stays closed
     assert len(listener.observations) == 3 and len(listener.commands) == 3
     listener.progress.publish(UInt64(data=9))
-    assert _spin(executor, lambda: len(listener.observations) == 5, 10)
-    _spin(executor, lambda: False, 0.2)
+    assert spin_until(executor, lambda: len(listener.observations) == 5, 10)
+    spin_until(executor, lambda: False, 0.2)
     assert len(listener.observations) == 5
 
     def keep_up():
         listener.progress.publish(UInt64(data=7 + len(listener.observations)))
 
-    assert _spin(executor, lambda: listener.done is not None and len(listener.observations) == N_STEPS, 20,
+    assert spin_until(executor, lambda: listener.done is not None and len(listener.observations) == N_STEPS, 20,
                  during=keep_up)
     assert listener.done is True and len(listener.observations) == N_STEPS == len(listener.commands)
     # Each observation is stamped after its command and before the next one, as recorded.
@@ -144,7 +135,7 @@ def test_a_bag_broken_midway_ends_with_done_false(context, session_and_bag, tmp_
     listener = Listener(context)
     replay = _replay(context, broken, rate=50.0)
     executor = _run(context, [listener.node, replay])
-    assert _spin(executor, lambda: listener.done is not None, 10)
+    assert spin_until(executor, lambda: listener.done is not None, 10)
     assert listener.done is False
     replay.destroy_node()
     listener.node.destroy_node()

@@ -22,6 +22,7 @@ import time
 for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one BLAS thread per process
     os.environ.setdefault(_name, "1")
 
+from ..entry import command  # noqa: E402
 from .report import write_results_json, write_results_md  # noqa: E402
 from .runner import EXPERIMENTS, Task, aggregate, experiment_module, run_tasks, sanity_problems  # noqa: E402
 
@@ -47,6 +48,7 @@ def _kept(out, rerun):
     return noise, rendered, plots, old
 
 
+@command
 def main(argv=None):
     """Console entry point."""
     parser = argparse.ArgumentParser(prog="python -m body_scheme_apps.experiments", description=__doc__.split("\n")[0])
