@@ -12,7 +12,8 @@ the URDF, else they are planned (:func:`body_scheme_sim.planning.plan_markers`, 
 the camera they were planned for, ``DIR/camera.yaml``). The camera is ``--camera``; by default the one the markers
 were planned for (``camera.yaml`` beside them), else the simulator's camera for a shipped robot and ``auto`` for a
 URDF (framing every marker). ``rendered`` perception (the default) runs our ArUco tracker on the simulator's images;
-``noise`` draws observations at the rendered tracker's accuracy (10 mm, 5 deg). Writes to ``DIR``:
+``noise`` draws observations at the rendered tracker's accuracy (10 mm, 5 deg). ``--simulate`` first names the
+markers the camera had in view but the tracker seldom took (:func:`seldom_taken`). Writes to ``DIR``:
 
 - ``learned.urdf``: :func:`body_scheme_core.prediction.learned_body.learned_urdf` (limits: the trained range);
 - with a nominal robot: ``report.txt``, ``report.json`` (per joint ``axis_deg``, ``origin_mm``, ``marker_mm``,
@@ -59,10 +60,13 @@ from body_scheme_core.world import Marker, is_true_tree, load_markers_yaml, mark
 from .entry import command
 from .robot_option import add_camera_arguments, resolve_robot
 
-__all__ = ["calibrate", "learned_accuracy", "format_accuracy", "plot_accuracy", "plot_report", "verdict", "main"]
+__all__ = ["calibrate", "learned_accuracy", "format_accuracy", "plot_accuracy", "plot_report", "seldom_taken",
+           "verdict", "main"]
 
 #: Folds of the cross-validation.
 FOLDS = 5
+#: ``--simulate`` names each marker the tracker took in fewer than this fraction of the pictures that had it in view.
+SELDOM_TAKEN = 0.5
 
 
 def calibrate(learner, joint_names, out, nominal=None, prefix="", repeat=None, urdf_text=None):
@@ -232,7 +236,27 @@ def _simulated(choice, steps, seed, perception="rendered"):
     for actions, observations in tqdm(pairs, total=len(session.actions), desc="learning", unit="step",
                                       disable=not sys.stderr.isatty()):
         learner.update(actions, observations)
-    return learner, nominal
+    return learner, nominal, seldom_taken(session, nominal)
+
+
+def seldom_taken(session, nominal):
+    """Lines naming the markers that the camera had in view (``session.visible_truth``: in the image, facing it,
+    large enough, not hidden) but the tracker took in fewer than :data:`SELDOM_TAKEN` of those pictures, with the
+    session's refusals by kind; none if every marker was taken. A marker the learner never gets leaves its part
+    unconnected: the Panda's base marker, seen square-on and small, was refused as ambiguous in nearly every
+    picture (docs/your-robot.md)."""
+    in_view = np.asarray(session.visible_truth).sum(axis=0)
+    lines = []
+    for column, marker_id in enumerate(session.marker_ids):
+        taken = sum(marker_id in observed for observed in session.observations)
+        if in_view[column] and taken < SELDOM_TAKEN * in_view[column]:
+            lines.append(f"marker {marker_id} on {nominal.marker(marker_id).link}: in view in {in_view[column]} of "
+                         f"{len(session.observations)} pictures, taken by the tracker in {taken}")
+    if lines and session.tracker_rejected:
+        refused = ", ".join(f"{kind} {count}" for kind, count in sorted(session.tracker_rejected.items()))
+        lines.append(f"the tracker refused (all markers): {refused}; a bigger marker, a closer camera or a marker "
+                     f"tilted further from the line of sight helps (docs/your-robot.md)")
+    return lines
 
 
 @command
@@ -263,7 +287,9 @@ def main(argv=None):
         if args.simulate:
             choice = resolve_robot(args.simulate, args.markers, args.camera, args.package_path,
                                    pathlib.Path(args.out) / "markers.yaml", args.seed)
-            learner, nominal = _simulated(choice, args.steps, args.seed, args.perception)
+            learner, nominal, sightings = _simulated(choice, args.steps, args.seed, args.perception)
+            for line in sightings:
+                print(line)
             urdf_text = _urdf_text(choice.robot)
         else:
             learner = load_state(args.state)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from urdf_parser_py.urdf import URDF
 
-from body_scheme_apps.calibrate import main, verdict
+from body_scheme_apps.calibrate import main, seldom_taken, verdict
 from body_scheme_apps.robot_option import resolve_robot
 from body_scheme_core.learning.learner import BodySchemeLearner
 from body_scheme_core.learning.persistence import save_state
@@ -52,6 +52,26 @@ def test_the_verdict_says_when_there_is_no_true_body_scheme(tmp_path):
     text = verdict(learner, robot, None, tmp_path)
     assert text.startswith("verdict: NOT a true body scheme of the robot (no body scheme, phase bootstrapping)")
     assert "worst joint" not in text and "report.txt" not in text and "not joints" not in text
+
+
+def test_simulate_names_the_markers_the_camera_saw_and_the_tracker_seldom_took():
+    """The Panda's base marker was in view in most pictures and refused as ambiguous in nearly all: a user is told
+    which marker, on which link, and what the tracker refused; a marker taken in half of its pictures is not named."""
+    tree = load_robot("powercube_6dof")
+    ids = tree.marker_ids
+    visible = np.ones((10, len(ids)), dtype=bool)
+    visible[:, -1] = False  # never in view, never taken: the camera's business, not the tracker's
+    observations = [{m: np.eye(4) for m in ids[:-1] if not (m == ids[0] and k >= 2) and not (m == ids[1] and k >= 5)}
+                    for k in range(10)]
+    session = SimpleNamespace(marker_ids=ids, visible_truth=visible, observations=observations,
+                              tracker_rejected={"ambiguous pose": 8, "degenerate detection": 1})
+    lines = seldom_taken(session, tree)
+    assert lines[0] == (f"marker {ids[0]} on {tree.marker(ids[0]).link}: in view in 10 of 10 pictures, taken by the "
+                        f"tracker in 2")
+    assert len(lines) == 2 and "ambiguous pose 8, degenerate detection 1" in lines[1]
+    observations = [{m: np.eye(4) for m in ids[:-1]} for _ in range(10)]
+    assert seldom_taken(SimpleNamespace(marker_ids=ids, visible_truth=visible, observations=observations,
+                                        tracker_rejected={"ambiguous pose": 3}), tree) == []
 
 
 def test_the_verdict_names_the_edges_that_are_gps_not_joints(tmp_path):
