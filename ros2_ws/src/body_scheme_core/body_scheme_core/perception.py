@@ -19,17 +19,13 @@ It is large along the ray and grows with the distance squared: what a monocular 
 
 Measured accuracy
 -----------------
-On the simulator's 640x480 images of ``powercube_6dof`` (8 cm markers, 10 cm on the base, 1.6-2.2 m from the
-camera, 14-25 pixels across), over a 300-step rendered babbling session against ground truth
-(``python -m body_scheme_apps.perception_bench``; ``docs/sim.md``, "Tracker accuracy"): translation error median
-8 mm, 90th percentile 23 mm; rotation error median 0.8 deg, 90th percentile 2.3 deg; about 6 % of the poses are IPPE's
-mirrored solution (rotation off by 20-120 deg), mostly on the smallest, farthest markers. The 90th percentile is the
-fixed 23 mm error of the static base marker, seen in every frame: an axis-aligned, foreshortened marker whose edges the
-aliased renderer quantises to whole pixels. 84 % of the geometrically visible markers are detected. The corner
-refinement matters: OpenCV's ``subpix`` and ``contour`` methods place the corners of such small markers 0.2-0.7 px
-inside the square (distances biased by 3-9 cm; ``subpix`` also mirrors many poses); ``apriltag`` is unbiased to
-0.1 px but detects about a fifth fewer markers. The
-``DOCUMENTED_*`` constants below are the bounds the tests hold the tracker to.
+On the simulator's rendered images: ``docs/sim.md``, "Tracker accuracy" (``python -m
+body_scheme_apps.perception_bench``, figures in ``docs/results/sim.json``), with what limits it (depth along the ray,
+IPPE's mirrored solution on small, nearly fronto-parallel markers, the aliased renderer's fixed error on the static
+base marker). The corner refinement matters: OpenCV's ``subpix`` and ``contour`` methods place the corners of small
+markers up to 0.7 px inside the square (distances biased by centimetres); ``apriltag`` fits lines to the edges, and
+OpenCV returns its corners in AprilTag's pixel convention, half a pixel off (:data:`APRILTAG_PIXEL_OFFSET`,
+subtracted). The ``DOCUMENTED_*`` constants below are the bounds the tests hold the tracker to.
 """
 
 from __future__ import annotations
@@ -52,6 +48,7 @@ __all__ = [
     "check_image",
     "rejection_kind",
     "marker_object_points",
+    "APRILTAG_PIXEL_OFFSET",
     "DOCUMENTED_TRANS_ERROR_MEDIAN",
     "DOCUMENTED_TRANS_ERROR_P90",
     "DOCUMENTED_ROT_ERROR_MEDIAN",
@@ -232,6 +229,12 @@ def _dictionary(name):
 
 
 _CORNER_REFINEMENTS = ("apriltag", "subpix", "contour", "none")
+#: OpenCV's ``CORNER_REFINE_APRILTAG`` gives corners in AprilTag's pixel convention (a pixel's centre at +0.5,
+#: AprilRobotics/apriltag#121), half a pixel right of and below OpenCV's (the centre at the integer), which the camera
+#: matrix and the other refinements use: subtracted. Measured before: +0.43 / +0.43 px on the simulator's images
+#: (no refinement +0.00 / +0.04), +0.44 / +0.41 px on an area-sampled marker, exactly +0.5 on an axis-aligned one; a
+#: lateral bias of 0.8 mm at 1 m for a 600 px focal length.
+APRILTAG_PIXEL_OFFSET = 0.5
 
 
 def _corner_refinement(name):
@@ -299,6 +302,7 @@ class MarkerTracker:
         self._plate_of = {tag: plate_id for plate_id, plate in self.plates.items() for tag in plate.tags}
         parameters = cv2.aruco.DetectorParameters()
         parameters.cornerRefinementMethod = _corner_refinement(corner_refinement)
+        self._corner_offset = APRILTAG_PIXEL_OFFSET if corner_refinement == "apriltag" else 0.0
         self._detector = cv2.aruco.ArucoDetector(_dictionary(dictionary), parameters)
         self.counts = {"images": 0, "detected": 0, "poses": 0}
 
@@ -340,6 +344,7 @@ class MarkerTracker:
         """
         gray = check_image(image)
         corners, ids, _ = self._detector.detectMarkers(gray)
+        corners = [np.asarray(c, dtype=float) - self._corner_offset for c in corners]
         self.counts["images"] += 1
         if ids is None or len(ids) == 0:
             return {}, []
