@@ -56,13 +56,13 @@ __all__ = [
     "DOCUMENTED_DETECTION_RATE",
 ]
 
-#: Documented bounds of the tracker's error on the simulator's rendered images (measured: 8 mm, 23 mm, 0.8 deg,
-#: 2.3 deg; docs/sim.md): median and 90th percentile, translation (m) and rotation (rad).
+#: Documented bounds of the tracker's error on the simulator's rendered images (measured: 3.3 mm, 19 mm, 0.49 deg,
+#: 0.97 deg; docs/results/sim.json, docs/sim.md): median and 90th percentile, translation (m) and rotation (rad).
 DOCUMENTED_TRANS_ERROR_MEDIAN = 0.012
 DOCUMENTED_TRANS_ERROR_P90 = 0.030
 DOCUMENTED_ROT_ERROR_MEDIAN = math.radians(1.5)
 DOCUMENTED_ROT_ERROR_P90 = math.radians(5.0)
-#: Documented lower bound of the fraction of geometrically visible markers the tracker detects (measured: 0.84).
+#: Documented lower bound of the fraction of geometrically visible markers the tracker detects (measured: 0.92).
 DOCUMENTED_DETECTION_RATE = 0.75
 
 
