@@ -6,7 +6,7 @@ import signal
 
 import pytest
 
-from body_scheme_nodes.graph import _interrupted_by_signals, spin_until
+from body_scheme_nodes.graph import _interrupted_by_signals
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -25,35 +25,3 @@ def test_the_first_signal_interrupts_later_ones_wait_and_the_handlers_are_restor
     assert stopped == [True]
     assert {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)} == before
 
-
-@pytest.fixture
-def executor():
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    executor = SingleThreadedExecutor(context=context)
-    node = rclpy.create_node("spin_until_test", context=context)
-    executor.add_node(node)
-    try:
-        yield executor
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-
-
-def test_spin_until_returns_once_the_predicate_holds_and_calls_during_before_each_spin(executor):
-    calls = []
-    assert spin_until(executor, lambda: len(calls) >= 3, timeout=60, during=lambda: calls.append(1), step=0.001)
-    assert len(calls) == 3
-
-
-def test_spin_until_gives_up_after_the_timeout_unless_progress_moves(executor):
-    assert not spin_until(executor, lambda: False, timeout=0.05, step=0.001)
-    ticks = []
-    # Each spin moves the progress: 1,000 spins of at least 1 ms wait out a 0.2 s timeout five times; the predicate
-    # decides.
-    assert spin_until(executor, lambda: len(ticks) >= 1000, timeout=0.2, during=lambda: ticks.append(1),
-                      progress=lambda: len(ticks), step=0.001)
