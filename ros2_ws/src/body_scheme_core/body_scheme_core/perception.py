@@ -48,6 +48,7 @@ __all__ = [
     "check_image",
     "rejection_kind",
     "marker_object_points",
+    "square_pnp",
     "APRILTAG_PIXEL_OFFSET",
     "DOCUMENTED_TRANS_ERROR_MEDIAN",
     "DOCUMENTED_TRANS_ERROR_P90",
@@ -143,6 +144,21 @@ def marker_object_points(size):
     """
     h = 0.5 * float(size)
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+def square_pnp(object_points, image_points, camera_matrix, dist_coeffs=None):
+    """IPPE's two poses of a square marker from its corners: ``cv2.solvePnPGeneric``'s ``(n, rvecs, tvecs,
+    errors)``. ``SOLVEPNP_IPPE_SQUARE``, or the general planar ``SOLVEPNP_IPPE`` where it gives no finite solution:
+    its closed form is NaN for some symmetric views (a marker tilted about the image's horizontal axis and centred on
+    the principal point's column; the simulator's planar arm's base marker, once its corners were in OpenCV's pixel
+    convention), where the general one gives the same two poses."""
+    image_points = np.ascontiguousarray(image_points, dtype=float).reshape(-1, 2)
+    for flag in (cv2.SOLVEPNP_IPPE_SQUARE, cv2.SOLVEPNP_IPPE):
+        n, rvecs, tvecs, errors = cv2.solvePnPGeneric(object_points, image_points, camera_matrix, dist_coeffs,
+                                                      flags=flag)
+        if n >= 1 and np.all(np.isfinite(rvecs[0])) and np.all(np.isfinite(tvecs[0])):
+            break
+    return n, rvecs, tvecs, errors
 
 
 def check_image(image):
@@ -409,8 +425,7 @@ class MarkerTracker:
         if (problem := self._side_problem(image_points)) is not None:
             return None, problem
         object_points = marker_object_points(size)
-        n, rvecs, tvecs, errors = cv2.solvePnPGeneric(object_points, image_points, self.camera_matrix,
-                                                      self.dist_coeffs, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        n, rvecs, tvecs, errors = square_pnp(object_points, image_points, self.camera_matrix, self.dist_coeffs)
         if n < 1 or not (np.all(np.isfinite(rvecs[0])) and np.all(np.isfinite(tvecs[0]))):
             return None, "solvePnP found no pose"
         errors = math.sqrt(2.0) * np.ravel(errors)[:2]  # OpenCV's is per coordinate; ours per corner

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from body_scheme_core.errors import InvalidInputError
-from body_scheme_core.perception import MarkerDetection, marker_object_points, pose_covariance
+from body_scheme_core.perception import MarkerDetection, marker_object_points, pose_covariance, square_pnp
 from body_scheme_core.transforms import invert_transform, rotational_error, transform_from_rotvec
 
 __all__ = ["Plate", "plate_pose", "grid_plate", "plates_from_markers"]
@@ -141,8 +141,7 @@ def plate_pose(plate, corners, camera_matrix, dist_coeffs=None, sigma_px=0.5):
     solutions = []
     for tag_id in seen:
         size, plate2tag = plate.tags[tag_id]
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker_object_points(size), np.asarray(corners[tag_id], dtype=float),
-                                                 camera_matrix, dist_coeffs, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        n, rvecs, tvecs, _ = square_pnp(marker_object_points(size), corners[tag_id], camera_matrix, dist_coeffs)
         for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
             camera2plate = _pose(rvec, tvec) @ invert_transform(np.asarray(plate2tag, dtype=float))
             rvec = cv2.Rodrigues(camera2plate[:3, :3])[0]

@@ -14,6 +14,7 @@ from body_scheme_core.perception import (
     MarkerTracker,
     marker_object_points,
     pose_covariance,
+    square_pnp,
 )
 
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
@@ -308,3 +309,21 @@ def test_poses_are_not_shifted_by_a_pixel_convention(refinement):
         lateral.append(poses[2][:2, 3] - truth[:2, 3])
     bias = np.abs(np.mean(lateral, axis=0))
     assert np.all(bias < 0.25e-3), bias
+
+
+def test_a_marker_centred_on_the_principal_points_column_has_a_pose():
+    """The simulator's planar arm's base marker, as its corners came once in OpenCV's pixel convention: an upright
+    rectangle centred on the principal point's column, seen by the 640 x 480, 60 deg camera. IPPE_SQUARE's closed form
+    is NaN there ('solvePnP found no pose' in every picture); square_pnp falls back to the general planar IPPE."""
+    f = 320.0 / math.tan(math.radians(30.0))
+    camera_matrix = np.array([[f, 0.0, 319.5], [0.0, f, 239.5], [0.0, 0.0, 1.0]])
+    image_points = np.array([[330.5, 174.5], [330.5, 191.5], [308.5, 191.5], [308.5, 174.5]])
+    object_points = marker_object_points(0.08)
+    _, _, tvecs, _ = cv2.solvePnPGeneric(object_points, image_points, camera_matrix, None,
+                                         flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    assert not np.all(np.isfinite(tvecs[0]))  # OpenCV's degenerate case; if it ever solves it, drop the fallback
+    n, _, tvecs, errors = square_pnp(object_points, image_points, camera_matrix)
+    assert n == 2 and np.all(np.isfinite(tvecs[0])) and math.sqrt(2.0) * np.ravel(errors)[0] < 0.2
+    tracker = MarkerTracker(camera_matrix, marker_sizes=0.08, max_ambiguity=1.0)
+    detection, reason = tracker._pose(1, image_points)
+    assert reason is None and abs(detection.pose[2, 3] - 2.0) < 0.1
