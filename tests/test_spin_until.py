@@ -14,7 +14,7 @@ def test_spin_until_gives_up_after_the_timeout_unless_progress_moves(ros_node):
     executor = ros_node.executor_for_test
     assert not spin_until(executor, lambda: False, timeout=0.05, step=0.001)
     ticks = []
-    # Each spin moves the progress: 1,000 spins of at least 1 ms wait out a 0.2 s timeout five times; the predicate
-    # decides.
-    assert spin_until(executor, lambda: len(ticks) >= 1000, timeout=0.2, during=lambda: ticks.append(1),
-                      progress=lambda: len(ticks), step=0.001)
+    # Each spin moves the progress: 300 spins of at least 5 ms outlast the 1 s timeout; the predicate decides (a
+    # 1 s window between two lines: no busy machine stalls a thread that long).
+    assert spin_until(executor, lambda: len(ticks) >= 300, timeout=1.0, during=lambda: ticks.append(1),
+                      progress=lambda: len(ticks), step=0.005)

@@ -245,13 +245,12 @@ def seldom_taken(session, nominal):
     session's refusals by kind; none if every marker was taken. A marker the learner never gets leaves its part
     unconnected: the Panda's base marker, seen square-on and small, was refused as ambiguous in nearly every
     picture (docs/your-robot.md)."""
-    in_view = np.asarray(session.visible_truth).sum(axis=0)
-    lines = []
-    for column, marker_id in enumerate(session.marker_ids):
-        taken = sum(marker_id in observed for observed in session.observations)
-        if in_view[column] and taken < SELDOM_TAKEN * in_view[column]:
-            lines.append(f"marker {marker_id} on {nominal.marker(marker_id).link}: in view in {in_view[column]} of "
-                         f"{len(session.observations)} pictures, taken by the tracker in {taken}")
+    if session.visible_truth is None:  # a session that does not know what the camera had in view
+        return []
+    in_view, taken = session.visible_truth.sum(axis=0), session.visible.sum(axis=0)
+    lines = [f"marker {marker_id} on {nominal.marker(marker_id).link}: in view in {in_view[k]} of {session.n_steps} "
+             f"pictures, taken by the tracker in {taken[k]}" for k, marker_id in enumerate(session.marker_ids)
+             if in_view[k] and taken[k] < SELDOM_TAKEN * in_view[k]]
     if lines and session.tracker_rejected:
         refused = ", ".join(f"{kind} {count}" for kind, count in sorted(session.tracker_rejected.items()))
         lines.append(f"the tracker refused (all markers): {refused}; a bigger marker, a closer camera or a marker "

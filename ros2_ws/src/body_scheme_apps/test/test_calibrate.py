@@ -58,20 +58,24 @@ def test_simulate_names_the_markers_the_camera_saw_and_the_tracker_seldom_took()
     """The Panda's base marker was in view in most pictures and refused as ambiguous in nearly all: a user is told
     which marker, on which link, and what the tracker refused; a marker taken in half of its pictures is not named."""
     tree = load_robot("powercube_6dof")
-    ids = tree.marker_ids
-    visible = np.ones((10, len(ids)), dtype=bool)
-    visible[:, -1] = False  # never in view, never taken: the camera's business, not the tracker's
-    observations = [{m: np.eye(4) for m in ids[:-1] if not (m == ids[0] and k >= 2) and not (m == ids[1] and k >= 5)}
-                    for k in range(10)]
-    session = SimpleNamespace(marker_ids=ids, visible_truth=visible, observations=observations,
-                              tracker_rejected={"ambiguous pose": 8, "degenerate detection": 1})
+    session = make_session(tree, 10, seed=0, visibility=1.0)
+    ids = session.marker_ids
+    session.visible_truth = np.ones((10, len(ids)), dtype=bool)
+    session.visible_truth[:, -1] = False  # never in view, never taken: the camera's business, not the tracker's
+    for k, observed in enumerate(session.observations):
+        observed.pop(ids[-1])
+        if k >= 2:
+            observed.pop(ids[0])
+        if k >= 5:
+            observed.pop(ids[1])
+    session.tracker_rejected = {"ambiguous pose": 8, "degenerate detection": 1}
     lines = seldom_taken(session, tree)
     assert lines[0] == (f"marker {ids[0]} on {tree.marker(ids[0]).link}: in view in 10 of 10 pictures, taken by the "
                         f"tracker in 2")
     assert len(lines) == 2 and "ambiguous pose 8, degenerate detection 1" in lines[1]
-    observations = [{m: np.eye(4) for m in ids[:-1]} for _ in range(10)]
-    assert seldom_taken(SimpleNamespace(marker_ids=ids, visible_truth=visible, observations=observations,
-                                        tracker_rejected={"ambiguous pose": 3}), tree) == []
+    session = make_session(tree, 10, seed=0, visibility=1.0)
+    session.visible_truth, session.tracker_rejected = np.ones((10, len(ids)), dtype=bool), {"ambiguous pose": 3}
+    assert seldom_taken(session, tree) == []
 
 
 def test_the_verdict_names_the_edges_that_are_gps_not_joints(tmp_path):

@@ -324,6 +324,4 @@ def test_a_marker_centred_on_the_principal_points_column_has_a_pose():
     assert not np.all(np.isfinite(tvecs[0]))  # OpenCV's degenerate case; if it ever solves it, drop the fallback
     n, _, tvecs, errors = square_pnp(object_points, image_points, camera_matrix)
     assert n == 2 and np.all(np.isfinite(tvecs[0])) and math.sqrt(2.0) * np.ravel(errors)[0] < 0.2
-    tracker = MarkerTracker(camera_matrix, marker_sizes=0.08, max_ambiguity=1.0)
-    detection, reason = tracker._pose(1, image_points)
-    assert reason is None and abs(detection.pose[2, 3] - 2.0) < 0.1
+    assert abs(float(np.ravel(tvecs[0])[2]) - 2.016) < 0.01  # what IPPE, SQPNP and the iterative solver give
